@@ -1,0 +1,1 @@
+"""Sender-side encoding, REST and Zenoh clients for bb-align."""

@@ -1,0 +1,89 @@
+"""Rigid transforms in 2-D and 3-D: T_a_b maps points of frame b into frame a (p_a = T_a_b @ p_b)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def se2(yaw_rad: float, tx: float, ty: float) -> np.ndarray:
+    """3x3 homogeneous 2-D rigid transform."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, tx], [s, c, ty], [0.0, 0.0, 1.0]])
+
+
+def se2_params(T: np.ndarray) -> tuple[float, float, float]:
+    """(yaw_rad, tx, ty) of a 3x3 (or the x-y part of a 4x4) rigid transform."""
+    T = np.asarray(T, dtype=float)
+    t_col = T.shape[1] - 1
+    return float(np.arctan2(T[1, 0], T[0, 0])), float(T[0, t_col]), float(T[1, t_col])
+
+
+def transform_points_2d(T_a_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 transform to (N, 2) points."""
+    pts_b = np.asarray(pts_b, dtype=float)
+    return pts_b @ T_a_b[:2, :2].T + T_a_b[:2, 2]
+
+
+def transform_points_3d(T_a_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3+) points; extra columns are kept."""
+    pts_b = np.asarray(pts_b)
+    out = pts_b.copy()
+    out[:, :3] = pts_b[:, :3] @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    return out
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) @ Ry(pitch) @ Rx(roll), radians (the paper's Eq. 2 with alpha=yaw, beta=pitch, gamma=roll)."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def se3_from_se2(T2: np.ndarray, *, tz: float = 0.0, roll: float = 0.0, pitch: float = 0.0) -> np.ndarray:
+    """Eq. 1: the 4x4 transform from the estimated (yaw, tx, ty) and constant roll, pitch, tz."""
+    yaw, tx, ty = se2_params(T2)
+    T = np.eye(4)
+    T[:3, :3] = rotation_rpy(roll, pitch, yaw)
+    T[:3, 3] = (tx, ty, tz)
+    return T
+
+
+def wrap_angle(a):
+    """Wrap radians to (-pi, pi]."""
+    return -((-np.asarray(a) + np.pi) % (2 * np.pi) - np.pi)
+
+
+def kabsch_2d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Closed-form least-squares rigid transform T (3x3) with dst ~ T @ src; (N, 2) each, N >= 2.
+
+    theta = atan2(sum(x*y' - y*x'), sum(x*x' + y*y')) on centred points, t = mu' - R mu.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_d = w @ dst
+    a = src - mu_s
+    b = dst - mu_d
+    s_cross = np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+    s_dot = np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    theta = np.arctan2(s_cross, s_dot)
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    t = mu_d - R @ mu_s
+    return se2(theta, t[0], t[1])
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(translation error m, |yaw error| deg) between two 2-D/3-D transforms, on the ground plane."""
+    y1, x1, y1t = se2_params(T_est)
+    y2, x2, y2t = se2_params(T_true)
+    return float(np.hypot(x1 - x2, y1t - y2t)), float(abs(np.degrees(wrap_angle(y1 - y2))))

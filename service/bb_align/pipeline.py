@@ -1,0 +1,203 @@
+"""The two-stage BB-Align pipeline (paper Algorithm 1).
+
+    aligner = Aligner()
+    ego = aligner.prepare(make_bev(pts_ego), boxes_ego)     # once per ego frame (cache it)
+    peer = aligner.prepare(make_bev(pts_peer), boxes_peer)  # per peer frame
+    result = aligner.align(ego, peer)                       # result.T_ego_peer maps peer points into ego
+
+``prepare`` runs lines 6-8 (MIM, keypoints, descriptors) for one car; ``align`` runs lines 9-17.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .bev import BevImage, make_bev
+from .boxes import align_boxes, as_boxes
+from .config import AlignConfig
+from .descriptors import bvft_descriptors, flip_180
+from .geometry import se2_params, se3_from_se2
+from .keypoints import detect_keypoints
+from .loggabor import maximum_index_map
+from .matching import match_descriptors
+from .ransac import rigid_ransac
+from .result import AlignResult, FailureReason
+
+
+@dataclass
+class PreparedFrame:
+    """One car's frame with its engine features computed (reusable against many other frames)."""
+
+    bev: BevImage
+    boxes: np.ndarray  # (K, 7) [x, y, z, l, w, h, yaw], sensor frame
+    keypoints_rc: np.ndarray  # (K, 2) pixels (row, col)
+    keypoints_xy: np.ndarray  # (K, 2) metres in the sensor frame
+    descriptors: np.ndarray  # (K, D)
+    descriptors_flipped: np.ndarray  # (K, D) the same patches rotated by 180 deg
+    mim: np.ndarray | None = None  # kept for plots when keep_maps=True
+    num_points: int | None = None  # raw cloud size when known
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def lit_pixels(self) -> int:
+        return int(np.count_nonzero(self.bev.image))
+
+
+@contextmanager
+def _timed(timings: dict[str, float], name: str):
+    t0 = time.perf_counter()
+    yield
+    timings[name] = timings.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+class Aligner:
+    """Stateless apart from its configuration; safe to share between threads."""
+
+    def __init__(self, config: AlignConfig | None = None, *, fft_workers: int | None = None):
+        self.config = config or AlignConfig()
+        self.fft_workers = fft_workers
+
+    # ---- Algorithm 1, lines 6-8: per car -------------------------------------------------------------
+    def prepare(self, frame: BevImage | np.ndarray, boxes=None, *, keep_maps: bool = False) -> PreparedFrame:
+        """A BV image (or a raw (N, 3+) cloud, made into one with config.bev) and its boxes -> features."""
+        cfg = self.config
+        timings: dict[str, float] = {}
+        num_points = None
+        if not isinstance(frame, BevImage):
+            pts = np.asarray(frame)
+            num_points = int(len(pts))
+            with _timed(timings, "bev"):
+                frame = make_bev(pts, cfg.bev)
+        bev = self._at_resolution(frame)
+        with _timed(timings, "mim"):
+            mim, amp = maximum_index_map(bev.image, cfg.mim, self.fft_workers)
+        with _timed(timings, "keypoints"):
+            rc = detect_keypoints(bev.image, cfg.features)
+        with _timed(timings, "descriptors"):
+            desc = bvft_descriptors(mim, amp, rc, cfg.features, cfg.mim.n_orient)
+            desc_flip = flip_180(desc, cfg.features)
+        return PreparedFrame(
+            bev=bev,
+            boxes=as_boxes(boxes),
+            keypoints_rc=rc,
+            keypoints_xy=bev.pixel_to_metre(rc),
+            descriptors=desc,
+            descriptors_flipped=desc_flip,
+            mim=mim if keep_maps else None,
+            num_points=num_points,
+            timings_ms=timings,
+        )
+
+    def _at_resolution(self, bev: BevImage) -> BevImage:
+        """Descriptors are in pixels: bring a peer image made at another resolution to the configured one."""
+        want = self.config.bev.resolution_m
+        if abs(bev.resolution_m - want) < 1e-9:
+            return bev
+        scale = bev.resolution_m / want
+        h, w = bev.shape
+        size = (max(1, int(round(w * scale))), max(1, int(round(h * scale))))
+        interp = cv2.INTER_NEAREST if scale > 1 else cv2.INTER_AREA
+        image = cv2.resize(bev.image, size, interpolation=interp)
+        return BevImage(image, want, image.shape[0] * want / 2, bev.mode, bev.ground_clearance_m, bev.max_height_m)
+
+    # ---- Algorithm 1, lines 9-17: pair ------------------------------------------------------------------
+    def align(self, ego: PreparedFrame, peer: PreparedFrame, *, tz: float = 0.0, roll: float = 0.0,
+              pitch: float = 0.0) -> AlignResult:
+        """T_ego_peer from prepared frames. tz, roll, pitch (metres, radians) are Eq. 1's constants."""
+        cfg = self.config
+        timings: dict[str, float] = {}
+        result = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3),
+                             timings_ms=timings)
+
+        def finish(reason: FailureReason | None) -> AlignResult:
+            T_2d = result.T_box @ result.T_bv
+            result.T_ego_peer = se3_from_se2(T_2d, tz=tz, roll=roll, pitch=pitch)
+            result.reason = None if reason is None else reason.value
+            result.success = reason is None
+            result.confidence = self._confidence(result, ambiguity)
+            timings["align_total"] = sum(v for k, v in timings.items() if k != "align_total")
+            return result
+
+        ambiguity = 1.0
+        # Guards: nothing to match.
+        for f in (ego, peer):
+            if f.num_points is not None and f.num_points < cfg.min_points:
+                return finish(FailureReason.too_few_points)
+            if f.lit_pixels == 0:
+                return finish(FailureReason.empty_image)
+            if len(f.keypoints_rc) < 3:
+                return finish(FailureReason.no_keypoints)
+
+        # Lines 9-10: match peer descriptors against the ego's (and their 180-degree copies).
+        with _timed(timings, "matching"):
+            desc_ego = np.concatenate([ego.descriptors, ego.descriptors_flipped])
+            i_peer, i_ego = match_descriptors(peer.descriptors, desc_ego, mutual=cfg.match.mutual,
+                                              ratio=cfg.match.ratio)
+            i_ego = i_ego % len(ego.descriptors)
+            pts_peer = peer.keypoints_xy[i_peer]
+            pts_ego = ego.keypoints_xy[i_ego]
+        result.matches_bv = int(len(i_peer))
+        if len(i_peer) < 2:
+            return finish(FailureReason.too_few_matches)
+
+        # Line 11: T_bv by rigid RANSAC.
+        m = cfg.match
+        with _timed(timings, "ransac"):
+            fit = rigid_ransac(pts_peer, pts_ego, threshold=m.inlier_threshold_m,
+                               min_sample_dist=m.min_sample_dist_m, max_iterations=m.max_iterations,
+                               min_iterations=m.min_iterations, confidence=m.confidence, seed=m.seed)
+        if fit is None:
+            return finish(FailureReason.too_few_matches)
+        result.T_bv = fit.T_dst_src
+        result.inliers_bv = fit.num_inliers
+        ambiguity = fit.ambiguity
+        if result.inliers_bv <= cfg.success.min_inliers_bv:
+            return finish(FailureReason.too_few_inliers_bv)
+        if ambiguity >= cfg.success.max_ambiguity:
+            return finish(FailureReason.ambiguous_bv)
+
+        # Lines 12-15: box alignment on top of T_bv.
+        if len(ego.boxes) == 0 or len(peer.boxes) == 0:
+            if cfg.success.require_boxes:
+                return finish(FailureReason.no_boxes)
+            result.notes.append("stage 2 skipped: no boxes from " + ("ego" if len(ego.boxes) == 0 else "peer"))
+            return finish(None)
+        with _timed(timings, "boxes"):
+            boxes = align_boxes(ego.boxes, peer.boxes, result.T_bv, cfg.box, seed=m.seed)
+        result.box_pairs = boxes.pairs
+        result.inliers_box = boxes.inliers
+        if boxes.pairs == 0:
+            return finish(FailureReason.no_box_overlap)
+        if boxes.inliers <= cfg.success.min_inliers_box:
+            return finish(FailureReason.too_few_inliers_box)
+        yaw, tx, ty = se2_params(boxes.T_box)
+        if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
+            return finish(FailureReason.box_correction_too_large)
+        result.T_box = boxes.T_box
+        result.stage2_applied = True
+        return finish(None)
+
+    def _confidence(self, r: AlignResult, ambiguity: float) -> float:
+        """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9: > 100 bv or > 20 box
+        inliers put > 90% of pairs under 1 m / 1 deg), shrinks with the RANSAC ambiguity; capped when failed."""
+        s = self.config.success
+        c_bv = (1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / 40.0)) * (1.0 - min(1.0, ambiguity))
+        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / 8.0) if r.stage2_applied else 0.0
+        c = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
+        if not r.success:
+            cap = 0.5 if r.reason in {FailureReason.no_box_overlap.value, FailureReason.too_few_inliers_box.value,
+                                      FailureReason.no_boxes.value} else 0.1
+            c = min(c, cap)
+        return float(np.clip(c, 0.0, 1.0))
+
+
+def align_clouds(pts_ego: np.ndarray, pts_peer: np.ndarray, boxes_ego=None, boxes_peer=None,
+                 config: AlignConfig | None = None) -> AlignResult:
+    """One call: two clouds (sensor frames) and optional boxes -> AlignResult with T_ego_peer."""
+    aligner = Aligner(config)
+    return aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, boxes_peer))
