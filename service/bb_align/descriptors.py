@@ -1,10 +1,13 @@
 """Rotation-invariant BVFT descriptors on the Maximum Index Map, vectorised over keypoints.
 
-Per keypoint: the dominant MIM orientation m of a (1.44 J)-px neighbourhood (histogram of MIM values weighted
-by a radial falloff times the max amplitude); MIM values shifted so m becomes 1 (rotating the scene shifts the
+Per keypoint: the dominant MIM orientation m of a disc of radius J/sqrt(2) (histogram of MIM values weighted by
+(1 - d/radius)^2 times the max amplitude); MIM values shifted so m becomes 1 (rotating the scene shifts the
 values); the J x J window sampled on a grid rotated by 15 deg * (m - 1) (nearest neighbour); an l x l grid of
 value histograms, L2-normalised. Orientations live in [0, pi), so a scene rotated by 180 deg gives the same m
 and a descriptor whose cells are in reverse order: :func:`flip_180` makes that copy for the matching side.
+
+Keypoints are processed in small chunks so temporaries stay cache-sized (large fresh arrays cost more in page
+faults than the arithmetic); the 12 possible rotated sampling grids and the value-shift table are cached.
 """
 
 from __future__ import annotations
@@ -15,48 +18,76 @@ import numpy as np
 
 from .config import FeatureConfig
 
+_CHUNK = 32  # keypoints per vectorised block
+
 
 @lru_cache(maxsize=4)
-def _orientation_window(radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Offsets (dr, dc) of a (2 radius)^2 window and its weights (1 - min(1, d/radius))^2."""
-    off = np.arange(-radius, radius)
+def _orientation_window(radius: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat offsets (in an image ``width`` px wide) of the disc of ``radius`` px and weights (1 - d/radius)^2."""
+    off = np.arange(-radius, radius + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
     d = np.hypot(dr, dc)
-    w = (1.0 - np.minimum(1.0, d / radius)) ** 2
-    return dr.ravel(), dc.ravel(), w.ravel().astype(np.float32)
+    inside = d < radius
+    return (dr[inside] * width + dc[inside]).astype(np.int64), (1.0 - d[inside] / radius) ** 2
 
 
 @lru_cache(maxsize=4)
-def _descriptor_grid(patch: int, grid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Offsets of a patch x patch window symmetric about the keypoint, and each sample's cell index."""
+def _rotated_grids(patch: int, grid: int, n_orient: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(No, J*J) flat offsets of the J x J window rotated by 180/No deg * (m - 1) counter-clockwise on screen
+    (symmetric about the keypoint, nearest pixel), and the (J*J,) cell index of each sample."""
     q = np.arange(patch) - (patch - 1) / 2.0
-    dr, dc = np.meshgrid(q, q, indexing="ij")
+    dr, dc = (a.ravel() for a in np.meshgrid(q, q, indexing="ij"))
+    offsets = np.empty((n_orient, patch * patch), dtype=np.int64)
+    for m0 in range(n_orient):
+        a = m0 * np.pi / n_orient
+        rr = np.floor(dr * np.cos(a) - dc * np.sin(a) + 0.5).astype(np.int64)
+        cc = np.floor(dc * np.cos(a) + dr * np.sin(a) + 0.5).astype(np.int64)
+        offsets[m0] = rr * width + cc
     cell_px = patch // grid
     ci = np.minimum(np.arange(patch) // cell_px, grid - 1)
-    cell = (ci[:, None] * grid + ci[None, :]).ravel()
-    return dr.ravel(), dc.ravel(), cell
+    cell = (ci[:, None] * grid + ci[None, :]).ravel().astype(np.int64)
+    return offsets, cell
+
+
+@lru_cache(maxsize=4)
+def _shift_table(n_orient: int, merge_bins: bool) -> np.ndarray:
+    """lut[m, v] = histogram bin of MIM value v after the shift v' = ((v - m) mod No) + 1; n_bins for v = 0."""
+    n_bins = n_orient // 2 if merge_bins else n_orient
+    lut = np.full((n_orient + 1, n_orient + 1), n_bins, dtype=np.int64)
+    for m in range(n_orient + 1):
+        for v in range(1, n_orient + 1):
+            v_shift = (v - max(m, 1)) % n_orient + 1
+            lut[m, v] = (v_shift - 1) // 2 if merge_bins else v_shift - 1
+    return lut
 
 
 def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int) -> np.ndarray:
-    """(K,) dominant orientation m in 1..No per keypoint (0 when the window holds no MIM value)."""
+    """(K,) dominant orientation m in 1..No per keypoint (0 when the disc holds no MIM value).
+
+    If the lower cyclic neighbour of the peak bin beats the upper one, the lower bin is taken (the reference's
+    rule: the peak's lower edge is the canonical direction).
+    """
     k = len(rc)
-    dr, dc, w = _orientation_window(radius)
-    mim_p = np.pad(mim, radius)
-    amp_p = np.pad(amp, radius)
-    rows = rc[:, 0:1] + radius + dr[None, :]
-    cols = rc[:, 1:2] + radius + dc[None, :]
-    vals = mim_p[rows, cols].astype(np.int64)
-    weights = amp_p[rows, cols] * w[None, :]
-    idx = np.arange(k)[:, None] * (n_orient + 1) + vals
-    hist = np.bincount(idx.ravel(), weights=weights.ravel(), minlength=k * (n_orient + 1))
-    hist = hist.reshape(k, n_orient + 1)[:, 1:]
+    width = mim.shape[1] + 2 * radius
+    offsets, w = _orientation_window(radius, width)
+    mim_p = np.pad(mim, radius).ravel()
+    amp_p = np.pad(amp.astype(np.float64), radius).ravel()  # float64 weights: numpy's fast bincount path
+    base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
+    hist = np.empty((k, n_orient + 1))
+    for s in range(0, k, _CHUNK):
+        flat = base[s : s + _CHUNK, None] + offsets[None, :]
+        n = len(flat)
+        idx = mim_p.take(flat) + (np.arange(n) * (n_orient + 1))[:, None]
+        hist[s : s + n] = np.bincount(
+            idx.ravel(), weights=(amp_p.take(flat) * w).ravel(), minlength=n * (n_orient + 1)
+        ).reshape(n, n_orient + 1)
+    hist = hist[:, 1:]
     m0 = hist.argmax(axis=1)  # 0-based
-    lower = hist[np.arange(k), (m0 - 1) % n_orient]
-    upper = hist[np.arange(k), (m0 + 1) % n_orient]
+    rows = np.arange(k)
+    lower = hist[rows, (m0 - 1) % n_orient]
+    upper = hist[rows, (m0 + 1) % n_orient]
     m0 = np.where(lower > upper, (m0 - 1) % n_orient, m0)
-    m = m0 + 1
-    m[hist.max(axis=1) <= 0] = 0
-    return m
+    return np.where(hist.max(axis=1) > 0, m0 + 1, 0)
 
 
 def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
@@ -71,26 +102,23 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
     if k == 0:
         return np.zeros((0, n_cells * n_bins), dtype=np.float32)
 
-    radius = int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))  # 69 px for J = 96
+    radius = int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))  # 69 px for J = 96; also covers the rotated window
     m = dominant_orientation(mim, amp, rc, radius, n_orient)
 
-    # Sample the J x J window on a grid rotated by 15 deg * (m - 1) (display counter-clockwise), nearest px.
-    dr, dc, cell = _descriptor_grid(cfg.patch_px, cfg.grid)
-    ang = (np.maximum(m, 1) - 1) * (np.pi / n_orient)
-    cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
-    src_r = rc[:, 0:1] + dr[None, :] * cos - dc[None, :] * sin
-    src_c = rc[:, 1:2] + dc[None, :] * cos + dr[None, :] * sin
-    mim_p = np.pad(mim, radius)
-    rows = np.clip(np.floor(src_r + 0.5).astype(np.int64) + radius, 0, mim_p.shape[0] - 1)
-    cols = np.clip(np.floor(src_c + 0.5).astype(np.int64) + radius, 0, mim_p.shape[1] - 1)
-    v = mim_p[rows, cols].astype(np.int64)
-
-    # Shift values so the dominant orientation becomes 1: v' = ((v - m) mod No) + 1, 0 stays 0.
-    v_shift = np.where(v > 0, (v - m[:, None]) % n_orient + 1, 0)
-    lit = v_shift > 0
-    b = (v_shift - 1) // 2 if cfg.merge_bins else v_shift - 1
-    idx = (np.arange(k)[:, None] * n_cells + cell[None, :]) * n_bins + b
-    desc = np.bincount(idx[lit], minlength=k * n_cells * n_bins).astype(np.float32).reshape(k, -1)
+    width = mim.shape[1] + 2 * radius
+    offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width)
+    lut = _shift_table(n_orient, cfg.merge_bins)
+    mim_p = np.pad(mim, radius).ravel()
+    base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
+    desc = np.empty((k, n_cells * n_bins), dtype=np.float32)
+    for s in range(0, k, _CHUNK):
+        mm = m[s : s + _CHUNK]
+        n = len(mm)
+        v = mim_p.take(base[s : s + n, None] + offsets[np.maximum(mm, 1) - 1])  # (n, J*J) rotated window
+        b = lut[mm[:, None], v]  # shifted-value bin, n_bins for empty pixels
+        idx = ((np.arange(n)[:, None] * n_cells + cell[None, :]) * (n_bins + 1) + b).ravel()
+        counts = np.bincount(idx, minlength=n * n_cells * (n_bins + 1)).reshape(n, n_cells, n_bins + 1)
+        desc[s : s + n] = counts[:, :, :n_bins].reshape(n, -1)
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
     return desc / np.maximum(norm, 1e-12)
 

@@ -26,6 +26,7 @@ from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
 from .matching import match_descriptors
 from .ransac import rigid_ransac
+from .refine import BevCloud, bev_cloud, bev_points, refine_icp
 from .result import AlignResult, FailureReason
 
 
@@ -42,6 +43,13 @@ class PreparedFrame:
     mim: np.ndarray | None = None  # kept for plots when keep_maps=True
     num_points: int | None = None  # raw cloud size when known
     timings_ms: dict[str, float] = field(default_factory=dict)
+    _cloud: BevCloud | None = field(default=None, repr=False)
+
+    def cloud(self, min_value: int = 1) -> BevCloud:
+        """Lit pixels with normals and a KD-tree (built on first use: an ego frame pays it once)."""
+        if self._cloud is None:
+            self._cloud = bev_cloud(self.bev, min_value=min_value)
+        return self._cloud
 
     @property
     def lit_pixels(self) -> int:
@@ -160,6 +168,19 @@ class Aligner:
             return finish(FailureReason.too_few_inliers_bv)
         if ambiguity >= cfg.success.max_ambiguity:
             return finish(FailureReason.ambiguous_bv)
+
+        # Not in the paper: dense refinement of T_bv on the lit pixels (bounded; discarded if it wanders).
+        if cfg.refine.enabled:
+            with _timed(timings, "refine"):
+                rf = cfg.refine
+                pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=m.seed)
+                ref = refine_icp(ego.cloud(rf.min_pixel_value), pts, result.T_bv, gates=rf.gates_m,
+                                 iters_per_gate=rf.iters_per_gate, max_correction_m=rf.max_correction_m,
+                                 max_correction_deg=rf.max_correction_deg)
+            result.T_bv = ref.T
+            result.refine_fitness = ref.fitness
+            if not ref.accepted:
+                result.notes.append("BV refinement rejected (correction beyond bounds); stage-1 pose kept")
 
         # Lines 12-15: box alignment on top of T_bv.
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:

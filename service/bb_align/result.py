@@ -45,6 +45,7 @@ class AlignResult:
     reason: str | None = None  # a FailureReason value when success is False
     notes: list[str] = field(default_factory=list)  # non-fatal remarks, e.g. "stage 2 skipped: no boxes"
     stage2_applied: bool = False
+    refine_fitness: float = 0.0  # fraction of peer BV pixels landing within the finest ICP gate of an ego pixel
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -76,6 +77,7 @@ class AlignResult:
             "box_pairs": int(self.box_pairs),
             "confidence": float(self.confidence),
             "stage2_applied": bool(self.stage2_applied),
+            "refine_fitness": float(self.refine_fitness),
             "notes": list(self.notes),
             "timings_ms": {k: float(v) for k, v in self.timings_ms.items()},
         }
