@@ -28,7 +28,7 @@ class BevConfig(_Frozen):
     max_height_m: float = Field(12.0, gt=0, description="heights above the ground are clipped here")
     slice_m: float = Field(0.2, gt=0, description="slice thickness for mode='slices'")
     ground_cell_m: float = Field(2.0, gt=0, description="cell of the coarse ground-height grid")
-    ground_window_cells: int = Field(7, ge=1, description="min-filter window over the coarse ground grid")
+    ground_window_cells: int = Field(3, ge=1, description="min-filter window over the coarse ground grid")
 
 
 class MimConfig(_Frozen):

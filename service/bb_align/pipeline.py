@@ -163,6 +163,7 @@ class Aligner:
             return finish(FailureReason.too_few_matches)
         result.T_bv = fit.T_dst_src
         result.inliers_bv = fit.num_inliers
+        result.inlier_xy_peer, result.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         ambiguity = fit.ambiguity
         if result.inliers_bv <= cfg.success.min_inliers_bv:
             return finish(FailureReason.too_few_inliers_bv)
@@ -186,7 +187,8 @@ class Aligner:
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:
             if cfg.success.require_boxes:
                 return finish(FailureReason.no_boxes)
-            result.notes.append("stage 2 skipped: no boxes from " + ("ego" if len(ego.boxes) == 0 else "peer"))
+            missing = [name for name, f in (("ego", ego), ("peer", peer)) if len(f.boxes) == 0]
+            result.notes.append("stage 2 skipped: no boxes from " + " and ".join(missing))
             return finish(None)
         with _timed(timings, "boxes"):
             boxes = align_boxes(ego.boxes, peer.boxes, result.T_bv, cfg.box, seed=m.seed)

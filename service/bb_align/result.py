@@ -47,6 +47,9 @@ class AlignResult:
     stage2_applied: bool = False
     refine_fitness: float = 0.0  # fraction of peer BV pixels landing within the finest ICP gate of an ego pixel
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # Stage-1 inlier correspondences (metres, each car's sensor frame), for plots and diagnostics.
+    inlier_xy_peer: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+    inlier_xy_ego: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
 
     @property
     def yaw_deg(self) -> float:
