@@ -1,0 +1,95 @@
+import cv2
+import numpy as np
+import pytest
+import scipy.fft as sfft
+
+from bb_align.config import MimConfig
+from bb_align.loggabor import angular_filters, filter_bank, frequency_grid, maximum_index_map
+
+
+def _direct(i, j, shape, s, o, cfg):
+    """The bank's value at FFT bin (i, j), evaluated from the formulas in ALGORITHM.md one number at a time."""
+    v = sfft.fftfreq(shape[0])[i]
+    u = sfft.fftfreq(shape[1])[j]
+    r = np.sqrt(u * u + v * v)
+    if r == 0:
+        return 0.0
+    theta = np.arctan2(-v, u)
+    lowpass = 1.0 / (1.0 + (r / 0.45) ** 30)
+    f0 = 1.0 / (3.0 * 1.6**s)
+    radial = np.exp(-(np.log(r / f0) ** 2) / (2 * np.log(0.75) ** 2)) * lowpass
+    phi = o * np.pi / 12
+    d = abs(np.arctan2(np.sin(theta - phi), np.cos(theta - phi)))
+    d = min(d * 12, np.pi)
+    return radial * (np.cos(d) + 1) / 2
+
+
+def test_filter_bank_matches_direct_formula():
+    cfg = MimConfig()
+    shape = (48, 60)
+    bank = filter_bank(shape, cfg)
+    assert bank.shape == (12, 4, 48, 60)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        i, j, s, o = rng.integers(48), rng.integers(60), rng.integers(4), rng.integers(12)
+        assert bank[o, s, i, j] == pytest.approx(_direct(i, j, shape, s, o, cfg), abs=1e-6)
+    assert filter_bank(shape, cfg) is bank, "the bank is built once per shape"
+
+
+def test_angular_windows_partition_the_half_plane():
+    cfg = MimConfig()
+    _, theta = frequency_grid((64, 64))
+    total = angular_filters(theta, cfg).sum(0)
+    upper = (theta >= 0) & (theta <= np.pi * 11 / 12)
+    np.testing.assert_allclose(total[upper], 1.0, atol=1e-9)
+    assert np.all(total[(theta < -np.pi / 12) & (theta > -np.pi * 11 / 12)] == 0), "one-sided in angle"
+
+
+def _segments_image(size=320, seed=0):
+    rng = np.random.default_rng(seed)
+    img = np.zeros((size, size), np.uint8)
+    c = size / 2
+    for _ in range(40):
+        a = rng.uniform(0, np.pi)
+        x0, y0 = rng.uniform(c - 90, c + 90, 2)
+        L = rng.uniform(10, 40)
+        p0 = (int(x0), int(y0))
+        p1 = (int(x0 + L * np.cos(a)), int(y0 + L * np.sin(a)))
+        cv2.line(img, p0, p1, int(rng.integers(80, 255)), 2)
+    return img
+
+
+def test_mim_quarter_turn_shifts_values_by_six_exactly():
+    img = _segments_image()
+    mim, _ = maximum_index_map(img)
+    mim90, _ = maximum_index_map(np.rot90(img).copy())  # counter-clockwise on screen
+    back = np.rot90(mim90, -1)
+    lit = (mim > 0) & (back > 0)
+    assert lit.sum() > 1000
+    shift = (back[lit].astype(int) - mim[lit]) % 12
+    assert np.mean(shift == 6) > 0.99
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5])
+def test_mim_rotation_by_15k_degrees_shifts_values_by_k(k):
+    img = _segments_image(seed=k)
+    size = img.shape[0]
+    M = cv2.getRotationMatrix2D((size / 2 - 0.5, size / 2 - 0.5), 15.0 * k, 1.0)  # CCW on screen
+    rot = cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR)
+    mim, amp = maximum_index_map(img)
+    mim_r, _ = maximum_index_map(rot)
+    # Compare at strong, well-inside pixels of the original, mapped through the rotation.
+    rc = np.argwhere((mim > 0) & (amp > np.percentile(amp[mim > 0], 50)))
+    xy = np.column_stack([rc[:, 1], rc[:, 0], np.ones(len(rc))]) @ M.T
+    r2, c2 = np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)
+    ok = (r2 >= 0) & (r2 < size) & (c2 >= 0) & (c2 < size)
+    v0, v1 = mim[rc[ok, 0], rc[ok, 1]].astype(int), mim_r[r2[ok], c2[ok]].astype(int)
+    lit = v1 > 0
+    shift = (v1[lit] - v0[lit]) % 12
+    assert np.mean(shift == k) > 0.6
+    assert np.mean(np.isin(shift, [(k - 1) % 12, k, (k + 1) % 12])) > 0.9
+
+
+def test_mim_of_empty_image_is_zero():
+    mim, amp = maximum_index_map(np.zeros((50, 70), np.uint8))
+    assert mim.shape == (50, 70) and mim.max() == 0 and np.all(amp == 0)
