@@ -65,4 +65,4 @@ def test_matching_nearest_mutual_ratio():
     iq, it = match_descriptors(q, t, ratio=0.4)  # query 0: 0.14 vs 0.28 to its runner-up -> dropped
     assert iq.tolist() == [1]
     iq, it = match_descriptors(np.array([[1, 0, 0], [0.95, 0.05, 0]], np.float32), t[:1], mutual=True)
-    assert iq.tolist() == [0]
+    assert iq.tolist() == [1]  # t[0] is nearer query 1 (0.07) than query 0 (0.14): only 1 is mutual

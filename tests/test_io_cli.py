@@ -1,0 +1,63 @@
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bb_align.cli import app
+from bb_align.geometry import pose_error
+from bb_align.io import load_boxes, load_cloud, save_boxes_json
+from test_pipeline import _pair, world  # noqa: F401  (fixture)
+
+
+def test_cloud_formats_round_trip(tmp_path):
+    pts = np.random.default_rng(0).uniform(-10, 10, (100, 4)).astype(np.float32)
+    pts.tofile(tmp_path / "a.bin")
+    np.save(tmp_path / "a.npy", pts[:, :3])
+    from pypcd4 import PointCloud
+
+    PointCloud.from_xyzi_points(pts).save(tmp_path / "a.pcd")
+    np.testing.assert_array_equal(load_cloud(tmp_path / "a.bin"), pts)
+    np.testing.assert_array_equal(load_cloud(tmp_path / "a.npy"), pts[:, :3])
+    np.testing.assert_allclose(load_cloud(tmp_path / "a.pcd"), pts)
+    five = np.zeros((7, 5), np.float32)
+    five.tofile(tmp_path / "b.bin")
+    assert load_cloud(tmp_path / "b.bin").shape == (7, 5)
+    with pytest.raises(ValueError, match="unknown cloud format"):
+        load_cloud(tmp_path / "a.txt")
+
+
+def test_boxes_json_and_csv(tmp_path):
+    boxes = np.array([[1, 2, 0.5, 4.2, 1.8, 1.5, 0.3], [-5, 7, 0.7, 4.0, 1.9, 1.6, -2.0]])
+    save_boxes_json(tmp_path / "b.json", boxes)
+    np.testing.assert_allclose(load_boxes(tmp_path / "b.json"), boxes)
+    rows = "yaw,x,y,z,l,w,h\n" + "\n".join(",".join(map(str, [b[6], *b[:6]])) for b in boxes)
+    (tmp_path / "b.csv").write_text(rows)
+    np.testing.assert_allclose(load_boxes(tmp_path / "b.csv"), boxes)
+    (tmp_path / "bad.csv").write_text("x,y\n1,2\n")
+    with pytest.raises(ValueError, match="lacks columns"):
+        load_boxes(tmp_path / "bad.csv")
+
+
+def test_cli_align_json_and_plot(tmp_path, world):  # noqa: F811
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, -120.0, (20.0, 5.0))
+    np.save(tmp_path / "ego.npy", pts_ego)
+    np.column_stack([pts_peer, np.zeros(len(pts_peer), np.float32)]).tofile(tmp_path / "peer.bin")
+    save_boxes_json(tmp_path / "ego_boxes.json", boxes_ego)
+    save_boxes_json(tmp_path / "peer_boxes.json", boxes_peer)
+    runner = CliRunner()
+    out = runner.invoke(app, ["align", str(tmp_path / "ego.npy"), str(tmp_path / "peer.bin"),
+                              "--ego-boxes", str(tmp_path / "ego_boxes.json"),
+                              "--peer-boxes", str(tmp_path / "peer_boxes.json"),
+                              "--json", "--plot", str(tmp_path / "fig.png")])
+    assert out.exit_code == 0, out.output
+    res = json.loads(out.stdout)
+    for key in ("T_ego_peer", "yaw_deg", "tx", "ty", "inliers_bv", "inliers_box", "success", "confidence"):
+        assert key in res
+    assert res["success"] and res["inliers_box"] > 6
+    t_err, r_err = pose_error(np.array(res["T_ego_peer"]), T_true)
+    assert t_err < 0.3 and r_err < 0.3
+    assert (tmp_path / "fig.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    out = runner.invoke(app, ["align", str(tmp_path / "ego.npy"), str(tmp_path / "peer.bin")])
+    assert out.exit_code == 0 and "stage 2 skipped" in out.stdout

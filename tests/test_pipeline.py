@@ -1,0 +1,90 @@
+"""End to end on a synthetic street (no external data): known transforms, explicit failures."""
+
+import numpy as np
+import pytest
+
+from bb_align import AlignConfig, Aligner, SuccessRule, make_bev
+from bb_align.boxes import transform_boxes
+from bb_align.geometry import pose_error, se2, se3_from_se2
+from synthetic import synthetic_world, view_from
+
+
+@pytest.fixture(scope="module")
+def world():
+    return synthetic_world(seed=0)
+
+
+def _pair(world, yaw_deg, t_xy, seed=0):
+    pts_w, boxes_w = world
+    T_world_ego = se3_from_se2(se2(0.0, 0.0, 0.0))
+    T_world_peer = se3_from_se2(se2(np.radians(yaw_deg), *t_xy))
+    pts_ego = view_from(pts_w, T_world_ego, seed=seed)
+    pts_peer = view_from(pts_w, T_world_peer, seed=seed + 1, sensor_height=1.5)
+    boxes_ego = transform_boxes(np.eye(3), boxes_w)
+    boxes_peer = transform_boxes(np.linalg.inv(se2(np.radians(yaw_deg), *t_xy)), boxes_w)
+    T_ego_peer = np.linalg.inv(T_world_ego) @ T_world_peer
+    return pts_ego, boxes_ego, pts_peer, boxes_peer, T_ego_peer
+
+
+@pytest.mark.parametrize("yaw_deg,t_xy", [(0.0, (15.0, 0.0)), (-172.0, (-25.0, 3.0)), (63.0, (8.0, -30.0))])
+def test_recovers_known_relative_pose(world, yaw_deg, t_xy):
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, yaw_deg, t_xy)
+    aligner = Aligner()
+    res = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, boxes_peer))
+    t_err, r_err = pose_error(res.T_ego_peer, T_true)
+    assert res.success, res.reason
+    assert t_err < 0.3 and r_err < 0.3
+    assert res.inliers_bv > 25 and res.inliers_box > 6 and res.stage2_applied
+    assert 0.5 < res.confidence <= 1.0
+    assert res.T_ego_peer.shape == (4, 4)
+    assert res.yaw_deg == pytest.approx(yaw_deg, abs=0.3)
+    assert {"mim", "descriptors"} <= set(aligner.prepare(pts_ego).timings_ms)
+
+
+def test_prepared_ego_is_reusable_and_results_are_deterministic(world):
+    pts_ego, _, pts_peer, _, T_true = _pair(world, 40.0, (10.0, 10.0))
+    aligner = Aligner()
+    ego = aligner.prepare(make_bev(pts_ego))
+    peer = aligner.prepare(make_bev(pts_peer))
+    a, b = aligner.align(ego, peer), aligner.align(ego, peer)
+    np.testing.assert_array_equal(a.T_ego_peer, b.T_ego_peer)
+    assert a.success and "stage 2 skipped: no boxes from ego and peer" in a.notes
+    assert pose_error(a.T_ego_peer, T_true)[0] < 0.3
+
+
+def test_stage2_failure_keeps_stage1_pose(world):
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
+    aligner = Aligner()
+    far_boxes = boxes_peer.copy()
+    far_boxes[:, :2] += 500.0  # nothing overlaps
+    res = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, far_boxes))
+    assert not res.success and res.reason == "no_box_overlap"
+    assert not res.stage2_applied and res.inliers_bv > 25
+    assert pose_error(res.T_ego_peer, T_true)[0] < 0.5, "stage-1 pose is kept when only stage 2 fails"
+    assert res.confidence <= 0.5
+
+
+def test_requiring_boxes_fails_without_them(world):
+    pts_ego, _, pts_peer, _, _ = _pair(world, 0.0, (10.0, 0.0))
+    aligner = Aligner(AlignConfig(success=SuccessRule(require_boxes=True)))
+    res = aligner.align(aligner.prepare(pts_ego), aligner.prepare(pts_peer))
+    assert not res.success and res.reason == "no_boxes"
+
+
+def test_explicit_failures():
+    aligner = Aligner()
+    empty = aligner.prepare(np.zeros((0, 3), np.float32))
+    some = aligner.prepare(np.random.default_rng(0).uniform(-5, 5, (50, 3)).astype(np.float32))
+    res = aligner.align(empty, some)
+    assert not res.success and res.reason == "too_few_points" and res.confidence == 0.0
+    flat = np.column_stack([np.random.default_rng(1).uniform(-50, 50, (20000, 2)), np.zeros(20000)])
+    a = aligner.prepare(flat)
+    assert aligner.align(a, a).reason == "empty_image"
+
+
+def test_unrelated_scenes_are_not_a_confident_pose():
+    aligner = Aligner()
+    a = aligner.prepare(view_from(synthetic_world(seed=1)[0], np.eye(4)))
+    b = aligner.prepare(view_from(synthetic_world(seed=2)[0], np.eye(4)))
+    res = aligner.align(a, b)
+    assert not res.success and res.confidence <= 0.1
