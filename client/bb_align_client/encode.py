@@ -1,0 +1,58 @@
+"""Build a wire Frame from a LiDAR sweep, and read a Result."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from bb_align.bev import BevImage, make_bev
+from bb_align.boxes import as_boxes
+from bb_align.config import BevConfig
+from bb_align.wire import JSON, MSGPACK, BevMeta, Frame, Pose, Result, load_result, pack, to_json
+
+
+def as_pose(pose: Any) -> Pose | None:
+    """A Pose, a 4x4 T_world_sensor, a dict, or (x, y, z, roll, pitch, yaw) in metres and radians -> Pose."""
+    if pose is None or isinstance(pose, Pose):
+        return pose
+    if isinstance(pose, dict):
+        return Pose(**pose)
+    arr = np.asarray(pose, dtype=float)
+    if arr.shape == (4, 4):
+        return Pose.from_matrix(arr)
+    if arr.shape == (6,):
+        return Pose(**dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), arr.tolist())))
+    raise ValueError(f"pose must be a 4x4 matrix or (x, y, z, roll, pitch, yaw), got shape {arr.shape}")
+
+
+def make_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 0, pose: Any = None,
+               scores=None, png_compression: int = 6, **bev_options) -> Frame:
+    """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame."""
+    if isinstance(points, BevImage):
+        bev, num_points = points, None
+    else:
+        pts = np.asarray(points)
+        bev, num_points = make_bev(pts, BevConfig(**bev_options)), int(len(pts))
+    rows = as_boxes(boxes).tolist()
+    return Frame(vehicle_id=vehicle_id, seq=seq, stamp=float(stamp), png=bev.to_png(png_compression),
+                 bev=BevMeta(**bev.meta()), boxes=rows,
+                 scores=None if scores is None else [float(s) for s in scores], pose=as_pose(pose),
+                 num_points=num_points)
+
+
+def encode_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 0, pose: Any = None,
+                 encoding: str = MSGPACK, **bev_options) -> bytes:
+    """The bytes a car sends for one sweep: msgpack (default) or JSON (``encoding="application/json"``).
+    ``bev_options`` are BevConfig fields (range_m, resolution_m, ...) plus ``scores`` and ``png_compression``."""
+    frame = make_frame(points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, **bev_options)
+    if encoding == JSON:
+        return to_json(frame)
+    if encoding != MSGPACK:
+        raise ValueError(f"encoding must be {MSGPACK!r} or {JSON!r}")
+    return pack(frame)
+
+
+def decode_result(data: bytes) -> Result:
+    """msgpack (Zenoh, REST with Accept: application/msgpack) or JSON bytes -> Result."""
+    return load_result(data)

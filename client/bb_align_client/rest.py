@@ -1,0 +1,96 @@
+"""REST clients (httpx): sync ``AlignClient`` and ``AsyncAlignClient``, same methods."""
+
+from __future__ import annotations
+
+import httpx
+
+from bb_align.wire import JSON, MSGPACK, ErrorBody, Result, json_align_request, load_result, pack_align_request
+
+from .errors import ServiceError
+
+
+def _align_body(peer: bytes, ego: bytes | None) -> tuple[bytes, str]:
+    is_json = [f[:1] == b"{" for f in (peer, ego) if f is not None]
+    if all(is_json):
+        return json_align_request(peer, ego), JSON
+    if not any(is_json):
+        return pack_align_request(peer, ego), MSGPACK
+    raise ValueError("peer and ego frames must use the same encoding")
+
+
+def _frame_type(frame: bytes) -> str:
+    return JSON if frame[:1] == b"{" else MSGPACK
+
+
+def _check(r: httpx.Response) -> httpx.Response:
+    if r.status_code >= 400:
+        try:
+            body = ErrorBody.model_validate(r.json())
+        except Exception:
+            body = ErrorBody(error="unavailable", detail=r.text[:500])
+        raise ServiceError(r.status_code, body)
+    return r
+
+
+class AlignClient:
+    """``AlignClient("http://127.0.0.1:8000")``; usable as a context manager."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0):
+        self._http = httpx.Client(base_url=base_url, timeout=timeout)
+
+    def align(self, peer: bytes, ego: bytes | None = None) -> Result:
+        """Align an encoded peer frame against ``ego`` (or the service's cached ego frame nearest in time)."""
+        body, media = _align_body(peer, ego)
+        r = self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
+        return load_result(_check(r).content)
+
+    def post_frame(self, frame: bytes) -> dict:
+        """Hand in an encoded ego or peer frame (202 Accepted; its result is published like a Zenoh frame's)."""
+        return _check(self._http.post("/v1/frames", content=frame,
+                                      headers={"content-type": _frame_type(frame)})).json()
+
+    def peers(self) -> dict:
+        return _check(self._http.get("/v1/peers")).json()
+
+    def bandwidth(self) -> dict:
+        return _check(self._http.get("/v1/bandwidth")).json()
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> "AlignClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class AsyncAlignClient:
+    """The asyncio twin of AlignClient: ``async with AsyncAlignClient(url) as c: await c.align(frame)``."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0):
+        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout)
+
+    async def align(self, peer: bytes, ego: bytes | None = None) -> Result:
+        body, media = _align_body(peer, ego)
+        r = await self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
+        return load_result(_check(r).content)
+
+    async def post_frame(self, frame: bytes) -> dict:
+        r = await self._http.post("/v1/frames", content=frame, headers={"content-type": _frame_type(frame)})
+        return _check(r).json()
+
+    async def peers(self) -> dict:
+        return _check(await self._http.get("/v1/peers")).json()
+
+    async def bandwidth(self) -> dict:
+        return _check(await self._http.get("/v1/bandwidth")).json()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> "AsyncAlignClient":
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()

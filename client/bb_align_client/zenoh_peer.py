@@ -1,0 +1,106 @@
+"""A car on the Zenoh side: publish frames, ask the ego service for an alignment, receive published poses."""
+
+from __future__ import annotations
+
+import queue
+from typing import Sequence
+
+import zenoh
+
+from bb_align.settings import ZenohSettings
+from bb_align.wire import ErrorBody, Result, align_key, frames_key, load_result, poses_key
+
+from .errors import ServiceError
+
+
+class PoseStream:
+    """Results the ego service publishes (``<prefix>/poses/<ego_id>/<peer_id>``), buffered for ``get``."""
+
+    def __init__(self, session: zenoh.Session, key: str, capacity: int = 1000):
+        self.key = key
+        self._queue: queue.Queue[bytes] = queue.Queue(capacity)
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:  # Zenoh thread: enqueue only
+        try:
+            self._queue.put_nowait(sample.payload.to_bytes())
+        except queue.Full:
+            pass
+
+    def get(self, timeout: float | None = None) -> Result:
+        """The next result; raises TimeoutError after ``timeout`` seconds."""
+        try:
+            return load_result(self._queue.get(timeout=timeout))
+        except queue.Empty:
+            raise TimeoutError(f"no result on {self.key} within {timeout} s") from None
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class ZenohPeer:
+    """``with ZenohPeer("car1", connect=["tcp/127.0.0.1:7447"]) as peer: peer.publish(frame)``.
+
+    By default the session listens nowhere and connects to the given endpoints, multicast scouting off."""
+
+    def __init__(self, vehicle_id: str, connect: Sequence[str] = ("tcp/127.0.0.1:7447",), *,
+                 listen: Sequence[str] = (), prefix: str = "bbalign", mode: str = "peer",
+                 multicast_scouting: bool = False):
+        self.vehicle_id = vehicle_id
+        self.prefix = prefix
+        self._config = ZenohSettings(mode=mode, listen=list(listen), connect=list(connect),
+                                     multicast_scouting=multicast_scouting, prefix=prefix)
+        self.session: zenoh.Session | None = None
+        self._publisher = None
+        self._streams: list[PoseStream] = []
+
+    def open(self) -> "ZenohPeer":
+        self.session = zenoh.open(self._config.to_zenoh_config())
+        self._publisher = self.session.declare_publisher(frames_key(self.prefix, self.vehicle_id))
+        return self
+
+    def publish(self, frame: bytes) -> None:
+        """Send an encoded frame on ``<prefix>/frames/<vehicle_id>``."""
+        self._publisher.put(frame)
+
+    def request_align(self, frame: bytes, ego_id: str, timeout: float = 10.0) -> Result:
+        """Query ``<prefix>/align/<ego_id>`` with a frame and wait for its Result (ServiceError if refused,
+        TimeoutError if nobody answered)."""
+        key = align_key(self.prefix, ego_id)
+        for reply in self.session.get(key, payload=frame, timeout=timeout):
+            if reply.ok is not None:
+                return load_result(reply.ok.payload.to_bytes())
+            raise ServiceError(None, _error_body(reply.err.payload.to_bytes()))
+        raise TimeoutError(f"no reply on {key} within {timeout} s (service absent, overloaded or too slow)")
+
+    def poses(self, ego_id: str, peer_id: str | None = None) -> PoseStream:
+        """Subscribe to the results the ego service publishes for ``peer_id`` (default: this car; "*": all)."""
+        stream = PoseStream(self.session, poses_key(self.prefix, ego_id, peer_id or self.vehicle_id))
+        self._streams.append(stream)
+        return stream
+
+    def close(self) -> None:
+        for s in self._streams:
+            s.close()
+        self._streams.clear()
+        if self._publisher is not None:
+            self._publisher.undeclare()
+            self._publisher = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def __enter__(self) -> "ZenohPeer":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _error_body(data: bytes) -> ErrorBody:
+    import msgpack
+
+    try:
+        return ErrorBody.model_validate(msgpack.unpackb(data, raw=False))
+    except Exception:
+        return ErrorBody(error="unavailable", detail=data[:300].decode("utf-8", "replace"))

@@ -1,0 +1,107 @@
+"""Work queues of the service: latest-only per sender, a bounded request queue, fair round-robin.
+
+Stream frames (Zenoh ``frames/*``, REST ``/v1/frames``) wait in a per-sender queue of ``depth`` entries (1:
+latest only); a newer frame pushes the oldest out and the push reports it as dropped. Requests (REST
+``/v1/align``, Zenoh queries) must each be answered, so they wait in one bounded FIFO and are refused when it
+is full. Workers take senders and the request queue in round-robin order of readiness; a sender's frames are
+handled by one worker at a time, so its results come out in order.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+_REQUESTS = object()  # the request queue's place in the round-robin
+
+
+@dataclass
+class Job:
+    sender: str  # vehicle id (from the Zenoh key or the decoded frame)
+    received: float  # time.perf_counter() at arrival
+    door: str  # "zenoh" or "rest"
+    data: bytes | None = None  # the raw message, decoded by the worker ...
+    encoding: str = "application/msgpack"
+    frame: Any = None  # ... or the frame already decoded (REST)
+    ego: Any = None  # a request's own ego frame (REST /v1/align with "ego")
+    nbytes: int = 0
+    reply: Callable[[Any], None] | None = None  # requests: called once with a Result or an exception
+    meta: dict = field(default_factory=dict)
+
+
+class Scheduler:
+    def __init__(self, depth: int = 1, max_requests: int = 8):
+        self.depth = depth
+        self.max_requests = max_requests
+        self._cv = threading.Condition()
+        self._streams: dict[str, deque[Job]] = {}
+        self._requests: deque[Job] = deque()
+        self._ready: deque = deque()  # senders with work and not busy, and _REQUESTS, in order of readiness
+        self._busy: set[str] = set()
+        self._closed = False
+
+    def put_frame(self, job: Job) -> Job | None:
+        """Queue a stream frame; returns the frame it pushed out (dropped), if any."""
+        with self._cv:
+            if self._closed:
+                return job
+            q = self._streams.setdefault(job.sender, deque())
+            dropped = q.popleft() if len(q) >= self.depth else None
+            q.append(job)
+            if job.sender not in self._busy and job.sender not in self._ready:
+                self._ready.append(job.sender)
+                self._cv.notify()
+            return dropped
+
+    def put_request(self, job: Job) -> bool:
+        """Queue a request; False when the queue is full or closed (the caller answers 'overloaded')."""
+        with self._cv:
+            if self._closed or len(self._requests) >= self.max_requests:
+                return False
+            self._requests.append(job)
+            if _REQUESTS not in self._ready:
+                self._ready.append(_REQUESTS)
+            self._cv.notify()
+            return True
+
+    def get(self, timeout: float | None = None) -> Job | None:
+        """The next job in round-robin order; None on timeout or once closed."""
+        with self._cv:
+            if not self._cv.wait_for(lambda: self._ready or self._closed, timeout) or self._closed:
+                return None
+            key = self._ready.popleft()
+            if key is _REQUESTS:
+                job = self._requests.popleft()
+                if self._requests:
+                    self._ready.append(_REQUESTS)
+                    self._cv.notify()
+                return job
+            self._busy.add(key)
+            return self._streams[key].popleft()
+
+    def done(self, job: Job) -> None:
+        """A worker finished a job; its sender may be scheduled again."""
+        if job.reply is not None:
+            return
+        with self._cv:
+            self._busy.discard(job.sender)
+            if self._streams.get(job.sender) and job.sender not in self._ready:
+                self._ready.append(job.sender)
+                self._cv.notify()
+
+    def pending(self) -> int:
+        with self._cv:
+            return len(self._requests) + sum(len(q) for q in self._streams.values())
+
+    def close(self) -> list[Job]:
+        """Stop handing out work; returns the jobs that never ran (requests among them must be answered)."""
+        with self._cv:
+            self._closed = True
+            left = list(self._requests) + [j for q in self._streams.values() for j in q]
+            self._requests.clear()
+            self._streams.clear()
+            self._ready.clear()
+            self._cv.notify_all()
+            return left
