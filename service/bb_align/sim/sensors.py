@@ -1,0 +1,63 @@
+"""Rotating LiDAR models: beam layout, range, noise, dropout, spin rate, mounting.
+
+Beam angles follow the manufacturers' published layouts (rounded); noise and dropout are typical datasheet /
+field values. Cars in one scenario get different models, as in mixed fleets.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SensorModel(BaseModel):
+    """One spinning LiDAR. Angles in degrees, distances in metres."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    elevations_deg: tuple[float, ...] = Field(description="vertical angle of every beam")
+    columns: int = Field(1800, ge=64, le=4096, description="firings per revolution (azimuth steps)")
+    max_range_m: float = Field(100.0, gt=1)
+    min_range_m: float = Field(1.0, ge=0)
+    range_noise_m: float = Field(0.02, ge=0, description="Gaussian range noise, 1 sigma")
+    dropout: float = Field(0.05, ge=0, lt=1, description="probability that a return is lost regardless of range")
+    far_falloff: float = Field(3.0, gt=0, description="P(return) *= 1 - (r / max_range)^far_falloff")
+    elevation_jitter_deg: float = Field(0.03, ge=0, description="per-beam calibration error, 1 sigma")
+    spin_hz: float = Field(10.0, gt=0)
+
+    @property
+    def beams(self) -> int:
+        return len(self.elevations_deg)
+
+
+_VLP32C = (-25.0, -15.64, -11.31, -8.84, -7.25, -6.15, -5.33, -4.67, -4.0, -3.67, -3.33, -3.0, -2.67, -2.33,
+           -2.0, -1.67, -1.33, -1.0, -0.67, -0.33, 0.0, 0.33, 0.67, 1.0, 1.33, 1.67, 2.33, 3.33, 4.67, 7.0,
+           10.33, 15.0)
+
+SENSOR_MODELS: dict[str, SensorModel] = {
+    "hdl64": SensorModel(name="hdl64", elevations_deg=tuple(np.round(np.concatenate(
+        [np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.9, 32)]), 3)), columns=2000, max_range_m=120,
+        range_noise_m=0.02, dropout=0.04),
+    "vlp32c": SensorModel(name="vlp32c", elevations_deg=_VLP32C, columns=1800, max_range_m=120,
+                          range_noise_m=0.03, dropout=0.06),
+    "os1_64": SensorModel(name="os1_64", elevations_deg=tuple(np.round(np.linspace(16.6, -16.6, 64), 3)),
+                          columns=1024, max_range_m=100, range_noise_m=0.03, dropout=0.05),
+    "pandar40": SensorModel(name="pandar40", elevations_deg=tuple(np.round(np.concatenate(
+        [[15.0, 11.0, 8.0, 5.0, 3.0, 2.0], np.linspace(1.67, -4.0, 18), [-4.33, -4.67, -5.0, -5.33, -5.67],
+         [-6.0, -7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0]]), 3)),
+        columns=1800, max_range_m=110, range_noise_m=0.03, dropout=0.05),
+    "vlp16": SensorModel(name="vlp16", elevations_deg=tuple(float(a) for a in range(-15, 16, 2)), columns=1800,
+                         max_range_m=100, range_noise_m=0.03, dropout=0.05),
+}
+"""Presets. vlp16 is the sparse extreme; the default fleet draws from the others."""
+
+DEFAULT_FLEET = ("hdl64", "vlp32c", "os1_64", "pandar40")
+
+
+def pick_sensors(rng: np.random.Generator, n: int, fleet=DEFAULT_FLEET) -> list[SensorModel]:
+    """n sensor models, all different while the fleet allows."""
+    names = list(rng.permutation(list(fleet)))
+    while len(names) < n:
+        names += list(rng.permutation(list(fleet)))
+    return [SENSOR_MODELS[str(k)] for k in names[:n]]

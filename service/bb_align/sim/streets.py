@@ -1,0 +1,328 @@
+"""Procedural street generator: a curved main road with 1-3 crossing streets and everything along them.
+
+Both sides of every road are walked in ~150 m chunks, each of one neighbourhood style:
+- city: continuous frontages of 8-35 m buildings split into parts of different heights and setbacks, street
+  trees, poles, signs, bins;
+- suburb: low houses with yards (trees, hedges, bushes, fences), driveways with cars;
+- industrial: large low halls, walls, yards with parked cars;
+- open: few landmarks (empty verge, bushes, a fence, a guard rail, a few trees, a strip of woods, a parking lot).
+Gaps and alleys between buildings let the LiDAR see second rows. The ground rolls gently off the road and
+carries grass. Parked cars line kerbs and fill lots; moving traffic follows lanes (right-hand traffic).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+from .paths import build_centreline, straight
+from .world import Road, Shapes, Terrain, Vehicle, World
+
+STYLES = ("city", "suburb", "industrial", "open")
+STYLE_WEIGHTS = (0.3, 0.3, 0.2, 0.2)
+
+
+class _Occupancy:
+    """1 m raster of the world used while placing things: road corridors and ground already taken."""
+
+    def __init__(self, roads: list[Road], res: float = 1.0, margin: float = 150.0):
+        pts = np.concatenate([r.centre.xy for r in roads])
+        self.lo = pts.min(0) - margin
+        hi = pts.max(0) + margin
+        self.res = res
+        self.shape = tuple(np.ceil((hi - self.lo) / res).astype(int) + 1)
+        self.corridor, self.carriage = [], []  # per road: carriageway + sidewalk; carriageway only
+        for r in roads:
+            seed = np.ones(self.shape, dtype=bool)
+            ij = self.ij(r.centre.xy)
+            seed[ij[:, 0], ij[:, 1]] = False
+            dist = distance_transform_edt(seed) * res
+            self.corridor.append(dist <= r.half_width + r.sidewalk)
+            self.carriage.append(dist <= r.half_width + 0.5)
+        self.any_corridor = np.logical_or.reduce(self.corridor)
+        self.any_carriage = np.logical_or.reduce(self.carriage)
+        self._other = [np.logical_or.reduce([m for j, m in enumerate(self.carriage) if j != i])
+                       if len(roads) > 1 else np.zeros(self.shape, dtype=bool) for i in range(len(roads))]
+        self.taken = np.zeros(self.shape, dtype=bool)
+
+    def ij(self, xy) -> np.ndarray:
+        ij = np.floor((np.asarray(xy, dtype=float).reshape(-1, 2) - self.lo) / self.res).astype(int)
+        return np.clip(ij, 0, np.array(self.shape) - 1)
+
+    def at(self, mask: np.ndarray, x: float, y: float) -> bool:
+        i, j = self.ij([x, y])[0]
+        return bool(mask[i, j] or self.taken[i, j])
+
+    def rect_cells(self, x, y, hl, hw, yaw) -> np.ndarray:
+        u, v = np.meshgrid(np.arange(-hl, hl + 0.01, 0.7), np.arange(-hw, hw + 0.01, 0.7))
+        c, s = np.cos(yaw), np.sin(yaw)
+        return self.ij(np.stack([x + c * u.ravel() - s * v.ravel(), y + s * u.ravel() + c * v.ravel()], 1))
+
+    def claim_rect(self, x, y, hl, hw, yaw, mask) -> bool:
+        """Take a rectangle of ground if it is clear of ``mask`` and of earlier claims."""
+        ij = self.rect_cells(x, y, hl, hw, yaw)
+        if mask[ij[:, 0], ij[:, 1]].any() or self.taken[ij[:, 0], ij[:, 1]].any():
+            return False
+        self.taken[ij[:, 0], ij[:, 1]] = True
+        return True
+
+    def other_carriage(self, road_idx: int) -> np.ndarray:
+        """Carriageways of every road but this one (things along one road must not block another)."""
+        return self._other[road_idx]
+
+
+class _Side:
+    """Placement helper for one side of one road: positions by arc length and lateral offset."""
+
+    def __init__(self, sh: Shapes, occ: _Occupancy, rng, road: Road, road_idx: int, side: int, parked: list):
+        self.sh, self.occ, self.rng, self.road, self.idx, self.side, self.parked = (
+            sh, occ, rng, road, road_idx, side, parked)
+        self.edge = road.half_width + road.sidewalk  # property line, from the centre line
+
+    def at(self, s: float, lat: float) -> tuple[float, float, float]:
+        """World (x, y, road heading) at arc length s, ``lat`` metres out from the centre line on this side."""
+        x, y, yaw = (float(v) for v in self.road.centre.pose_at(s))
+        lat *= self.side
+        return x - np.sin(yaw) * lat, y + np.cos(yaw) * lat, yaw
+
+    def free(self, x, y, kerb=False) -> bool:
+        mask = self.occ.other_carriage(self.idx) if kerb else self.occ.any_corridor
+        return not self.occ.at(mask, x, y)
+
+    # -- things ----------------------------------------------------------------------------------------------
+    def tree(self, x, y, scale=1.0):
+        """Trunk plus a rounded, porous crown (two stacked cylinders)."""
+        r = self.rng
+        h_trunk = r.uniform(1.8, 3.2) * scale
+        r_crown = r.uniform(1.5, 3.8) * scale
+        h_crown = r.uniform(2.5, 7.0) * scale
+        self.sh.cyl(x, y, r.uniform(0.12, 0.3) * scale, 0.0, h_trunk + 0.5, reflect=0.25)
+        z1 = h_trunk + 0.55 * h_crown
+        self.sh.cyl(x, y, r_crown, h_trunk, z1, porosity=r.uniform(0.35, 0.65), reflect=0.35)
+        jx, jy = r.normal(0, 0.3 * scale, 2)
+        self.sh.cyl(x + jx, y + jy, r_crown * r.uniform(0.55, 0.8), z1, h_trunk + h_crown,
+                    porosity=r.uniform(0.35, 0.65), reflect=0.35)
+
+    def bush(self, x, y, big=1.0):
+        r = self.rng
+        self.sh.cyl(x, y, r.uniform(0.4, 1.6) * big, 0.0, r.uniform(0.5, 1.9) * big, porosity=r.uniform(0.2, 0.5),
+                    reflect=0.3)
+
+    def wall(self, s0, s1, lat, h, thick=0.15, zb=0.0, porosity=0.0, step=6.0):
+        """A fence / wall / hedge / rail following the road in short straight pieces."""
+        for a in np.arange(s0, s1 - 1.0, step):
+            b = min(a + step, s1)
+            x, y, yaw = self.at((a + b) / 2, lat)
+            if self.free(x, y, kerb=True):
+                self.sh.prism(x, y, (b - a) / 2, thick, yaw, zb, h, porosity=porosity, reflect=0.45)
+
+    def park(self, x, y, yaw):
+        self.parked.append((x, y, yaw))
+
+    def furniture(self, s0, s1, dense: bool):
+        """Poles, signs, bins and hydrants on the sidewalk."""
+        r = self.rng
+        lat = self.edge - 0.5
+        spacing = r.uniform(25, 45)
+        for sp in np.arange(s0 + r.uniform(0, spacing), s1, spacing):
+            x, y, _ = self.at(sp, lat)
+            if self.free(x, y, kerb=True):
+                self.sh.cyl(x, y, r.uniform(0.1, 0.2), 0.0, r.uniform(5, 9), reflect=0.6)
+        for _ in range(int(r.poisson((s1 - s0) / (20 if dense else 60)))):
+            sp = r.uniform(s0, s1)
+            x, y, yaw = self.at(sp, self.edge - r.uniform(0.3, 1.2))
+            if not self.free(x, y, kerb=True):
+                continue
+            kind = r.random()
+            if kind < 0.4:  # sign: post and plate
+                self.sh.cyl(x, y, 0.04, 0.0, 2.2, reflect=0.5)
+                self.sh.prism(x, y, 0.35, 0.04, yaw + np.pi / 2, 2.0, 2.7, reflect=0.9)
+            elif kind < 0.75:  # bin / hydrant / utility box
+                self.sh.prism(x, y, r.uniform(0.25, 0.6), r.uniform(0.25, 0.5), yaw, 0.0, r.uniform(0.7, 1.4))
+            else:  # bus shelter / kiosk
+                self.sh.prism(x, y, r.uniform(1.5, 3.0), 0.7, yaw, 0.0, 2.6, porosity=0.5)
+
+    def building(self, s, frontage, style):
+        """1-4 buildings of different heights, depths and setbacks along a frontage."""
+        r = self.rng
+        n_parts = int(r.integers(1, 5)) if frontage > 16 else 1
+        bounds = np.concatenate([[0.0], np.sort(r.uniform(0, frontage, n_parts - 1)), [frontage]])
+        base_h = {"city": r.uniform(8, 32), "suburb": r.uniform(3.5, 8), "industrial": r.uniform(5, 12)}[style]
+        base_set = r.uniform(0.3, 2.5) if style == "city" else r.uniform(3, 14)
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b - a < 4:
+                continue
+            setback = max(0.2, base_set + r.normal(0, 0.8 if style == "city" else 2.5))
+            depth = {"city": r.uniform(12, 30), "suburb": r.uniform(8, 14), "industrial": r.uniform(15, 45)}[style]
+            cx, cy, yaw = self.at(s + (a + b) / 2, self.edge + setback + depth / 2)
+            hl, hw = (b - a) / 2 - r.uniform(0, 0.8), depth / 2
+            yaw_b = yaw + r.normal(0, np.radians(2))
+            if not self.occ.claim_rect(cx, cy, hl, hw, yaw_b, self.occ.any_corridor):
+                continue
+            h = max(3.0, base_h * r.uniform(0.6, 1.4))
+            self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(0.2, 0.6))
+            if r.random() < 0.4:  # annex, porch or stepped roof
+                off = self.side * hw * r.uniform(0.3, 0.9)
+                self.sh.prism(cx - np.sin(yaw_b) * off, cy + np.cos(yaw_b) * off, hl * r.uniform(0.3, 0.7),
+                              hw * 0.6, yaw_b, 0.0, h * r.uniform(0.3, 1.6), reflect=r.uniform(0.2, 0.6))
+            if style == "suburb":
+                self._yard(s + a, s + b, setback)
+            elif style == "industrial" and r.random() < 0.5:
+                self.wall(s + a, s + b, self.edge + 0.5, r.uniform(1.8, 3.0))
+
+    def _yard(self, s0, s1, setback):
+        r = self.rng
+        for _ in range(int(r.integers(0, 4))):
+            x, y, _ = self.at(r.uniform(s0, s1), self.edge + r.uniform(0.5, max(1.0, setback)))
+            if self.free(x, y):
+                (self.tree(x, y, r.uniform(0.6, 1.0)) if r.random() < 0.5 else self.bush(x, y))
+        if r.random() < 0.35:  # hedge or fence on the property line
+            self.wall(s0, s1, self.edge + 0.4, r.uniform(0.9, 2.0), thick=r.uniform(0.2, 0.5),
+                      porosity=r.uniform(0.1, 0.4))
+        if r.random() < 0.4:  # car in the driveway
+            x, y, yaw = self.at(r.uniform(s0, s1), self.edge + r.uniform(2.5, max(3.0, setback - 2.5)))
+            if self.free(x, y):
+                self.park(x, y, yaw + np.pi / 2 * self.side + r.normal(0, 0.1))
+
+    def open_stretch(self, s, length):
+        """Few landmarks: nothing, bushes, a fence or wall, a guard rail, a few trees, woods, a parking lot."""
+        r = self.rng
+        kind = r.choice(["empty", "bushes", "fence", "rail", "trees", "woods", "lot"],
+                        p=[0.22, 0.18, 0.14, 0.12, 0.14, 0.1, 0.1])
+        if kind == "bushes":
+            for _ in range(int(r.integers(3, 14))):
+                x, y, _ = self.at(s + r.uniform(0, length), self.edge + r.uniform(1, 25))
+                if self.free(x, y):
+                    self.bush(x, y, big=r.uniform(0.7, 1.3))
+        elif kind == "fence":
+            self.wall(s, s + length, self.edge + r.uniform(0.5, 4), r.uniform(1.2, 2.8),
+                      porosity=0.3 if r.random() < 0.5 else 0.0)
+        elif kind == "rail":
+            self.wall(s, s + length, self.road.half_width + 0.4, 0.8, thick=0.1, zb=0.35)
+        elif kind in ("trees", "woods"):
+            n = int(r.integers(2, 7)) if kind == "trees" else int(length * r.uniform(0.3, 0.6))
+            depth = 30 if kind == "trees" else r.uniform(15, 40)
+            for _ in range(n):
+                x, y, _ = self.at(s + r.uniform(0, length), self.edge + r.uniform(1, depth))
+                if self.free(x, y):
+                    self.tree(x, y, r.uniform(0.7, 1.2)) if r.random() < 0.75 else self.bush(x, y)
+        elif kind == "lot":
+            for row in range(int(r.integers(1, 4))):
+                for sp in np.arange(s + 2, s + length - 2, 2.7):
+                    if r.random() < 0.45:
+                        continue
+                    x, y, yaw = self.at(sp, self.edge + 3 + row * 6.5)
+                    if self.free(x, y):
+                        self.park(x, y, yaw + np.pi / 2 + r.normal(0, 0.05) + np.pi * (r.random() < 0.5))
+
+    def walk(self) -> list[str]:
+        r = self.rng
+        styles = []
+        L = self.road.centre.length
+        s = 0.0
+        while s < L:
+            style = str(r.choice(STYLES, p=STYLE_WEIGHTS))
+            styles.append(style)
+            end = min(L, s + 150.0)
+            if style != "open" or r.random() < 0.3:
+                self.furniture(s, end, dense=style == "city")
+            if style in ("suburb", "city") and r.random() < 0.6:  # street trees
+                spacing = r.uniform(7, 15)
+                for sp in np.arange(s + r.uniform(0, spacing), end, spacing):
+                    x, y, _ = self.at(sp, self.edge - self.road.sidewalk / 2)
+                    if r.random() > 0.2 and self.free(x, y, kerb=True):
+                        self.tree(x, y, scale=r.uniform(0.7, 1.1))
+            if self.road.parking > 0 and r.random() < 0.7:  # kerb-side parking
+                for sp in np.arange(s, end, 6.3):
+                    x, y, yaw = self.at(sp, self.road.half_width - self.road.parking / 2)
+                    if r.random() > 0.4 and self.free(x, y, kerb=True):
+                        self.park(x, y, yaw + (np.pi if self.side > 0 else 0.0) + r.normal(0, 0.03))
+            while s < end:
+                if style == "open":
+                    length = min(end - s, r.uniform(30, 120))
+                    self.open_stretch(s, length)
+                    s += length
+                elif r.random() < 0.75:
+                    frontage = r.uniform(12, 50) if style != "suburb" else r.uniform(12, 22)
+                    self.building(s, frontage, style)
+                    s += frontage
+                elif r.random() < 0.6:
+                    s += r.uniform(3, 15)  # alley or driveway
+                else:
+                    length = r.uniform(15, 50)
+                    self.open_stretch(s, length)
+                    s += length
+        return styles
+
+
+def _vehicle_dims(rng) -> tuple[float, float, float, str]:
+    u = rng.random()
+    if u < 0.72:
+        return rng.uniform(4.1, 4.9), rng.uniform(1.72, 1.95), rng.uniform(1.4, 1.6), "car"
+    if u < 0.94:
+        return rng.uniform(4.8, 5.4), rng.uniform(1.9, 2.1), rng.uniform(1.7, 2.1), "van"
+    return rng.uniform(8.0, 12.5), rng.uniform(2.4, 2.6), rng.uniform(2.9, 3.6), "truck"
+
+
+def _terrain(occ: _Occupancy, rng, res: float = 2.0) -> Terrain:
+    """Flat carriageways, kerbs 0.15 m up, verges rolling by up to ~1 m, grass 0-0.5 m."""
+    step = int(round(res / occ.res))
+    corridor = occ.any_corridor[::step, ::step]
+    carriage = occ.any_carriage[::step, ::step]
+    dist = distance_transform_edt(~corridor) * res
+    noise = gaussian_filter(rng.normal(size=corridor.shape), sigma=7)
+    noise /= noise.std() + 1e-9
+    amp = rng.uniform(0.1, 0.8)
+    height = amp * noise * np.clip(dist / 12.0, 0, 1) + 0.15 * (corridor & ~carriage) + 0.15 * (~corridor)
+    g = gaussian_filter(rng.normal(size=corridor.shape), sigma=4)
+    g = np.clip(rng.uniform(0.02, 0.2) + 0.15 * g / (g.std() + 1e-9), 0, 0.5) * (~corridor)
+    return Terrain(occ.lo.astype(float), res, height, g)
+
+
+def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traffic: float | None = None) -> World:
+    """A street network (a curved main road and 1-3 crossing streets) with everything along it.
+
+    ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world).
+    """
+    main = build_centreline(rng, main_length_m, start_heading=float(rng.uniform(-np.pi, np.pi)))
+    roads = [Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5])), float(rng.uniform(2, 4)))]
+    for _ in range(int(rng.integers(1, 4))):
+        s_x = float(rng.uniform(120, main.length - 120))
+        x, y, yaw = (float(v) for v in main.pose_at(s_x))
+        ang = yaw + np.radians(rng.uniform(65, 115)) * rng.choice([-1, 1])
+        half = float(rng.uniform(110, 180))
+        c = straight((x - half * np.cos(ang), y - half * np.sin(ang)), ang, 2 * half)
+        roads.append(Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5])), float(rng.uniform(2, 4))))
+    occ = _Occupancy(roads)
+    sh = Shapes()
+    parked: list[tuple[float, float, float]] = []
+    styles: list[str] = []
+    for i, road in enumerate(roads):
+        for side in (-1, 1):
+            styles += _Side(sh, occ, rng, road, i, side, parked).walk()
+    terrain = _terrain(occ, rng)
+    static = sh.arrays()
+    base = terrain.height_at(static.xy)  # stand things on the ground
+    static.zb += base
+    static.zt += base
+
+    traffic = float(rng.uniform(0.2, 1.0)) if traffic is None else float(traffic)
+    vehicles: list[Vehicle] = []
+    keep = rng.random(len(parked)) < 0.35 + 0.65 * traffic
+    for (x, y, yaw), k in zip(parked, keep):
+        if k:
+            l, w, h, kind = _vehicle_dims(rng)
+            if kind == "truck" and rng.random() < 0.7:
+                l, w, h, kind = 4.5, 1.85, 1.5, "car"
+            z0 = float(terrain.height_at(np.array([x, y])))
+            vehicles.append(Vehicle(len(vehicles), l, w, h, kind, pose0=(x, y, yaw), z0=z0))
+    for road in roads:
+        for lane in road.lanes():
+            speed = float(rng.uniform(5, 16))
+            gap_mean = 15 + 120 * (1 - traffic)
+            s = float(rng.uniform(0, gap_mean))
+            while s < lane.length:
+                l, w, h, kind = _vehicle_dims(rng)
+                vehicles.append(Vehicle(len(vehicles), l, w, h, kind, path=lane, s0=s, speed=speed))
+                s += l + 4 + rng.exponential(gap_mean)
+    return World(roads, static, vehicles, terrain, styles)
