@@ -1,14 +1,16 @@
 """Log-Gabor filter bank and the Maximum Index Map (paper Eqs. 5-10, numbers from ALGORITHM.md).
 
-The bank lives in the frequency domain and is built once per image shape (LRU cache). One real-input forward
-FFT, then per orientation a batched complex64 inverse FFT over the scales; amplitudes are summed over scales
-and the MIM is 1 + the index of the strongest orientation (0 where the strongest amplitude is negligible).
+The bank lives in the frequency domain and is built once per image shape (LRU cache). One forward FFT, then
+per (scale, orientation) a complex inverse FFT (OpenCV's, float32: about twice as fast here as numpy/scipy's);
+amplitudes are summed over scales and the MIM is 1 + the index of the strongest orientation (0 where the
+strongest amplitude is negligible). The 1/(H W) of the inverse transform is folded into the cached bank.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
 
+import cv2
 import numpy as np
 import scipy.fft as sfft
 
@@ -62,30 +64,43 @@ def filter_bank(shape: tuple[int, int], cfg: MimConfig) -> np.ndarray:
     return bank
 
 
+@lru_cache(maxsize=2)
+def _bank_two_channel(shape: tuple[int, int], cfg: MimConfig) -> np.ndarray:
+    """(No, Ns, H, W, 2) float32: the bank duplicated over (re, im), scaled by 1/(H W) for the inverse DFT."""
+    bank = filter_bank(shape, cfg) / np.float32(shape[0] * shape[1])
+    out = np.repeat(bank[..., None], 2, axis=-1).astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
 def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
-    return tuple(sfft.next_fast_len(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
+    return tuple(cv2.getOptimalDFTSize(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
 
 
-def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, workers: int | None = None) -> np.ndarray:
+def orientation_amplitudes(image: np.ndarray, cfg: MimConfig) -> np.ndarray:
     """(No, H, W) float32: A_o = sum_s |IFFT(F * G_s * S_o)| over the image (margin cropped away)."""
     h, w = image.shape
     m = cfg.fft_margin_px
     shape = fft_shape((h, w), m)
     padded = np.zeros(shape, dtype=np.float32)
     padded[m : m + h, m : m + w] = image
-    spectrum = sfft.fft2(padded, workers=workers).astype(np.complex64)
-    bank = filter_bank(shape, cfg)
+    spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)  # (H, W, 2)
+    bank = _bank_two_channel(shape, cfg)
     amps = np.empty((cfg.n_orient, h, w), dtype=np.float32)
+    acc = np.empty(shape, dtype=np.float32)
     for o in range(cfg.n_orient):
-        eo = sfft.ifft2(spectrum[None] * bank[o], axes=(-2, -1), workers=workers)
-        amps[o] = np.abs(eo[:, m : m + h, m : m + w]).sum(axis=0)
+        acc.fill(0.0)
+        for s in range(cfg.n_scales):
+            eo = cv2.idft(cv2.multiply(spectrum, bank[o, s]), flags=cv2.DFT_COMPLEX_OUTPUT)
+            cv2.add(acc, cv2.magnitude(*cv2.split(eo)), dst=acc)
+        amps[o] = acc[m : m + h, m : m + w]
     return amps
 
 
-def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None, workers: int | None = None):
+def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
     """BV image (uint8 or float, 0..255) -> (MIM uint8 in 0..No, max amplitude float32), both image-sized."""
     cfg = cfg or MimConfig()
-    amps = orientation_amplitudes(np.asarray(image, dtype=np.float32), cfg, workers)
+    amps = orientation_amplitudes(np.asarray(image, dtype=np.float32), cfg)
     max_amp = amps.max(axis=0)
     mim = (amps.argmax(axis=0) + 1).astype(np.uint8)
     mim[max_amp <= cfg.min_amplitude] = 0

@@ -66,9 +66,8 @@ def _timed(timings: dict[str, float], name: str):
 class Aligner:
     """Stateless apart from its configuration; safe to share between threads."""
 
-    def __init__(self, config: AlignConfig | None = None, *, fft_workers: int | None = None):
+    def __init__(self, config: AlignConfig | None = None):
         self.config = config or AlignConfig()
-        self.fft_workers = fft_workers
 
     # ---- Algorithm 1, lines 6-8: per car -------------------------------------------------------------
     def prepare(self, frame: BevImage | np.ndarray, boxes=None, *, keep_maps: bool = False) -> PreparedFrame:
@@ -83,7 +82,7 @@ class Aligner:
                 frame = make_bev(pts, cfg.bev)
         bev = self._at_resolution(frame)
         with _timed(timings, "mim"):
-            mim, amp = maximum_index_map(bev.image, cfg.mim, self.fft_workers)
+            mim, amp = maximum_index_map(bev.image, cfg.mim)
         with _timed(timings, "keypoints"):
             rc = detect_keypoints(bev.image, cfg.features)
         with _timed(timings, "descriptors"):
