@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import queue
+import time
 from typing import Sequence
 
 import zenoh
@@ -62,6 +63,15 @@ class ZenohPeer:
     def publish(self, frame: bytes) -> None:
         """Send an encoded frame on ``<prefix>/frames/<vehicle_id>``."""
         self._publisher.put(frame)
+
+    def wait_for_subscriber(self, timeout: float = 5.0) -> bool:
+        """Wait (bounded) until some subscriber, e.g. the ego service, matches this car's frame key."""
+        deadline = time.monotonic() + timeout
+        while not self._publisher.matching_status.matching:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
 
     def request_align(self, frame: bytes, ego_id: str, timeout: float = 10.0) -> Result:
         """Query ``<prefix>/align/<ego_id>`` with a frame and wait for its Result (ServiceError if refused,

@@ -63,3 +63,4 @@ def align(
 
 
 # Feature areas register their commands below (one line each).
+from .service.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas

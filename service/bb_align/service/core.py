@@ -189,8 +189,7 @@ class AlignService:
             refused = self.admit(frame.vehicle_id)
             if refused is not None:
                 raise refused
-            if job.ego is not None:  # count the peer's frame alone, not the ego frame riding along
-                job.nbytes = len(_encode(frame, job.encoding))
+            job.nbytes = len(_encode(frame, job.encoding))  # the peer frame alone, as it would go on the air
             self.meter.record_message(frame.vehicle_id, job.nbytes)
         kind = "ego" if job.reply is None and frame.vehicle_id == self.settings.ego_id else "peer"
         self.metrics.frames.labels(job.door, kind).inc()

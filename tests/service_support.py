@@ -1,0 +1,92 @@
+"""Helpers for the service tests: free loopback ports, a real uvicorn server in a thread, a moving pair of cars
+in the synthetic street (tests/synthetic.py) with known poses."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import uvicorn
+
+from bb_align.boxes import transform_boxes
+from bb_align.config import AlignConfig, BevConfig
+from bb_align.geometry import se2, se3_from_se2
+from bb_align.service import create_app
+from bb_align.settings import Settings
+from synthetic import synthetic_world, view_from
+
+RANGE_M = 40.0  # small BV images keep the engine quick in tests
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def service_settings(zenoh: bool = True, **overrides) -> Settings:
+    """Loopback-only settings with a small BV range; Zenoh on a free port with multicast scouting off."""
+    z = {"enabled": zenoh, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False}
+    base = dict(port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)))
+    return Settings(**{**base, **overrides})
+
+
+@contextmanager
+def running_service(settings: Settings):
+    """(app, base_url) of a real uvicorn server on 127.0.0.1, always stopped (and its thread joined)."""
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=settings.port, log_level="warning"))
+    thread = threading.Thread(target=server.run, name="uvicorn-test", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            server.should_exit = True
+            thread.join(10)
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    try:
+        yield app, f"http://127.0.0.1:{settings.port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
+        assert not thread.is_alive(), "uvicorn did not stop"
+
+
+@dataclass
+class CarFrame:
+    points: np.ndarray  # (N, 3) sensor frame
+    boxes: np.ndarray  # (K, 7) sensor frame
+    T_world_sensor: np.ndarray
+
+
+def _frame(world, T_world_sensor: np.ndarray, seed: int, height: float) -> CarFrame:
+    pts_w, boxes_w = world
+    T2 = np.linalg.inv(T_world_sensor)[np.ix_([0, 1, 3], [0, 1, 3])]
+    pts = view_from(pts_w, T_world_sensor, seed=seed, max_range=RANGE_M * 1.2, sensor_height=height)
+    return CarFrame(pts, transform_boxes(T2, boxes_w), T_world_sensor)
+
+
+def moving_pair(n_frames: int, dt: float = 0.1, seed: int = 0) -> list[tuple[float, CarFrame, CarFrame]]:
+    """(stamp, ego, peer) per frame: two cars driving through the synthetic street, the peer ~18 m ahead and
+    turned by ~17 deg. T_ego_peer truth: inv(ego.T_world_sensor) @ peer.T_world_sensor."""
+    world = synthetic_world(seed=seed)
+    out = []
+    for k in range(n_frames):
+        t = k * dt
+        T_we = se3_from_se2(se2(0.02 * k, 8.0 * t, 0.3 * t))
+        T_wp = se3_from_se2(se2(0.3 + 0.03 * k, 18.0 + 10.0 * t, 3.0 - 1.0 * t))
+        out.append((t, _frame(world, T_we, 2 * k, 1.8), _frame(world, T_wp, 2 * k + 1, 1.5)))
+    return out
+
+
+def true_T_ego_peer(ego: CarFrame, peer: CarFrame) -> np.ndarray:
+    return np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+
+
+def service_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith(("bbalign-", "uvicorn-test"))]

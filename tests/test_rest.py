@@ -1,0 +1,168 @@
+"""REST door against a real uvicorn server on 127.0.0.1 (Zenoh off here; see test_zenoh.py)."""
+
+from __future__ import annotations
+
+import concurrent.futures
+import json
+import time
+
+import httpx
+import msgpack
+import pytest
+
+from bb_align.geometry import pose_error
+from bb_align.wire import MSGPACK, json_align_request, load_result, pack_align_request
+from bb_align_client import encode_frame
+from service_support import RANGE_M, moving_pair, running_service, service_settings, true_T_ego_peer
+
+JSON_CT = {"content-type": "application/json"}
+MSGPACK_CT = {"content-type": MSGPACK}
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return moving_pair(3)
+
+
+def _enc(car, name, stamp, seq, encoding=MSGPACK):
+    return encode_frame(car.points, car.boxes, vehicle_id=name, stamp=stamp, seq=seq, range_m=RANGE_M,
+                        encoding=encoding)
+
+
+@pytest.fixture
+def server():
+    with running_service(service_settings(zenoh=False, max_ego_skew_s=0.15)) as (app, url):
+        with httpx.Client(base_url=url, timeout=30) as http:
+            yield app, http
+
+
+def _wait_ego_frames(http, n, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while http.get("/readyz").json()["ego_frames"] < n:
+        assert time.monotonic() < deadline, "ego frames were not prepared in time"
+        time.sleep(0.05)
+
+
+def test_health_ready_and_no_ego_frame_yet(server, pair):
+    _, http = server
+    assert http.get("/healthz").json() == {"status": "ok"}
+    ready = http.get("/readyz")
+    assert ready.status_code == 200 and ready.json()["zenoh"] is None and ready.json()["ego_frames"] == 0
+    stamp, _, peer = pair[0]
+    r = http.post("/v1/align", content=pack_align_request(_enc(peer, "car1", stamp, 0)), headers=MSGPACK_CT)
+    body = r.json()
+    assert r.status_code == 200 and not body["success"] and body["reason"] == "no_ego_frame"
+    assert body["T_ego_peer"] is None
+
+
+@pytest.mark.parametrize("encoding", [MSGPACK, "application/json"])
+def test_align_with_both_frames_recovers_the_true_pose(server, pair, encoding):
+    _, http = server
+    stamp, ego, peer = pair[1]
+    p, e = _enc(peer, "car1", stamp, 1, encoding), _enc(ego, "ego", stamp, 1, encoding)
+    body = pack_align_request(p, e) if encoding == MSGPACK else json_align_request(p, e)
+    r = http.post("/v1/align", content=body, headers={"content-type": encoding})
+    assert r.status_code == 200, r.text
+    res = load_result(r.content)
+    t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego, peer))
+    assert res.success and t_err < 0.3 and r_err < 0.3
+    assert (res.peer_id, res.peer_seq, res.ego_seq, res.ego_stamp) == ("car1", 1, 1, stamp)
+    assert res.bytes_received == len(p) and res.raw_points_bytes == 16 * len(peer.points)
+
+
+def test_cached_ego_frame_nearest_in_time_is_used(server, pair):
+    _, http = server
+    for seq, (stamp, ego, _) in enumerate(pair):
+        r = http.post("/v1/frames", content=_enc(ego, "ego", stamp, seq), headers=MSGPACK_CT)
+        assert r.status_code == 202 and r.json() == {"accepted": True, "kind": "ego", "vehicle_id": "ego", "seq": seq}
+        _wait_ego_frames(http, seq + 1)  # one at a time: ego frames are latest-only too
+    stamp, _, peer = pair[1]
+    r = http.post("/v1/align", content=pack_align_request(_enc(peer, "car1", stamp + 0.02, 1)), headers=MSGPACK_CT)
+    res = load_result(r.content)
+    assert res.ego_seq == 1 and res.ego_skew_s == pytest.approx(0.02)
+    t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(pair[1][1], peer))
+    assert res.success and t_err < 0.3 and r_err < 0.3
+    # Far from every cached frame: a clear refusal naming the nearest one.
+    r = http.post("/v1/align", content=pack_align_request(_enc(peer, "car1", 0.9, 9)), headers=MSGPACK_CT)
+    body = r.json()
+    assert body["reason"] == "stale_ego_frame" and body["ego_seq"] == 2 and body["ego_skew_s"] == pytest.approx(0.7)
+
+
+def test_accept_msgpack_returns_msgpack(server, pair):
+    _, http = server
+    stamp, ego, peer = pair[0]
+    r = http.post("/v1/align", content=pack_align_request(_enc(peer, "car1", stamp, 0), _enc(ego, "ego", stamp, 0)),
+                  headers={**MSGPACK_CT, "accept": MSGPACK})
+    assert r.headers["content-type"] == MSGPACK and msgpack.unpackb(r.content)["peer_id"] == "car1"
+
+
+def test_errors_are_typed_and_name_the_field(pair):
+    with running_service(service_settings(zenoh=False, limits={"max_message_bytes": 50_000})) as (_, url):
+        with httpx.Client(base_url=url, timeout=30) as http:
+            stamp, _, peer = pair[0]
+            good = _enc(peer, "car1", stamp, 0)
+            r = http.post("/v1/frames", content=good, headers={"content-type": "text/plain"})
+            assert r.status_code == 415 and r.json()["error"] == "unsupported_media_type"
+            r = http.post("/v1/align", content=b"\xc1\xc1", headers=MSGPACK_CT)
+            assert r.status_code == 400 and r.json()["error"] == "undecodable"
+            r = http.post("/v1/frames", content=good + b"\x00" * 60_000, headers=MSGPACK_CT)
+            assert r.status_code == 413 and r.json()["limit"] == 50_000
+            bad = msgpack.unpackb(good)
+            bad["boxes"][0][3] = -1.0
+            r = http.post("/v1/frames", content=msgpack.packb(bad), headers=MSGPACK_CT)
+            assert r.status_code == 422 and r.json()["field"] == "boxes.0" and r.json()["limit"] == 40.0
+            d = json.loads(_enc(peer, "car1", stamp, 0, "application/json"))
+            d["png"] = "%%%"
+            r = http.post("/v1/align", content=json.dumps({"peer": d}), headers=JSON_CT)
+            assert r.status_code == 422 and r.json()["field"] == "peer.png"
+
+
+def test_peers_bandwidth_and_metrics_report_what_was_sent(server, pair):
+    _, http = server
+    stamp, ego, peer = pair[0]
+    http.post("/v1/frames", content=_enc(ego, "ego", stamp, 0), headers=MSGPACK_CT)
+    _wait_ego_frames(http, 1)
+    sizes = []
+    for seq in range(2):
+        data = _enc(peer, "car1", stamp, seq)
+        sizes.append(len(data))
+        assert http.post("/v1/align", content=pack_align_request(data), headers=MSGPACK_CT).json()["success"]
+    peers = http.get("/v1/peers").json()
+    assert list(peers) == ["car1"] and peers["car1"]["last_result"]["peer_seq"] == 1
+    bw = peers["car1"]["bandwidth"]
+    assert bw["messages"] == 2 and bw["bytes"] == sum(sizes) and bw["frames_decoded"] == 2
+    assert bw["ratio_vs_points"] == pytest.approx(sum(sizes) / (2 * 16 * len(peer.points)))
+    total = http.get("/v1/bandwidth").json()["total"]
+    assert total["messages"] == 3 and total["bytes"] > sum(sizes)
+    text = http.get("/metrics").text
+    assert 'bbalign_alignments_total{outcome="success",peer="car1"} 2.0' in text
+    assert f'bbalign_bytes_received_total{{peer="car1"}} {float(sum(sizes))}' in text
+    assert 'bbalign_frames_received_total{door="rest",kind="ego"} 1.0' in text
+    assert "bbalign_result_latency_seconds_bucket" in text
+
+
+def test_openapi_documents_binary_bodies_and_errors(server):
+    _, http = server
+    spec = http.get("/openapi.json").json()
+    post = spec["paths"]["/v1/align"]["post"]
+    assert set(post["requestBody"]["content"]) == {MSGPACK, "application/json"}
+    assert {"400", "413", "415", "422", "503", "504"} <= set(post["responses"])
+    assert MSGPACK in post["responses"]["200"]["content"]
+    assert {"Frame", "AlignRequest", "Result", "ErrorBody", "BevMeta", "Pose"} <= set(spec["components"]["schemas"])
+    assert "requestBody" in spec["paths"]["/v1/frames"]["post"]
+
+
+def test_full_request_queue_answers_503(pair):
+    settings = service_settings(zenoh=False, workers=1, max_pending_requests=1)
+    with running_service(settings) as (_, url):
+        stamp, ego, peer = pair[0]
+        body = pack_align_request(_enc(peer, "car1", stamp, 0), _enc(ego, "ego", stamp, 0))
+
+        def call(_):
+            return httpx.post(f"{url}/v1/align", content=body, headers=MSGPACK_CT, timeout=60)
+
+        with concurrent.futures.ThreadPoolExecutor(8) as pool:
+            responses = list(pool.map(call, range(8)))
+        codes = sorted(r.status_code for r in responses)
+        assert set(codes) <= {200, 503} and 200 in codes and 503 in codes
+        assert all(r.json()["error"] == "overloaded" for r in responses if r.status_code == 503)

@@ -1,0 +1,113 @@
+"""Latest-only queues, request bounds, fair order, and the ego cache's nearest-in-time choice."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from bb_align.service.cache import EgoCache
+from bb_align.service.scheduler import Job, Scheduler
+from bb_align.wire import BevMeta, Frame
+
+
+def _job(sender, n, reply=None):
+    return Job(sender, 0.0, "test", data=bytes([n]), reply=reply)
+
+
+def test_latest_only_keeps_the_newest_and_reports_each_drop():
+    s = Scheduler(depth=1)
+    assert s.put_frame(_job("car1", 0)) is None
+    dropped = [s.put_frame(_job("car1", n)) for n in range(1, 5)]
+    assert [d.data[0] for d in dropped] == [0, 1, 2, 3]
+    job = s.get(0)
+    assert job.data == bytes([4]) and s.get(0) is None
+
+
+def test_depth_two_keeps_the_two_newest_in_order():
+    s = Scheduler(depth=2)
+    drops = [s.put_frame(_job("car1", n)) for n in range(4)]
+    assert [d.data[0] for d in drops if d] == [0, 1]
+    first = s.get(0)
+    assert first.data[0] == 2 and s.get(0) is None  # car1 is busy until done()
+    s.done(first)
+    assert s.get(0).data[0] == 3
+
+
+def test_senders_take_turns_and_requests_get_their_turn():
+    s = Scheduler(depth=1, max_requests=2)
+    s.put_frame(_job("car1", 1))
+    s.put_frame(_job("car2", 2))
+    assert s.put_request(_job("", 9, reply=lambda _: None)) and s.put_request(_job("", 8, reply=lambda _: None))
+    assert not s.put_request(_job("", 7, reply=lambda _: None))  # bounded
+    order = []
+    while (job := s.get(0)) is not None:
+        order.append(job.data[0])
+        s.done(job)
+    assert order == [1, 2, 9, 8]
+
+
+def test_close_wakes_workers_and_returns_waiting_jobs():
+    s = Scheduler()
+    got = []
+    t = threading.Thread(target=lambda: got.append(s.get(10)))
+    t.start()
+    s.put_request(_job("", 1, reply=lambda _: None))
+    t.join(5)
+    s.put_request(_job("", 2, reply=lambda _: None))
+    left = s.close()
+    assert got[0].data[0] == 1 and [j.data[0] for j in left] == [2]
+    assert s.get(0) is None and not s.put_request(_job("", 3, reply=lambda _: None))
+
+
+def _ego(stamp, seq):
+    return Frame(vehicle_id="ego", seq=seq, stamp=stamp, png=b"", bev=BevMeta(resolution_m=0.4, range_m=20))
+
+
+def test_cache_returns_nearest_in_time_and_keeps_the_last_k():
+    cache = EgoCache(size=3)
+    assert cache.nearest(1.0) is None
+    for seq, stamp in enumerate([1.0, 1.1, 1.2, 1.3]):
+        cache.add(_ego(stamp, seq))
+    assert cache.stamps() == [1.1, 1.2, 1.3]
+    assert cache.nearest(1.16).frame.seq == 2
+    assert cache.nearest(0.5).frame.seq == 1  # 1.0 was evicted
+    assert cache.nearest(9.0).frame.seq == 3
+    cache.add(_ego(1.3, 4))
+    assert cache.nearest(1.3).frame.seq == 4  # equally near: the newer frame
+    assert len(cache) == 0  # none prepared yet
+
+
+def test_pending_entry_wakes_waiters_when_prepared():
+    cache = EgoCache(size=2)
+    entry = cache.add(_ego(1.0, 0))
+    out = []
+    t = threading.Thread(target=lambda: out.append(cache.nearest(1.0).wait(5)))
+    t.start()
+    entry.set("features")
+    t.join(5)
+    assert out == ["features"] and len(cache) == 1
+    assert np.isclose(cache.nearest(1.0).stamp, 1.0)
+
+
+def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
+    from scipy.spatial.transform import Rotation
+
+    from bb_align.service.core import relative_prior
+    from bb_align.wire import Pose
+
+    ego_pose = Pose(x=10, y=5, z=1.9, roll=0.02, pitch=-0.01, yaw=0.4)
+    peer_pose = Pose(x=30, y=9, z=2.3, roll=-0.03, pitch=0.05, yaw=0.9)
+
+    def T(p):  # independent: scipy's intrinsic z-y'-x'' Euler angles
+        out = np.eye(4)
+        out[:3, :3] = Rotation.from_euler("ZYX", [p.yaw, p.pitch, p.roll]).as_matrix()
+        out[:3, 3] = (p.x, p.y, p.z)
+        return out
+
+    T_rel = np.linalg.inv(T(ego_pose)) @ T(peer_pose)
+    yaw, pitch, roll = Rotation.from_matrix(T_rel[:3, :3]).as_euler("ZYX")
+    tz, r, p = relative_prior(_ego(0, 0).model_copy(update={"pose": ego_pose}),
+                              _ego(0, 0).model_copy(update={"pose": peer_pose}))
+    np.testing.assert_allclose([tz, r, p], [T_rel[2, 3], roll, pitch], atol=1e-12)
+    assert relative_prior(_ego(0, 0), _ego(0, 0)) is None

@@ -1,0 +1,213 @@
+"""Wire models, encodings and the shared validator (bb_align.wire)."""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings as hsettings, strategies as st
+from scipy.spatial.transform import Rotation
+
+from bb_align import BevConfig, make_bev
+from bb_align.settings import Limits
+from bb_align.wire import (JSON, MSGPACK, AlignRequest, BevMeta, Frame, Pose, Result, WireError, json_align_request,
+                           json_schemas, load_align_request, load_frame, load_result, pack, pack_align_request,
+                           to_json)
+
+REPO = Path(__file__).resolve().parents[1]
+LIMITS = Limits()
+
+
+def _image(n=100, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = np.zeros((n, n), np.uint8)
+    img[rng.integers(0, n, 300), rng.integers(0, n, 300)] = rng.integers(1, 255, 300)
+    return img
+
+
+def _png(img) -> bytes:
+    return cv2.imencode(".png", img)[1].tobytes()
+
+
+def _frame(**kw) -> Frame:
+    base = dict(vehicle_id="car-1", seq=3, stamp=12.5, png=_png(_image()), bev=BevMeta(resolution_m=0.4, range_m=20),
+                boxes=[[10.0, -2.0, 0.8, 4.5, 1.9, 1.6, 0.3], [-5.0, 3.0, 0.7, 4.2, 1.8, 1.5, -2.9]],
+                scores=[0.9, 0.6], pose=Pose(x=100.0, y=-50.0, z=1.8, roll=0.01, pitch=-0.02, yaw=1.2),
+                num_points=120_000)
+    return Frame(**{**base, **kw})
+
+
+def _fields(frame: Frame) -> dict:
+    return frame.model_dump(mode="python")
+
+
+def _refused(data: bytes, encoding=MSGPACK, limits=LIMITS) -> WireError:
+    with pytest.raises(WireError) as e:
+        load_frame(data, limits, encoding)
+    return e.value
+
+
+def test_msgpack_and_json_round_trips_are_lossless():
+    f = _frame()
+    assert load_frame(pack(f), LIMITS) == f
+    assert load_frame(to_json(f), LIMITS, JSON) == f
+    assert json.loads(to_json(f))["png"][:8] == "iVBORw0K"  # standard base64 of the PNG signature
+    img = load_frame(pack(f), LIMITS).bev_image()
+    np.testing.assert_array_equal(img.image, _image())
+    assert (img.resolution_m, img.range_m) == (0.4, 20)
+
+
+def test_align_request_is_built_from_encoded_frames_without_decoding_them():
+    peer, ego = _frame(vehicle_id="car1"), _frame(vehicle_id="ego", stamp=12.45)
+    req = load_align_request(pack_align_request(pack(peer), pack(ego)), LIMITS)
+    assert req == AlignRequest(peer=peer, ego=ego)
+    req = load_align_request(json_align_request(to_json(peer)), LIMITS, JSON)
+    assert req.peer == peer and req.ego is None
+
+
+def test_a_real_bev_frame_is_small_against_its_raw_points():
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-40, 40, (50_000, 2)), rng.uniform(-1.5, 3, 50_000)]).astype(np.float32)
+    bev = make_bev(pts, BevConfig(range_m=40))
+    f = _frame(png=bev.to_png(), bev=BevMeta(**bev.meta()), num_points=len(pts))
+    assert len(pack(f)) < 16 * len(pts) / 10
+
+
+@pytest.mark.parametrize("data,status", [
+    (b"\x93\x01\x02", 400),  # an array, not a map
+    (b"\xde\xff", 400),  # truncated map
+    (msgpack.packb({"a": 1}) + b"\x00", 400),  # trailing bytes
+    (b"\x91" * 5000 + b"\x00", 400),  # nesting bomb
+    (msgpack.packb({"vehicle_id": msgpack.ExtType(5, b"x")}), 400),  # extension types are refused
+])
+def test_undecodable_messages_are_400(data, status):
+    assert _refused(data).status == status
+
+
+def test_oversized_message_is_413_before_decoding():
+    e = _refused(b"\x00" * 5000, limits=Limits(max_message_bytes=4096))
+    assert (e.status, e.field, e.limit) == (413, "message", 4096)
+
+
+@pytest.mark.parametrize("change,field", [
+    ({"schema_version": 2}, "schema_version"),
+    ({"vehicle_id": "car/1"}, "vehicle_id"),
+    ({"vehicle_id": "*"}, "vehicle_id"),
+    ({"stamp": -1.0}, "stamp"),
+    ({"stamp": float("nan")}, "stamp"),
+    ({"boxes": [[1, 2, 3, 4, 5, 6]]}, "boxes.0"),
+    ({"boxes": [[1, 2, 3, 4, 5, float("inf"), 0]]}, "boxes.0.5"),
+    ({"scores": [0.5, 1.5]}, "scores.1"),
+    ({"bev": {"resolution_m": 0.4, "range_m": 1000}}, "bev.range_m"),
+    ({"unknown": 1}, "unknown"),
+])
+def test_field_errors_are_422_naming_the_field(change, field):
+    e = _refused(msgpack.packb({**_fields(_frame()), **change}))
+    assert (e.status, e.field) == (422, field)
+
+
+@pytest.mark.parametrize("frame,limits,field,limit", [
+    (_frame(stamp=5e9), LIMITS, "stamp", LIMITS.max_stamp_s),
+    (_frame(num_points=10**9), LIMITS, "num_points", LIMITS.max_points),
+    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]] * 3, scores=None), Limits(max_boxes=2), "boxes", 2),
+    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]], scores=[0.5, 0.5]), LIMITS, "scores", None),
+    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0], [1, 2, 0, 0, 2, 1.5, 0]], scores=None), LIMITS, "boxes.1", 40.0),
+    (_frame(boxes=[[900, 2, 0, 4, 2, 1.5, 0]], scores=None), LIMITS, "boxes.0", 500.0),
+    (_frame(pose=Pose(x=1e8, y=0)), LIMITS, "pose.x", 1e7),
+    (_frame(png=_png(_image(100)), bev=BevMeta(resolution_m=0.4, range_m=40)), LIMITS, "png", None),
+    (_frame(png=_png(_image(100))), Limits(max_image_px=64), "png", 64),
+])
+def test_limit_errors_are_422_naming_the_field_and_limit(frame, limits, field, limit):
+    e = _refused(pack(frame), limits=limits)
+    assert (e.status, e.field, e.limit) == (422, field, limit)
+    assert e.detail
+
+
+def _with_ihdr(png: bytes, width=None, height=None, depth=None, colour=None, fix_crc=True) -> bytes:
+    w, h, d, c, cm, fm, il = struct.unpack(">IIBBBBB", png[16:29])
+    body = struct.pack(">IIBBBBB", width or w, height or h, depth or d, colour if colour is not None else c, cm, fm,
+                       il)
+    crc = struct.pack(">I", zlib.crc32(b"IHDR" + body)) if fix_crc else png[29:33]
+    return png[:16] + body + crc + png[33:]
+
+
+@pytest.mark.parametrize("png,words", [
+    (b"GIF89a" + b"\x00" * 40, "signature"),
+    (_png(_image())[:20], "signature"),
+    (_png(np.zeros((100, 100), np.uint16)), "bit depth"),
+    (_png(np.zeros((100, 100, 3), np.uint8)), "colour type"),
+    (_with_ihdr(_png(_image()), width=60000, height=60000), "exceeds"),
+    (_with_ihdr(_png(_image()), width=101, fix_crc=False), "checksum"),
+])
+def test_png_header_is_checked_before_any_pixel_is_decoded(png, words):
+    e = _refused(pack(_frame(png=png)))
+    assert (e.status, e.field) == (422, "png") and words in e.detail
+
+
+def test_corrupt_pixels_behind_a_valid_header_fail_cleanly_at_decode():
+    png = _png(_image())
+    broken = png[:40] + bytes(len(png) - 52) + png[-12:]
+    frame = load_frame(pack(_frame(png=broken)), LIMITS)  # the header is fine
+    with pytest.raises(WireError) as e:
+        frame.bev_image()
+    assert (e.value.status, e.value.field) == (422, "png")
+
+
+def test_align_request_errors_name_the_frame():
+    bad = {**_fields(_frame()), "boxes": [[0, 0, 0, 4, 2, 1.5, 0]] * 3, "scores": None}
+    data = pack_align_request(pack(_frame()), msgpack.packb(bad))
+    with pytest.raises(WireError) as e:
+        load_align_request(data, Limits(max_boxes=2))
+    assert (e.value.field, e.value.limit) == ("ego.boxes", 2)
+
+
+def test_json_png_must_be_base64():
+    d = json.loads(to_json(_frame()))
+    d["png"] = "not base64!"
+    e = _refused(json.dumps(d).encode(), JSON)
+    assert (e.status, e.field) == (422, "png")
+
+
+@hsettings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_only_ever_raise_wire_errors(data):
+    with pytest.raises(WireError):
+        load_frame(data, LIMITS)
+
+
+@hsettings(max_examples=100, deadline=None)
+@given(st.dictionaries(st.sampled_from(list(Frame.model_fields) + ["x"]),
+                       st.one_of(st.none(), st.integers(), st.floats(), st.text(max_size=5), st.binary(max_size=40),
+                                 st.lists(st.floats(), max_size=8)), max_size=8))
+def test_random_maps_only_ever_raise_wire_errors(d):
+    with pytest.raises(WireError):
+        load_frame(msgpack.packb(d), LIMITS)
+
+
+def test_pose_matrix_matches_scipy_and_round_trips():
+    p = Pose(x=1.0, y=-2.0, z=0.5, roll=0.1, pitch=-0.25, yaw=2.8)
+    R_ref = Rotation.from_euler("ZYX", [p.yaw, p.pitch, p.roll]).as_matrix()  # intrinsic z-y'-x''
+    np.testing.assert_allclose(p.matrix()[:3, :3], R_ref, atol=1e-12)
+    q = Pose.from_matrix(p.matrix())
+    np.testing.assert_allclose([q.x, q.y, q.z, q.roll, q.pitch, q.yaw], [1.0, -2.0, 0.5, 0.1, -0.25, 2.8], atol=1e-12)
+
+
+def test_result_decodes_from_msgpack_and_json():
+    r = Result(ego_id="ego", peer_id="car1", peer_seq=1, peer_stamp=0.1, success=True, yaw_deg=3.0, tx=1.0, ty=2.0,
+               T_ego_peer=np.eye(4).tolist())
+    assert load_result(pack(r)) == r == load_result(to_json(r))
+    np.testing.assert_array_equal(r.matrix(), np.eye(4))
+
+
+def test_committed_json_schemas_match_the_models():
+    """proto_schemas/*.schema.json are generated (`bb-align wire-schemas`); this fails when they drift."""
+    for name, schema in json_schemas().items():
+        path = REPO / "proto_schemas" / f"{name}.schema.json"
+        assert path.exists(), f"{path} missing: run `bb-align wire-schemas`"
+        assert json.loads(path.read_text()) == schema, f"{path} is stale: run `bb-align wire-schemas`"

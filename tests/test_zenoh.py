@@ -1,0 +1,125 @@
+"""Zenoh door: real sessions on loopback (tcp/127.0.0.1:<free port>, multicast scouting off) against a real
+service (uvicorn on 127.0.0.1)."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import msgpack
+import pytest
+
+from bb_align.geometry import pose_error
+from bb_align_client import ServiceError, ZenohPeer, encode_frame
+from service_support import (RANGE_M, moving_pair, running_service, service_settings, service_threads,
+                             true_T_ego_peer)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return moving_pair(4)
+
+
+def _enc(car, name, stamp, seq, pose=None):
+    return encode_frame(car.points, car.boxes, vehicle_id=name, stamp=stamp, seq=seq, range_m=RANGE_M, pose=pose)
+
+
+def _endpoint(settings):
+    return settings.zenoh.listen
+
+
+def _wait(cond, timeout=20.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
+
+
+def test_moving_pair_published_over_zenoh_gets_correct_poses(pair):
+    settings = service_settings()
+    with running_service(settings) as (app, _):
+        service = app.state.service
+        with ZenohPeer("ego", connect=_endpoint(settings)) as ego_car, \
+                ZenohPeer("car1", connect=_endpoint(settings)) as car:
+            poses = car.poses("ego")
+            assert ego_car.wait_for_subscriber(10) and car.wait_for_subscriber(10)
+            time.sleep(0.2)  # the pose subscription reaches the service
+            stamp0, ego0, _ = pair[0]
+            ego_car.publish(_enc(ego0, "ego", stamp0, 0, pose=ego0.T_world_sensor))
+            _wait(lambda: len(service.cache) == 1, what="the first ego frame")
+            results = []
+            for seq, (stamp, ego, peer) in enumerate(pair):
+                if seq:
+                    ego_car.publish(_enc(ego, "ego", stamp, seq, pose=ego.T_world_sensor))
+                car.publish(_enc(peer, "car1", stamp, seq, pose=peer.T_world_sensor))
+                results.append(poses.get(timeout=20))  # lockstep: one result per peer frame
+            for res in results:
+                ego_used = pair[res.ego_seq][1]
+                t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego_used, pair[res.peer_seq][2]))
+                assert res.success and t_err < 0.3 and r_err < 0.3, res
+                assert res.prior_used and abs(res.ego_skew_s) <= settings.max_ego_skew_s
+                assert res.latency_ms > 0 and res.bytes_received > 0
+            assert [r.peer_seq for r in results] == list(range(len(pair)))
+            assert sum(r.ego_seq == r.peer_seq for r in results) >= len(pair) - 1
+    assert service_threads() == []
+
+
+def test_queryable_answers_a_frame_and_refuses_a_bad_one(pair):
+    settings = service_settings()
+    with running_service(settings) as (app, url):
+        stamp, ego, peer = pair[2]
+        with ZenohPeer("car7", connect=_endpoint(settings)) as car:
+            car.wait_for_subscriber(10)
+            httpx.post(f"{url}/v1/frames", content=_enc(ego, "ego", stamp, 2),
+                       headers={"content-type": "application/msgpack"})
+            _wait(lambda: len(app.state.service.cache) == 1, what="the ego frame")
+            res = car.request_align(_enc(peer, "car7", stamp, 5), ego_id="ego", timeout=20)
+            t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego, peer))
+            assert res.success and (res.peer_id, res.peer_seq, res.ego_seq) == ("car7", 5, 2)
+            assert t_err < 0.3 and r_err < 0.3
+            bad = msgpack.unpackb(_enc(peer, "car7", stamp, 6))
+            bad["stamp"] = float("inf")
+            with pytest.raises(ServiceError) as e:
+                car.request_align(msgpack.packb(bad), ego_id="ego", timeout=20)
+            assert e.value.status is None and e.value.body.field == "stamp"
+            with pytest.raises(TimeoutError):  # nobody serves this ego id: a bounded wait, then a clear error
+                car.request_align(_enc(peer, "car7", stamp, 7), ego_id="nobody", timeout=0.5)
+
+
+def test_latest_only_queue_drops_old_frames_under_overload(pair):
+    settings = service_settings(workers=1)
+    n = 12
+    with running_service(settings) as (app, url):
+        service = app.state.service
+        stamp, ego, peer = pair[0]
+        with ZenohPeer("car1", connect=_endpoint(settings)) as car:
+            poses = car.poses("ego")
+            car.wait_for_subscriber(10)
+            time.sleep(0.2)
+            service.submit_message("ego", _enc(ego, "ego", stamp, 0))
+            _wait(lambda: len(service.cache) == 1, what="the ego frame")
+            frames = [_enc(peer, "car1", stamp, seq) for seq in range(n)]
+            for data in frames:  # far faster than the engine (~0.1 s per frame here)
+                car.publish(data)
+            got = []
+            while not got or got[-1].peer_seq != n - 1:
+                got.append(poses.get(timeout=20))
+            peers = httpx.get(f"{url}/v1/peers").json()
+            metrics = httpx.get(f"{url}/metrics").text
+        seqs = [r.peer_seq for r in got]
+        assert seqs == sorted(seqs) and len(seqs) < n  # in order, the newest always answered, some dropped
+        dropped = peers["car1"]["frames_dropped"]
+        assert dropped == n - len(seqs) and f'bbalign_frames_dropped_total{{peer="car1"}} {float(dropped)}' in metrics
+        assert peers["car1"]["bandwidth"]["messages"] == n  # dropped frames still count on the air
+        assert all(r.success for r in got)
+
+
+def test_frame_whose_id_differs_from_its_key_is_refused(pair):
+    settings = service_settings()
+    with running_service(settings) as (app, url):
+        stamp, _, peer = pair[0]
+        with ZenohPeer("car1", connect=_endpoint(settings)) as car:
+            car.wait_for_subscriber(10)
+            car.publish(_enc(peer, "car2", stamp, 0))
+            _wait(lambda: 'error="invalid"' in httpx.get(f"{url}/metrics").text, what="the refusal")
+        assert "car2" not in httpx.get(f"{url}/v1/peers").json()
