@@ -72,10 +72,10 @@ class RefineConfig(_Frozen):
     """Dense point-to-line ICP on the lit BV pixels after stage 1 (not in the paper; see bb_align.refine)."""
 
     enabled: bool = True
-    gates_m: tuple[float, ...] = Field((1.5, 1.0, 0.6, 0.4), description="correspondence gates, coarse to fine")
-    iters_per_gate: int = Field(4, ge=1, le=50)
+    gates_m: tuple[float, ...] = Field((1.5, 0.7, 0.4), description="correspondence gates, coarse to fine")
+    iters_per_gate: int = Field(6, ge=1, le=50)
     min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
-    max_peer_points: int = Field(4000, ge=100, description="seeded random subset of the peer's lit pixels")
+    max_peer_points: int = Field(1500, ge=100, description="seeded random subset of the peer's lit pixels")
     max_correction_m: float = Field(2.0, gt=0)
     max_correction_deg: float = Field(3.0, gt=0)
 

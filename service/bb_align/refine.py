@@ -56,8 +56,8 @@ class Refinement:
     accepted: bool
 
 
-def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(1.5, 1.0, 0.6, 0.4),
-               iters_per_gate: int = 4, point_weight: float = 0.1, max_correction_m: float = 2.0,
+def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(1.5, 0.7, 0.4),
+               iters_per_gate: int = 6, point_weight: float = 0.1, max_correction_m: float = 2.0,
                max_correction_deg: float = 3.0) -> Refinement:
     """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer)."""
     T = np.array(T_init, dtype=float)
@@ -78,9 +78,10 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
             jac_x = np.stack([-p[:, 1], np.ones(len(p)), np.zeros(len(p))], axis=1)
             jac_y = np.stack([p[:, 0], np.zeros(len(p)), np.ones(len(p))], axis=1)
             w_line = 1.0 / np.maximum(1.0, np.abs(r_line) / (0.25 * gate))  # Huber
-            A = np.concatenate([jac_line * w_line[:, None] ** 0.5, point_weight * jac_x, point_weight * jac_y])
-            b = np.concatenate([r_line * w_line**0.5, point_weight * diff[:, 0], point_weight * diff[:, 1]])
-            delta = np.linalg.lstsq(A, -b, rcond=None)[0]
+            pw2 = point_weight**2
+            H = (jac_line.T * w_line) @ jac_line + pw2 * (jac_x.T @ jac_x + jac_y.T @ jac_y)
+            g = (jac_line.T * w_line) @ r_line + pw2 * (jac_x.T @ diff[:, 0] + jac_y.T @ diff[:, 1])
+            delta = np.linalg.solve(H, -g)
             T = se2(delta[0], delta[1], delta[2]) @ T
             if np.abs(delta).max() < 1e-4:
                 break
