@@ -34,7 +34,7 @@ def test_recovers_known_relative_pose(world, yaw_deg, t_xy):
     t_err, r_err = pose_error(res.T_ego_peer, T_true)
     assert res.success, res.reason
     assert t_err < 0.3 and r_err < 0.3
-    assert res.inliers_bv > 25 and res.inliers_box > 6 and res.stage2_applied
+    assert res.inliers_bv > 25 and res.inliers_box > 6 and res.box_pairs >= 2
     assert 0.5 < res.confidence <= 1.0
     assert res.T_ego_peer.shape == (4, 4)
     assert res.yaw_deg == pytest.approx(yaw_deg, abs=0.3)
@@ -88,3 +88,14 @@ def test_unrelated_scenes_are_not_a_confident_pose():
     b = aligner.prepare(view_from(synthetic_world(seed=2)[0], np.eye(4)))
     res = aligner.align(a, b)
     assert not res.success and res.confidence <= 0.1
+
+
+def test_paper_mode_applies_the_box_correction(world):
+    from bb_align.config import BoxConfig
+
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 25.0, (14.0, -6.0))
+    aligner = Aligner(AlignConfig(box=BoxConfig(apply="always")))
+    res = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, boxes_peer))
+    assert res.success and res.stage2_applied
+    np.testing.assert_allclose(res.T_ego_peer[:2, :2], (res.T_box @ res.T_bv)[:2, :2], atol=1e-12)
+    assert pose_error(res.T_ego_peer, T_true)[0] < 0.3

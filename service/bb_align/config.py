@@ -83,6 +83,12 @@ class RefineConfig(_Frozen):
 class BoxConfig(_Frozen):
     """Stage 2: box-corner alignment."""
 
+    apply: Literal["always", "unrefined"] = Field(
+        "unrefined",
+        description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 still estimates T_box and counts "
+        "Inliers_box for the success rule, but its correction is applied only when the dense BV refinement did not "
+        "run or was rejected (measured: detector noise makes box corners less precise than the refined images)",
+    )
     pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
     inlier_threshold_m: float = Field(0.8, gt=0)
     max_iterations: int = Field(500, ge=10)

@@ -170,6 +170,7 @@ class Aligner:
             return finish(FailureReason.ambiguous_bv)
 
         # Not in the paper: dense refinement of T_bv on the lit pixels (bounded; discarded if it wanders).
+        refined = False
         if cfg.refine.enabled:
             with _timed(timings, "refine"):
                 rf = cfg.refine
@@ -179,6 +180,7 @@ class Aligner:
                                  max_correction_deg=rf.max_correction_deg)
             result.T_bv = ref.T
             result.refine_fitness = ref.fitness
+            refined = ref.accepted
             if not ref.accepted:
                 result.notes.append("BV refinement rejected (correction beyond bounds); stage-1 pose kept")
 
@@ -200,8 +202,11 @@ class Aligner:
         yaw, tx, ty = se2_params(boxes.T_box)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish(FailureReason.box_correction_too_large)
-        result.T_box = boxes.T_box
-        result.stage2_applied = True
+        if cfg.box.apply == "always" or not refined:
+            result.T_box = boxes.T_box
+            result.stage2_applied = True
+        else:
+            result.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
         return finish(None)
 
     def _confidence(self, r: AlignResult, ambiguity: float) -> float:
@@ -209,7 +214,7 @@ class Aligner:
         inliers put > 90% of pairs under 1 m / 1 deg), shrinks with the RANSAC ambiguity; capped when failed."""
         s = self.config.success
         c_bv = (1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / 40.0)) * (1.0 - min(1.0, ambiguity))
-        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / 8.0) if r.stage2_applied else 0.0
+        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / 8.0)
         c = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
         if not r.success:
             cap = 0.5 if r.reason in {FailureReason.no_box_overlap.value, FailureReason.too_few_inliers_box.value,
