@@ -183,7 +183,7 @@ def test_random_bytes_only_ever_raise_wire_errors(data):
 
 @hsettings(max_examples=100, deadline=None)
 @given(st.dictionaries(st.sampled_from(list(Frame.model_fields) + ["x"]),
-                       st.one_of(st.none(), st.integers(), st.floats(), st.text(max_size=5), st.binary(max_size=40),
+                       st.one_of(st.none(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5), st.binary(max_size=40),
                                  st.lists(st.floats(), max_size=8)), max_size=8))
 def test_random_maps_only_ever_raise_wire_errors(d):
     with pytest.raises(WireError):

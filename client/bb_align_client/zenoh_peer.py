@@ -42,12 +42,15 @@ class PoseStream:
 class ZenohPeer:
     """``with ZenohPeer("car1", connect=["tcp/127.0.0.1:7447"]) as peer: peer.publish(frame)``.
 
-    By default the session listens nowhere and connects to the given endpoints, multicast scouting off."""
+    By default the session listens nowhere and connects to the given endpoints, multicast scouting off. Frames
+    are dropped when the link is congested (a newer sweep follows anyway); ``block_when_congested=True`` makes
+    ``publish`` wait instead (every frame reaches the service; for tests and recordings)."""
 
     def __init__(self, vehicle_id: str, connect: Sequence[str] = ("tcp/127.0.0.1:7447",), *,
                  listen: Sequence[str] = (), prefix: str = "bbalign", mode: str = "peer",
-                 multicast_scouting: bool = False):
+                 multicast_scouting: bool = False, block_when_congested: bool = False):
         self.vehicle_id = vehicle_id
+        self.block_when_congested = block_when_congested
         self.prefix = prefix
         self._config = ZenohSettings(mode=mode, listen=list(listen), connect=list(connect),
                                      multicast_scouting=multicast_scouting, prefix=prefix)
@@ -57,7 +60,9 @@ class ZenohPeer:
 
     def open(self) -> "ZenohPeer":
         self.session = zenoh.open(self._config.to_zenoh_config())
-        self._publisher = self.session.declare_publisher(frames_key(self.prefix, self.vehicle_id))
+        cc = zenoh.CongestionControl.BLOCK if self.block_when_congested else zenoh.CongestionControl.DROP
+        self._publisher = self.session.declare_publisher(frames_key(self.prefix, self.vehicle_id),
+                                                         congestion_control=cc)
         return self
 
     def publish(self, frame: bytes) -> None:
