@@ -64,3 +64,4 @@ def align(
 
 # Feature areas register their commands below (one line each).
 from .service.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas
+from .bench.cli import register as _register_bench; _register_bench(app)  # bench

@@ -1,7 +1,7 @@
 """The in-benchmark baseline: the same stages as the engine, done the straightforward way the reference does them.
 
 This is the yardstick of ``bb-align bench``, never used by the service. It is written independently of the engine
-modules (it imports only their configuration and 2-D geometry helpers) so that engine speed-ups never change it:
+modules (it imports only their configuration, 2-D geometry helpers and the FFT size choice) so that engine speed-ups never change it:
 
 - Log-Gabor MIM: float64 image, complex128 numpy FFTs, the filter bank rebuilt on every call, all Ns x No
   inverse FFTs one by one (as the reference);
@@ -27,13 +27,13 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.fft import next_fast_len
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from ..bev import BevImage
 from ..config import AlignConfig, BoxConfig, FeatureConfig, MimConfig, RefineConfig
 from ..geometry import kabsch_2d, se2, se2_params, se3_from_se2
+from ..loggabor import fft_shape
 
 RANSAC_ITERATIONS = 10_000  # the reference's fixed count
 BOX_MIN_SAMPLE_DIST_M = 1.0  # two corners closer than this do not define a rotation
@@ -56,7 +56,7 @@ def log_gabor_mim(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, np.nda
     img = np.asarray(image, dtype=np.float64)
     h, w = img.shape
     m = cfg.fft_margin_px
-    rows, cols = next_fast_len(h + 2 * m), next_fast_len(w + 2 * m)
+    rows, cols = fft_shape((h, w), m)  # the engine's padded size: the same discrete filters, the same result
     padded = np.zeros((rows, cols))
     padded[m : m + h, m : m + w] = img
     spectrum = np.fft.fft2(padded)
@@ -222,11 +222,9 @@ def fixed_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_samp
     if best_T is None:
         return None
     inliers = ((src @ best_T[:2, :2].T + best_T[:2, 2] - dst) ** 2).sum(axis=1) < thr2
-    if inliers.sum() >= 2:
-        T = kabsch_2d(src[inliers], dst[inliers])
-        refit = ((src @ T[:2, :2].T + T[:2, 2] - dst) ** 2).sum(axis=1) < thr2
-        if refit.sum() >= inliers.sum():
-            best_T, inliers = T, refit
+    if inliers.sum() >= 2:  # least-squares refit on the best hypothesis' inliers (as the reference, but right)
+        best_T = kabsch_2d(src[inliers], dst[inliers])
+        inliers = ((src @ best_T[:2, :2].T + best_T[:2, 2] - dst) ** 2).sum(axis=1) < thr2
     return best_T, inliers
 
 
@@ -394,9 +392,10 @@ class BaselineAligner:
         res.inliers_bv = int(inliers.sum())
         if res.inliers_bv <= rule.min_inliers_bv:
             return finish("too_few_inliers_bv")
+        refined = False
         if cfg.refine.enabled:
             with _timed(timings, "refine"):
-                T_bv, _ = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=m.seed)
+                T_bv, refined = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=m.seed)
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:
             return finish("no_boxes" if rule.require_boxes else None)
         with _timed(timings, "boxes"):
@@ -408,5 +407,6 @@ class BaselineAligner:
         yaw, tx, ty = se2_params(T_fit)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish("box_correction_too_large")
-        T_box = T_fit
+        if getattr(cfg.box, "apply", "always") == "always" or not refined:  # else stage 2 only verifies
+            T_box = T_fit
         return finish(None)

@@ -1,0 +1,72 @@
+"""The benchmark's figure: p50 stage times of engine and baseline per path (log scale), and the service's
+latency and throughput when it was measured."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .run import COLD, HOT
+
+_TITLES = {HOT: "peer frame vs cached ego frame", COLD: "cold pair (both frames prepared)"}
+
+
+def plot_report(report: dict, path: str | Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    service = report.get("service") or {}
+    runs = service.get("runs") or {}
+    n_panels = 2 + (1 if runs else 0)
+    fig, axes = plt.subplots(1, n_panels, figsize=(6.2 * n_panels, 4.8))
+    for ax, key in zip(axes, (HOT, COLD)):
+        eng, base = report["stages"][key]["engine"], report["stages"][key]["baseline"]
+        names = [k for k in eng if k in base and (eng[k]["p50"] > 0.005 or base[k]["p50"] > 0.005)]
+        x = np.arange(len(names))
+        e = [max(eng[k]["p50"], 1e-3) for k in names]
+        b = [max(base[k]["p50"], 1e-3) for k in names]
+        ax.bar(x - 0.2, b, 0.4, label="baseline", color="#bbbbbb")
+        ax.bar(x + 0.2, e, 0.4, label="engine", color="#1f77b4")
+        for xi, k in zip(x, names):
+            r = report["stages"][key]["speedup_p50"].get(k)
+            if r:
+                ax.text(xi, max(e[xi], b[xi]) * 1.3, f"{r:.0f}x" if r >= 10 else f"{r:.1f}x", ha="center",
+                        fontsize=7)
+        ax.set_yscale("log")
+        ax.set_xticks(x, names, rotation=40, ha="right", fontsize=8)
+        ax.set_ylabel("p50 wall time per call (ms)")
+        ax.set_title(f"{_TITLES[key]}\nengine {eng['total']['p50']:.1f} ms, baseline {base['total']['p50']:.0f} ms",
+                     fontsize=9)
+        ax.grid(axis="y", alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    if runs:
+        ax = axes[-1]
+        peers = sorted(runs, key=int)
+        x = np.arange(len(peers))
+        offered = [runs[p]["offered_fps"] for p in peers]
+        done = [runs[p]["results_fps"] for p in peers]
+        ax.bar(x - 0.2, offered, 0.4, label="peer frames offered /s", color="#bbbbbb")
+        ax.bar(x + 0.2, done, 0.4, label="results /s", color="#2ca02c")
+        ax.set_xticks(x, [f"{p} peer(s)" for p in peers])
+        ax.set_ylabel("frames per second")
+        ax2 = ax.twinx()
+        ax2.plot(x, [runs[p]["latency_ms"]["p50"] for p in peers], "o-", color="#d62728", label="latency p50")
+        ax2.plot(x, [runs[p]["latency_ms"]["p99"] for p in peers], "s--", color="#d62728", label="latency p99")
+        ax2.set_ylabel("publish -> pose received (ms)")
+        ax2.set_ylim(bottom=0)
+        lines = ax.get_legend_handles_labels()
+        lines2 = ax2.get_legend_handles_labels()
+        ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=7, loc="upper left")
+        ax.set_title(f"service over Zenoh, peers at {service.get('rate_hz', 10):g} Hz", fontsize=9)
+    commit = (report.get("git") or {}).get("commit") or "?"
+    load = report.get("load_avg", {}).get("start", [float("nan")])[0]
+    fig.suptitle(f"bb-align bench  ({report['workload']['pairs']} pairs, {report['runs']} runs, "
+                 f"commit {commit[:10]}, load {load:.2f})", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
