@@ -65,13 +65,14 @@ def demo(
     prefix: str = typer.Option("bbalign", help="Zenoh key prefix"),
     range_m: Optional[float] = typer.Option(None, help="BV half width sent by the cars (default: engine's)"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="also write every row and the summary as JSON"),
+    plot: Optional[Path] = typer.Option(None, help="write a PNG of the errors and latencies per frame"),
 ) -> None:
     """Drive a simulated N-car scene through a running service over Zenoh; table of true vs recovered poses."""
     from .demo import run_demo
 
     summary = run_demo(connect=connect, ego_id=ego_id, n_agents=agents, n_frames=frames, seed=seed,
                        distance_m=distance_m, rate_hz=rate_hz, timeout_s=timeout_s, prefix=prefix,
-                       range_m=range_m, json_out=json_out)
+                       range_m=range_m, json_out=json_out, plot=plot)
     if summary["results"] == 0:
         raise typer.Exit(1)
 

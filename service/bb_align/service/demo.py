@@ -41,7 +41,12 @@ def _row(result, truth: dict, sent: dict, received_at: float) -> dict:
     row = {"seq": seq, "peer": peer, "ego_seq": ego_seq, "success": result.success, "reason": result.reason,
            "inliers_bv": result.inliers_bv, "inliers_box": result.inliers_box,
            "latency_ms": (received_at - sent[(peer, seq)]["t"]) * 1e3, "service_ms": result.latency_ms,
-           "bytes": result.bytes_received, "raw_points_bytes": result.raw_points_bytes}
+           "bytes": result.bytes_received, "raw_points_bytes": result.raw_points_bytes,
+           "service_steps_ms": {
+               "queue_wait": result.timings_ms.get("queue_wait", 0.0),
+               "peer_prepare": sum(v for k, v in result.timings_ms.items() if k.startswith("peer_")),
+               "ego_wait": result.timings_ms.get("ego_wait", 0.0),
+               "align": result.timings_ms.get("align_total", 0.0)}}
     if ego_seq is not None and (ego_seq, ego) in truth:
         T_true = np.linalg.inv(truth[(ego_seq, ego)]) @ truth[(seq, peer)]
         T_gnss = np.linalg.inv(sent[(ego, ego_seq)]["reported"]) @ sent[(peer, seq)]["reported"]
@@ -53,19 +58,45 @@ def _row(result, truth: dict, sent: dict, received_at: float) -> dict:
 
 
 def _table(rows: list[dict], title: str, last: int = 18) -> Table:
-    t = Table(title=title, caption="yaw deg, tx/ty m; err = translation m / yaw deg; latency = publish -> result")
-    for col in ("seq", "peer", "true (yaw, tx, ty)", "recovered", "err", "GNSS err", "inl bv/box", "status",
-                "latency ms", "bytes", "vs raw"):
-        t.add_column(col, justify="right" if col not in ("peer", "status") else "left")
-    fmt3 = lambda v: "-" if v is None else f"{v[0]:7.2f} {v[1]:7.2f} {v[2]:7.2f}"  # noqa: E731
-    fmt2 = lambda v: "-" if v is None else f"{v[0]:5.2f} / {v[1]:5.2f}"  # noqa: E731
+    t = Table(title=title, caption="pose = yaw deg, x m, y m of T_ego_peer; err = metres / degrees; "
+                                   "latency = publish -> result received")
+    for col in ("seq", "peer", "true pose", "recovered pose", "err", "GNSS err", "inliers", "status",
+                "latency ms", "bytes (vs raw)"):
+        t.add_column(col, justify="left" if col in ("peer", "status") else "right")
+    fmt3 = lambda v: "-" if v is None else f"{v[0]:6.1f} {v[1]:6.1f} {v[2]:6.1f}"  # noqa: E731
+    fmt2 = lambda v: "-" if v is None else f"{v[0]:.2f}/{v[1]:.2f}"  # noqa: E731
     for r in rows[-last:]:
-        ratio = f"{r['bytes'] / r['raw_points_bytes']:.2%}" if r.get("raw_points_bytes") else "-"
+        ratio = f" ({r['bytes'] / r['raw_points_bytes']:.1%})" if r.get("raw_points_bytes") else ""
         t.add_row(str(r["seq"]), r["peer"], fmt3(r.get("true")), fmt3(r.get("est")), fmt2(r.get("err")),
                   fmt2(r.get("gnss_err")), f"{r['inliers_bv']}/{r['inliers_box']}",
                   "ok" if r["success"] else f"[red]{r['reason']}[/red]", f"{r['latency_ms']:.0f}",
-                  str(r["bytes"]), ratio)
+                  f"{r['bytes']}{ratio}")
     return t
+
+
+def plot_demo(rows: list[dict], path: Path) -> None:
+    """Per peer frame: recovered vs GNSS-only translation error, and publish -> result latency."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for peer in sorted({r["peer"] for r in rows}):
+        rs = [r for r in rows if r["peer"] == peer and "err" in r]
+        seq = [r["seq"] for r in rs]
+        ax1.plot(seq, [r["err"][0] for r in rs], "o-", label=f"{peer} recovered")
+        ax1.plot(seq, [r["gnss_err"][0] for r in rs], "x--", label=f"{peer} reported (GNSS) poses")
+        ax2.plot([r["seq"] for r in rows if r["peer"] == peer],
+                 [r["latency_ms"] for r in rows if r["peer"] == peer], "o-", label=peer)
+    ax1.set_ylabel("translation error (m)")
+    ax1.set_yscale("symlog", linthresh=0.1)
+    ax1.legend(fontsize=8)
+    ax2.set_ylabel("publish -> result (ms)")
+    ax2.set_xlabel("frame")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def summarize(rows: list[dict], n_sent: int) -> dict:
@@ -82,6 +113,8 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
         "err_t_m_p90": q(err_t, 90), "err_r_deg_p90": q(err_r, 90),
         "latency_ms_median": q(lat, 50), "latency_ms_p90": q(lat, 90), "latency_ms_max": q(lat, 100),
         "service_latency_ms_median": q(svc, 50),
+        "service_steps_ms_median": {k: q(np.array([r["service_steps_ms"][k] for r in rows]), 50)
+                                    for k in ("queue_wait", "peer_prepare", "ego_wait", "align")} if rows else {},
         "bytes_per_frame_mean": float(np.mean([r["bytes"] for r in rows])) if rows else None,
         "raw_points_bytes_mean": float(np.mean([r["raw_points_bytes"] for r in raw])) if raw else None,
         "ratio_vs_points_mean": float(np.mean([r["bytes"] / r["raw_points_bytes"] for r in raw])) if raw else None,
@@ -91,12 +124,12 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
 def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_frames: int = 10, seed: int = 0,
              distance_m: float | None = 30.0, rate_hz: float = 0.0, timeout_s: float = 30.0,
              prefix: str = "bbalign", range_m: float | None = None, json_out: Path | None = None,
-             console: Console | None = None) -> dict:
+             plot: Path | None = None, console: Console | None = None) -> dict:
     from bb_align_client import ZenohPeer, encode_frame
 
     from ..sim import Scenario
 
-    console = console or Console()
+    console = console or Console(width=max(Console().width, 130))
     scenario = Scenario(seed, n_agents, distance_m)
     names = {aid: (ego_id if aid == "0" else f"car{aid}") for aid in scenario.agent_ids}
     bev = {} if range_m is None else {"range_m": range_m}
@@ -162,6 +195,10 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
         Path(json_out).parent.mkdir(parents=True, exist_ok=True)
         Path(json_out).write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
         console.print(f"rows and summary: {json_out}")
+    if plot is not None and rows:
+        Path(plot).parent.mkdir(parents=True, exist_ok=True)
+        plot_demo(rows, Path(plot))
+        console.print(f"plot: {plot}")
     return summary
 
 

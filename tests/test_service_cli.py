@@ -1,0 +1,138 @@
+"""Settings from the environment, `bb-align serve` as a real process, `bb-align demo` against a live service,
+and the docker files (docker cannot run here: they are parsed and checked against the code)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+from pydantic import ValidationError
+from typer.main import get_command
+from typer.testing import CliRunner
+
+from bb_align.cli import app
+from bb_align.settings import Settings
+from service_support import free_port, running_service, service_settings
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent / "bb-align"
+
+
+def _clear_env(monkeypatch):
+    for k in list(os.environ):
+        if k.startswith("BBALIGN_"):
+            monkeypatch.delenv(k)
+
+
+def test_defaults_bind_loopback_only(monkeypatch):
+    _clear_env(monkeypatch)
+    s = Settings()
+    assert s.host == "127.0.0.1" and s.port == 8000
+    assert s.zenoh.listen == ["tcp/127.0.0.1:7447"] and s.zenoh.connect == [] and not s.zenoh.multicast_scouting
+    assert s.zenoh.mode == "peer" and s.zenoh.prefix == "bbalign"
+
+
+def test_environment_configures_nested_fields(monkeypatch):
+    _clear_env(monkeypatch)
+    monkeypatch.setenv("BBALIGN_EGO_ID", "truck7")
+    monkeypatch.setenv("BBALIGN_ZENOH__CONNECT", '["tcp/127.0.0.1:7000"]')
+    monkeypatch.setenv("BBALIGN_ZENOH__MODE", "client")
+    monkeypatch.setenv("BBALIGN_ALIGN__BEV__RANGE_M", "60")
+    monkeypatch.setenv("BBALIGN_LIMITS__MAX_BOXES", "32")
+    s = Settings()
+    assert (s.ego_id, s.zenoh.connect, s.zenoh.mode) == ("truck7", ["tcp/127.0.0.1:7000"], "client")
+    assert s.align.bev.range_m == 60 and s.limits.max_boxes == 32
+    monkeypatch.setenv("BBALIGN_ZENOH__LISTEN", '["127.0.0.1:7447"]')  # no protocol
+    with pytest.raises(ValidationError, match="Zenoh endpoint"):
+        Settings()
+
+
+def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
+    _clear_env(monkeypatch)
+    port, zport = free_port(), free_port()
+    env = {**os.environ, "BBALIGN_ALIGN__BEV__RANGE_M": "40"}
+    proc = subprocess.Popen([str(BIN), "serve", "--port", str(port), "--ego-id", "car0", "--zenoh-listen",
+                             f"tcp/127.0.0.1:{zport}", "--log-level", "warning"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            assert proc.poll() is None, proc.stdout.read()
+            assert time.monotonic() < deadline, "serve did not become ready"
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        assert httpx.get(f"http://127.0.0.1:{port}/readyz").json()["zenoh"] is True
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    assert f"http://127.0.0.1:{port}" in out and f"tcp/127.0.0.1:{zport}" in out and "ego id 'car0'" in out
+    assert "bbalign/align/car0" in out
+
+
+def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
+    settings = service_settings(align={})  # default engine configuration, as `bb-align serve`
+    with running_service(settings):
+        out = CliRunner().invoke(app, ["demo", "--connect", settings.zenoh.listen[0], "--frames", "2",
+                                       "--distance-m", "20", "--json", str(tmp_path / "demo.json"),
+                                       "--plot", str(tmp_path / "demo.png")])
+    assert out.exit_code == 0, out.output
+    report = json.loads((tmp_path / "demo.json").read_text())
+    assert report["summary"]["results"] == 2 and report["summary"]["peer_frames_sent"] == 2
+    for row in report["rows"]:  # each row holds the error against the simulator's true poses
+        assert row["success"] and row["err"][0] < 1.0 and row["err"][1] < 1.0
+    assert report["summary"]["ratio_vs_points_mean"] < 0.05
+    assert (tmp_path / "demo.png").stat().st_size > 10_000
+    assert "peer frames answered" in out.output
+
+
+def _dockerfile() -> dict[str, list[str]]:
+    text = (REPO / "docker" / "Dockerfile").read_text().replace("\\\n", " ")
+    out: dict[str, list[str]] = {}
+    for line in text.splitlines():
+        m = re.match(r"^\s*([A-Z]+)\s+(.*)$", line)
+        if m:
+            out.setdefault(m.group(1), []).append(m.group(2).strip())
+    return out
+
+
+def test_dockerfile_is_slim_non_root_with_healthcheck_and_serve_entry():
+    d = _dockerfile()
+    assert all("slim" in f for f in d["FROM"])
+    assert d["USER"] == ["bbalign"]
+    assert "readyz" in d["HEALTHCHECK"][0]
+    entry = json.loads(d["ENTRYPOINT"][0])
+    assert entry == ["bb-align", "serve"]
+    scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts[entry[0]] == "bb_align.cli:app" and entry[1] in get_command(app).commands
+
+
+def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch):
+    compose = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())
+    services = compose["services"]
+    assert set(services) == {"zenohd", "bb-align", "demo"}
+    assert services["bb-align"]["build"]["dockerfile"] == "docker/Dockerfile"
+    assert all(p.startswith("127.0.0.1:") for s in services.values() for p in s.get("ports", []))
+    _clear_env(monkeypatch)
+    for k, v in services["bb-align"]["environment"].items():
+        monkeypatch.setenv(k, str(v))
+    s = Settings()
+    assert s.zenoh.mode == "client" and s.zenoh.connect == ["tcp/zenohd:7447"] and s.zenoh.listen == []
+    demo = services["demo"]
+    assert demo["entrypoint"] == ["bb-align", "demo"]
+    get_command(app).commands["demo"].make_context("demo", list(demo["command"]))  # options exist and parse
+    assert "--no-multicast-scouting" in services["zenohd"]["command"]
