@@ -107,6 +107,12 @@ class SuccessRule(_Frozen):
     max_ambiguity: float = Field(
         0.8, gt=0, le=1, description="fail when a distinct runner-up pose has this fraction of the best inliers"
     )
+    min_refine_fitness: float = Field(
+        0.2, ge=0, le=1,
+        description="fail when, after the dense refinement, fewer than this fraction of the peer's lit BV pixels lie "
+        "within the finest gate of an ego pixel (catches keypoint aliases along repetitive streets; measured: "
+        "correct sim pairs >= 0.19, wrong ones <= 0.17, real KITTI 16 m pair 0.51)",
+    )
 
 
 class AlignConfig(_Frozen):

@@ -183,6 +183,8 @@ class Aligner:
             refined = ref.accepted
             if not ref.accepted:
                 result.notes.append("BV refinement rejected (correction beyond bounds); stage-1 pose kept")
+            elif ref.fitness < cfg.success.min_refine_fitness:
+                return finish(FailureReason.inconsistent_overlap)
 
         # Lines 12-15: box alignment on top of T_bv.
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:
@@ -211,9 +213,12 @@ class Aligner:
 
     def _confidence(self, r: AlignResult, ambiguity: float) -> float:
         """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9: > 100 bv or > 20 box
-        inliers put > 90% of pairs under 1 m / 1 deg), shrinks with the RANSAC ambiguity; capped when failed."""
+        inliers put > 90% of pairs under 1 m / 1 deg), shrinks with the RANSAC ambiguity and with a low refinement
+        fitness; capped when failed."""
         s = self.config.success
         c_bv = (1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / 40.0)) * (1.0 - min(1.0, ambiguity))
+        if self.config.refine.enabled and r.refine_fitness > 0:
+            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / 0.2, 0.0, 1.0))
         c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / 8.0)
         c = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
         if not r.success:

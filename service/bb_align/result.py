@@ -19,6 +19,7 @@ class FailureReason(str, Enum):
     too_few_matches = "too_few_matches"  # fewer descriptor matches than a rigid fit needs
     too_few_inliers_bv = "too_few_inliers_bv"  # stage 1 below the success rule
     ambiguous_bv = "ambiguous_bv"  # a distinct pose explains almost as many matches
+    inconsistent_overlap = "inconsistent_overlap"  # after refinement too few BV pixels coincide (alias)
     no_boxes = "no_boxes"  # boxes were required but one side sent none
     no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
     too_few_inliers_box = "too_few_inliers_box"  # stage 2 below the success rule
