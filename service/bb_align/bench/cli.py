@@ -24,9 +24,12 @@ def _summary(report: dict) -> str:
         st = report["stages"][key]
         lines.append(f"{title}: engine p50 {st['engine']['total']['p50']:.1f} ms, p90 "
                      f"{st['engine']['total']['p90']:.1f} ms | baseline p50 {st['baseline']['total']['p50']:.0f} ms"
-                     f" | speed-up {report['speedup'][key] or float('nan'):.1f}x")
+                     f" | speed-up {report['speedup'][key] or float('nan'):.1f}x (CPU time: engine "
+                     f"{st['engine']['total_cpu']['p50']:.1f} ms, {report['speedup_cpu'][key] or float('nan'):.1f}x)")
         lines.append(f"  {'stage':<12} {'engine p50':>11} {'p90':>8} {'baseline p50':>13} {'ratio':>7}")
         for name, row in st["engine"].items():
+            if name == "total_cpu":
+                continue
             b = st["baseline"].get(name, {}).get("p50", float("nan"))
             r = st["speedup_p50"].get(name)
             lines.append(f"  {name:<12} {row['p50']:>11.2f} {row['p90']:>8.2f} {b:>13.1f} "

@@ -24,7 +24,8 @@ def plot_report(report: dict, path: str | Path) -> Path:
     fig, axes = plt.subplots(1, n_panels, figsize=(6.2 * n_panels, 4.8))
     for ax, key in zip(axes, (HOT, COLD)):
         eng, base = report["stages"][key]["engine"], report["stages"][key]["baseline"]
-        names = [k for k in eng if k in base and (eng[k]["p50"] > 0.005 or base[k]["p50"] > 0.005)]
+        names = [k for k in eng if k in base and k != "total_cpu"
+                 and (eng[k]["p50"] > 0.005 or base[k]["p50"] > 0.005)]
         x = np.arange(len(names))
         e = [max(eng[k]["p50"], 1e-3) for k in names]
         b = [max(base[k]["p50"], 1e-3) for k in names]
@@ -48,8 +49,10 @@ def plot_report(report: dict, path: str | Path) -> Path:
         x = np.arange(len(peers))
         offered = [runs[p]["offered_fps"] for p in peers]
         done = [runs[p]["results_fps"] for p in peers]
+        good = [runs[p]["results_fps"] * runs[p]["success_fraction"] for p in peers]
         ax.bar(x - 0.2, offered, 0.4, label="peer frames offered /s", color="#bbbbbb")
-        ax.bar(x + 0.2, done, 0.4, label="results /s", color="#2ca02c")
+        ax.bar(x + 0.2, done, 0.4, label="results /s", color="#98df8a")
+        ax.bar(x + 0.2, good, 0.4, label="successful results /s", color="#2ca02c")
         ax.set_xticks(x, [f"{p} peer(s)" for p in peers])
         ax.set_ylabel("frames per second")
         ax2 = ax.twinx()

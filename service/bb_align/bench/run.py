@@ -48,6 +48,7 @@ class Sample:
 
     total_ms: float
     stages_ms: dict[str, float]
+    cpu_ms: float  # process CPU time over the call (all threads): steadier than wall time on a busy machine
 
 
 @dataclass
@@ -98,24 +99,24 @@ class EngineRunner:
 
     def hot(self, pair: BenchPair, ego) -> tuple[Sample, Outcome]:
         stages: dict[str, float] = {}
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         peer = self.aligner.prepare(_decode(pair.peer_png, pair.bev_meta, stages), pair.boxes_peer)
         res = self.aligner.align(ego, peer)
-        total = (time.perf_counter() - t0) * 1e3
+        total, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
         _add(stages, peer.timings_ms)
         _add(stages, res.timings_ms)
-        return Sample(total, stages), _outcome(res)
+        return Sample(total, stages, cpu), _outcome(res)
 
     def cold(self, pair: BenchPair) -> tuple[Sample, Outcome]:
         stages: dict[str, float] = {}
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         ego = self.aligner.prepare(_decode(pair.ego_png, pair.bev_meta, stages), pair.boxes_ego)
         peer = self.aligner.prepare(_decode(pair.peer_png, pair.bev_meta, stages), pair.boxes_peer)
         res = self.aligner.align(ego, peer)
-        total = (time.perf_counter() - t0) * 1e3
+        total, cpu = (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3
         for t in (ego.timings_ms, peer.timings_ms, res.timings_ms):
             _add(stages, t)
-        return Sample(total, stages), _outcome(res)
+        return Sample(total, stages, cpu), _outcome(res)
 
 
 class BaselineRunner(EngineRunner):
@@ -181,6 +182,7 @@ def stage_table(samples: list[Sample]) -> dict[str, dict[str, float]]:
     table = {n: percentiles(s.stages_ms.get(n, 0.0) for s in samples) for n in names}
     table["other"] = percentiles(s.total_ms - sum(s.stages_ms.values()) for s in samples)
     table["total"] = percentiles(s.total_ms for s in samples)
+    table["total_cpu"] = percentiles(s.cpu_ms for s in samples)
     return table
 
 
@@ -302,11 +304,15 @@ def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup:
     report.update({
         "peer_vs_cached_ego_ms_p50": hot_e["p50"], "peer_vs_cached_ego_ms_p90": hot_e["p90"],
         "cold_pair_ms_p50": cold_e["p50"], "cold_pair_ms_p90": cold_e["p90"],
+        "peer_vs_cached_ego_cpu_ms_p50": stages[HOT]["engine"]["total_cpu"]["p50"],
+        "cold_pair_cpu_ms_p50": stages[COLD]["engine"]["total_cpu"]["p50"],
         "ego_frame_prepare_ms_p50": percentiles(engine.ego_prepare_ms)["p50"],
         "baseline": {"peer_vs_cached_ego_ms_p50": hot_b["p50"], "peer_vs_cached_ego_ms_p90": hot_b["p90"],
                      "cold_pair_ms_p50": cold_b["p50"], "cold_pair_ms_p90": cold_b["p90"],
                      "ego_frame_prepare_ms_p50": percentiles(base.ego_prepare_ms)["p50"]},
         "speedup": {HOT: _ratio(hot_b["p50"], hot_e["p50"]), COLD: _ratio(cold_b["p50"], cold_e["p50"])},
+        "speedup_cpu": {p: _ratio(stages[p]["baseline"]["total_cpu"]["p50"], stages[p]["engine"]["total_cpu"]["p50"])
+                        for p in PATHS},
         "stages": stages,
         "memory": {"engine_tracemalloc_peak_mb": engine.peak_mb, "baseline_tracemalloc_peak_mb": base.peak_mb,
                    "after_engine": memory_after_engine, "after_baseline": rss_mb()},

@@ -24,6 +24,9 @@ SIM_DISTANCES_M = (10.0, 20.0, 30.0, 40.0, 50.0, 60.0)
 SIM_SEEDS = (101, 202)
 QUICK_DISTANCES_M = (20.0, 40.0)
 QUICK_SEEDS = (101,)
+SIM_SPACING_TOLERANCE_M = 3.0  # a simulated pair must be this close to its requested spacing
+SIM_RETRIES = 20
+SIM_RETRY_STRIDE = 1000
 
 
 @dataclass(frozen=True)
@@ -91,10 +94,19 @@ def sim_workload(config: AlignConfig | None = None, *, quick: bool = False, seed
     jobs = [(s, d) for s in seeds for d in distances]
     pairs = []
     for seed, dist in (progress(jobs) if progress else jobs):
-        frame = simulate_sequence(seed=seed, n_frames=1, n_agents=2, distance_m=dist)[0]
-        ego, peer = frame.agents["0"], frame.agents["1"]
-        T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
-        pairs.append(make_pair(f"sim-s{seed}-d{dist:g}", ego.points, peer.points, ego.boxes, peer.boxes, T_true,
+        # A street may not offer the wanted spacing (the simulator then places the peer elsewhere): take the
+        # next seed of a fixed sequence, so the workload stays deterministic and every spacing is present.
+        for attempt in range(SIM_RETRIES):
+            s = seed + SIM_RETRY_STRIDE * attempt
+            frame = simulate_sequence(seed=s, n_frames=1, n_agents=2, distance_m=dist)[0]
+            ego, peer = frame.agents["0"], frame.agents["1"]
+            T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+            if abs(np.hypot(*T_true[:2, 3]) - dist) <= SIM_SPACING_TOLERANCE_M:
+                break
+        else:
+            raise RuntimeError(f"the simulator did not place two cars {dist:g} m apart for seeds {seed} + "
+                               f"{SIM_RETRY_STRIDE} k, k < {SIM_RETRIES}")
+        pairs.append(make_pair(f"sim-s{s}-d{dist:g}", ego.points, peer.points, ego.boxes, peer.boxes, T_true,
                                config))
     return Workload(pairs, "sim", {"seeds": list(seeds), "spacings_m": list(distances),
                                    "range_m": config.bev.range_m, "resolution_m": config.bev.resolution_m})
