@@ -64,4 +64,5 @@ def align(
 
 # Feature areas register their commands below (one line each).
 from .service.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas
+from .evaluation.cli import register as _register_evaluation; _register_evaluation(app)  # sim, eval
 from .bench.cli import register as _register_bench; _register_bench(app)  # bench

@@ -35,6 +35,7 @@ class SimConfig(BaseModel):
     traffic: float | None = Field(None, ge=0, le=1, description="0 light .. 1 busy; None: drawn per scenario")
     tilt_sigma_deg: float = Field(0.3, ge=0, description="residual sensor roll/pitch (mounting + body), 1 sigma")
     stopped_prob: float = Field(0.15, ge=0, le=1, description="probability that an agent is standing still")
+    same_road_prob: float = Field(0.7, ge=0, le=1, description="probability that a peer drives on the ego's road")
     vehicle_range_m: float = Field(120.0, gt=0, description="vehicles listed as ground truth within this range")
     detection: DetectionModel = DetectionModel()
 
@@ -50,6 +51,8 @@ class SimAgent:
     sensor: str = ""
     vehicle_id: int = -1  # this car's id among the frame's vehicles
     points_on: dict[int, int] = field(default_factory=dict)  # vehicle id -> LiDAR points on it
+    seen_boxes: dict[int, np.ndarray] = field(default_factory=dict)  # vehicle id -> box where the (distorted)
+    # sweep shows it, sensor frame: what an annotator labelling this cloud would draw
 
 
 @dataclass
@@ -74,11 +77,13 @@ def _lane_speed(world: World, lane: Path, rng) -> float:
     return float(rng.uniform(5, 16))
 
 
-def _add_agent(world: World, lane: Path, s0: float, rng, stopped_prob: float) -> Vehicle:
+def _add_agent(world: World, lane: Path, s0: float, rng, stopped_prob: float, agents: list[Vehicle]) -> Vehicle:
     speed = 0.0 if rng.random() < stopped_prob else _lane_speed(world, lane, rng)
+    speed = next((a.speed for a in agents if a.path is lane), speed)  # agents sharing a lane never collide
     # clear the lane around the agent (traffic in a lane shares one speed, so nothing drives into it)
-    world.vehicles = [v for v in world.vehicles
-                      if not (v.path is lane and -40.0 - (40.0 if speed == 0 else 0) < v.s0 - s0 < 14.0)]
+    behind = 40.0 + (40.0 if speed == 0 else 0.0)
+    world.vehicles = [v for v in world.vehicles if any(v is a for a in agents)
+                      or not (v.path is lane and -behind < v.s0 - s0 < 14.0)]
     car = Vehicle(-1, float(rng.uniform(4.4, 4.9)), float(rng.uniform(1.8, 1.95)), float(rng.uniform(1.45, 1.7)),
                   "car", path=lane, s0=s0, speed=speed)
     world.vehicles.append(car)
@@ -90,7 +95,8 @@ def _place(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimC
     main = world.roads[0]
     lane = main.lanes()[int(rng.integers(len(main.lanes())))]
     s_ego = float(rng.uniform(0.35, 0.65) * lane.length)
-    agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob)]
+    agents: list[Vehicle] = []
+    agents.append(_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, agents))
     ego_xy = lane.pose_at(s_ego)[:2]
     taken = [(lane, s_ego)]
     for _ in range(n_agents - 1):
@@ -113,9 +119,12 @@ def _place(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimC
             if abs(s_other - s_ego) < 8:
                 s_other = s_ego - max(d, 8.0)
             options = [(lane, np.array([s_other]))]
+        same_road = [o for o in options if any(o[0] is m for m in main.lanes())]
+        if same_road and rng.random() < cfg.same_road_prob:  # cooperating cars mostly share a road
+            options = same_road
         ln, ss = options[int(rng.integers(len(options)))]
         s_other = float(ss[int(rng.integers(len(ss)))])
-        agents.append(_add_agent(world, ln, s_other, rng, cfg.stopped_prob))
+        agents.append(_add_agent(world, ln, s_other, rng, cfg.stopped_prob, agents))
         taken.append((ln, s_other))
     for i, v in enumerate(world.vehicles):
         v.vid = i
@@ -173,7 +182,8 @@ class Scenario:
             agents[str(a_idx)] = SimAgent(
                 points=sweep.points, boxes=dets.boxes, scores=dets.scores, T_world_sensor=sweep.T_world_sensor,
                 sensor=spec.sensor.name, vehicle_id=spec.vehicle,
-                points_on={int(i): int(c) for i, c in zip(ids, counts)})
+                points_on={int(i): int(c) for i, c in zip(ids, counts)},
+                seen_boxes={int(i): true_boxes[j] for j, i in enumerate(ids)})
         ego_xy = agents["0"].T_world_sensor[:2, 3]
         vehicles = {}
         for v in w.vehicles:

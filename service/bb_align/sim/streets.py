@@ -165,8 +165,17 @@ class _Side:
                 off = self.side * hw * r.uniform(0.3, 0.9)
                 self.sh.prism(cx - np.sin(yaw_b) * off, cy + np.cos(yaw_b) * off, hl * r.uniform(0.3, 0.7),
                               hw * 0.6, yaw_b, 0.0, h * r.uniform(0.3, 1.6), reflect=r.uniform(0.2, 0.6))
+            if r.random() < {"city": 0.7, "suburb": 0.5, "industrial": 0.4}[style]:  # a second row behind
+                depth2 = depth * r.uniform(0.6, 1.3)
+                lat2 = self.edge + setback + depth + r.uniform(3, 15) + depth2 / 2
+                x2, y2, _ = self.at(s + (a + b) / 2 + r.normal(0, 3), lat2)
+                hl2 = hl * r.uniform(0.6, 1.2)
+                if self.occ.claim_rect(x2, y2, hl2, depth2 / 2, yaw_b, self.occ.any_corridor):
+                    self.sh.prism(x2, y2, hl2, depth2 / 2, yaw_b + r.normal(0, 0.03), 0.0,
+                                  max(3.0, base_h * r.uniform(0.5, 1.6)), reflect=r.uniform(0.2, 0.6))
             if style == "suburb":
                 self._yard(s + a, s + b, setback)
+                self._yard(s + a, s + b, setback + depth + r.uniform(2, 12))  # back yard
             elif style == "industrial" and r.random() < 0.5:
                 self.wall(s + a, s + b, self.edge + 0.5, r.uniform(1.8, 3.0))
 
@@ -264,6 +273,28 @@ def _vehicle_dims(rng) -> tuple[float, float, float, str]:
     return rng.uniform(8.0, 12.5), rng.uniform(2.4, 2.6), rng.uniform(2.9, 3.6), "truck"
 
 
+def _vegetation(sh: Shapes, occ: _Occupancy, rng, roads: list[Road]) -> None:
+    """Scattered trees and bushes over the free ground within ~120 m of the roads (density drawn per world)."""
+    density = rng.uniform(0.0004, 0.0025)  # plants per square metre of free ground
+    free = ~(occ.any_corridor | occ.taken)
+    near = distance_transform_edt(~occ.any_corridor[::4, ::4]) * 4 * occ.res < 120
+    area = near.sum() * (4 * occ.res) ** 2
+    n = int(rng.poisson(density * area))
+    cand = np.argwhere(near)
+    if not len(cand) or not n:
+        return
+    pick = cand[rng.integers(0, len(cand), n)] * 4 + rng.integers(0, 4, (n, 2))
+    pick = np.clip(pick, 0, np.array(occ.shape) - 1)
+    side = _Side(sh, occ, rng, roads[0], 0, 1, [])
+    for i, j in pick[free[pick[:, 0], pick[:, 1]]]:
+        x, y = occ.lo + (np.array([i, j]) + 0.5) * occ.res
+        clump = int(rng.integers(1, 4))
+        for _ in range(clump):
+            px, py = x + rng.normal(0, 2.5), y + rng.normal(0, 2.5)
+            if side.free(px, py):
+                side.tree(px, py, rng.uniform(0.6, 1.2)) if rng.random() < 0.55 else side.bush(px, py, 1.2)
+
+
 def _terrain(occ: _Occupancy, rng, res: float = 2.0) -> Terrain:
     """Flat carriageways, kerbs 0.15 m up, verges rolling by up to ~1 m, grass 0-0.5 m."""
     step = int(round(res / occ.res))
@@ -272,8 +303,11 @@ def _terrain(occ: _Occupancy, rng, res: float = 2.0) -> Terrain:
     dist = distance_transform_edt(~corridor) * res
     noise = gaussian_filter(rng.normal(size=corridor.shape), sigma=7)
     noise /= noise.std() + 1e-9
-    amp = rng.uniform(0.1, 0.8)
-    height = amp * noise * np.clip(dist / 12.0, 0, 1) + 0.15 * (corridor & ~carriage) + 0.15 * (~corridor)
+    bumps = gaussian_filter(rng.normal(size=corridor.shape), sigma=2)
+    bumps /= bumps.std() + 1e-9
+    amp = rng.uniform(0.05, 0.5)
+    rough = amp * (noise + 0.25 * bumps)
+    height = rough * np.clip(dist / 10.0, 0, 1) + 0.15 * (corridor & ~carriage) + 0.15 * (~corridor)
     g = gaussian_filter(rng.normal(size=corridor.shape), sigma=4)
     g = np.clip(rng.uniform(0.02, 0.2) + 0.15 * g / (g.std() + 1e-9), 0, 0.5) * (~corridor)
     return Terrain(occ.lo.astype(float), res, height, g)
@@ -300,6 +334,7 @@ def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traff
     for i, road in enumerate(roads):
         for side in (-1, 1):
             styles += _Side(sh, occ, rng, road, i, side, parked).walk()
+    _vegetation(sh, occ, rng, roads)
     terrain = _terrain(occ, rng)
     static = sh.arrays()
     base = terrain.height_at(static.xy)  # stand things on the ground
