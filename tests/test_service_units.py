@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 
@@ -68,26 +69,45 @@ def test_cache_returns_nearest_in_time_and_keeps_the_last_k():
     cache = EgoCache(size=3)
     assert cache.nearest(1.0) is None
     for seq, stamp in enumerate([1.0, 1.1, 1.2, 1.3]):
-        cache.add(_ego(stamp, seq))
-    assert cache.stamps() == [1.1, 1.2, 1.3]
+        cache.add(_ego(stamp, seq), bev=None)
+    assert cache.stamps() == [1.1, 1.2, 1.3] and len(cache) == 3
     assert cache.nearest(1.16).frame.seq == 2
     assert cache.nearest(0.5).frame.seq == 1  # 1.0 was evicted
     assert cache.nearest(9.0).frame.seq == 3
-    cache.add(_ego(1.3, 4))
+    cache.add(_ego(1.3, 4), bev=None)
     assert cache.nearest(1.3).frame.seq == 4  # equally near: the newer frame
-    assert len(cache) == 0  # none prepared yet
+    assert cache.prepared() == 0
 
 
-def test_pending_entry_wakes_waiters_when_prepared():
+def test_entry_features_are_computed_once_for_concurrent_users():
     cache = EgoCache(size=2)
-    entry = cache.add(_ego(1.0, 0))
+    entry = cache.add(_ego(1.0, 0), bev=None)
+    calls, started = [], threading.Event()
+
+    def prepare(e):
+        calls.append(e.frame.seq)
+        started.set()
+        time.sleep(0.2)
+        return "features"
+
     out = []
-    t = threading.Thread(target=lambda: out.append(cache.nearest(1.0).wait(5)))
-    t.start()
-    entry.set("features")
-    t.join(5)
-    assert out == ["features"] and len(cache) == 1
-    assert np.isclose(cache.nearest(1.0).stamp, 1.0)
+    threads = [threading.Thread(target=lambda: out.append(entry.features(prepare))) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(5)
+    assert out == ["features"] * 3 and calls == [0] and cache.prepared() == 1
+
+
+def test_priority_sender_goes_first_without_reordering_the_rest():
+    s = Scheduler(depth=1, priority=frozenset({"ego"}))
+    for sender in ("car1", "car2", "ego"):
+        s.put_frame(_job(sender, 0))
+    order = []
+    while (job := s.get(0)) is not None:
+        order.append(job.sender)
+        s.done(job)
+    assert order == ["ego", "car1", "car2"]
 
 
 def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():

@@ -85,7 +85,6 @@ class Settings(BaseSettings):
     limits: Limits = Field(default_factory=Limits)
     ego_cache_size: int = Field(10, ge=1, le=1000, description="K: last ego frames kept with their features")
     max_ego_skew_s: float = Field(0.15, ge=0, description="a peer frame needs an ego frame this close in time")
-    ego_wait_s: float = Field(5.0, gt=0, description="longest wait for an ego frame's features still in progress")
     workers: int = Field(2, ge=1, le=64, description="engine worker threads")
     peer_queue_depth: int = Field(1, ge=1, le=64,
                                   description="frames waiting per peer; older ones are dropped (1 = latest only)")

@@ -1,37 +1,43 @@
-"""The ego-frame cache: the last K ego frames, each with its engine features computed once.
+"""The ego-frame cache: the last K ego frames, each with its engine features computed at most once.
 
-An entry is added as soon as its frame is decoded and becomes ready when a worker has prepared it, so a peer
-frame that arrives together with the ego frame of the same instant waits for those features instead of taking
-an older frame.
+An ego frame enters the cache as soon as it is decoded (cheap, done with priority), so a peer frame always finds
+the ego frame nearest in time even while the engine is busy. Its features are computed once, by whichever comes
+first: the eager job queued for the newest ego frame, or the first peer frame that needs them (later users wait
+for that one computation instead of repeating it).
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
+from typing import Callable
 
+from ..bev import BevImage
 from ..pipeline import PreparedFrame
 from ..wire import Frame
 
 
 class EgoEntry:
-    def __init__(self, frame: Frame):
+    def __init__(self, frame: Frame, bev: BevImage):
         self.frame = frame
-        self.prepared: PreparedFrame | None = None
-        self._done = threading.Event()
+        self.bev = bev
+        self._prepared: PreparedFrame | None = None
+        self._lock = threading.Lock()
 
     @property
     def stamp(self) -> float:
         return self.frame.stamp
 
-    def set(self, prepared: PreparedFrame | None) -> None:
-        """Features computed (or None: preparation failed, the entry is useless)."""
-        self.prepared = prepared
-        self._done.set()
+    @property
+    def ready(self) -> bool:
+        return self._prepared is not None
 
-    def wait(self, timeout: float) -> PreparedFrame | None:
-        self._done.wait(timeout)
-        return self.prepared
+    def features(self, prepare: Callable[["EgoEntry"], PreparedFrame]) -> PreparedFrame:
+        """The entry's features, computed by the first caller; concurrent callers wait for that result."""
+        with self._lock:
+            if self._prepared is None:
+                self._prepared = prepare(self)
+            return self._prepared
 
 
 class EgoCache:
@@ -39,16 +45,11 @@ class EgoCache:
         self._entries: deque[EgoEntry] = deque(maxlen=size)
         self._lock = threading.Lock()
 
-    def add(self, frame: Frame) -> EgoEntry:
-        entry = EgoEntry(frame)
+    def add(self, frame: Frame, bev: BevImage) -> EgoEntry:
+        entry = EgoEntry(frame, bev)
         with self._lock:
             self._entries.append(entry)
         return entry
-
-    def remove(self, entry: EgoEntry) -> None:
-        with self._lock:
-            if entry in self._entries:
-                self._entries.remove(entry)
 
     def nearest(self, stamp: float) -> EgoEntry | None:
         """The entry nearest in time to ``stamp`` (the newer one on a tie); None when the cache is empty."""
@@ -62,7 +63,11 @@ class EgoCache:
 
     def __len__(self) -> int:
         with self._lock:
-            return sum(1 for e in self._entries if e.prepared is not None)
+            return len(self._entries)
+
+    def prepared(self) -> int:
+        with self._lock:
+            return sum(e.ready for e in self._entries)
 
     def stamps(self) -> list[float]:
         with self._lock:

@@ -28,6 +28,7 @@ from .metrics import Metrics
 from .scheduler import Job, Scheduler
 
 log = logging.getLogger("bb_align.service")
+_EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
 _VEHICLE_ID = re.compile(VEHICLE_ID_PATTERN)
 
 
@@ -54,7 +55,9 @@ class AlignService:
         self.settings = settings
         self.aligner = Aligner(settings.align)
         self.cache = EgoCache(settings.ego_cache_size)
-        self.scheduler = Scheduler(settings.peer_queue_depth, settings.max_pending_requests)
+        # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
+        self.scheduler = Scheduler(settings.peer_queue_depth, settings.max_pending_requests,
+                                   priority=frozenset({settings.ego_id}))
         self.meter = BandwidthMeter(settings.bandwidth_window_s)
         self.metrics = Metrics(self.meter.report, lambda: len(self.cache), self.scheduler.pending)
         self.publishers: list[Callable[[Result], None]] = []
@@ -179,6 +182,9 @@ class AlignService:
                         log.exception("publishing a result failed")
 
     def _run(self, job: Job) -> Result | None:
+        if job.task == "ego_features":
+            job.meta["entry"].features(self._prepare_entry)
+            return None
         frame = job.frame
         if frame is None:
             frame = load_frame(job.data, self.settings.limits, job.encoding)
@@ -195,22 +201,19 @@ class AlignService:
         self.metrics.frames.labels(job.door, kind).inc()
         if kind == "ego":
             self.meter.record_frame(frame.vehicle_id, FrameBytes.of(frame, job.nbytes, job.encoding))
-            self._prepare_ego(frame)
+            entry = self.cache.add(frame, frame.bev_image())  # a corrupt image never enters the cache
+            # Features of the newest ego frame, computed when a worker is free (or by the first peer needing them).
+            self.scheduler.put_frame(Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features",
+                                         meta={"entry": entry}), depth=1)
             return None
         return self._align(frame, job)
 
-    def _prepare_ego(self, frame: Frame) -> None:
-        entry = self.cache.add(frame)
-        try:
-            entry.set(self._prepare(frame, "prepare_ego"))
-        except BaseException:
-            entry.set(None)
-            self.cache.remove(entry)
-            raise
+    def _prepare_entry(self, entry) -> PreparedFrame:
+        return self._prepare(entry.frame, "prepare_ego", entry.bev)
 
-    def _prepare(self, frame: Frame, step: str) -> PreparedFrame:
+    def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:
         t0 = time.perf_counter()
-        bev = frame.bev_image()
+        bev = bev if bev is not None else frame.bev_image()
         t_png = (time.perf_counter() - t0) * 1e3
         prepared = self.aligner.prepare(bev, frame.boxes_array())
         prepared = dataclasses.replace(prepared, num_points=frame.num_points,
@@ -266,12 +269,8 @@ class AlignService:
         if not wait:
             return entry.frame, None
         t0 = time.perf_counter()
-        prepared = entry.wait(s.ego_wait_s)
-        timings["ego_wait"] = (time.perf_counter() - t0) * 1e3
-        if prepared is None:
-            return self._finish(job, Result(**base, success=False, reason=FailureReason.no_ego_frame.value,
-                                            notes=["the nearest ego frame's features are not ready"],
-                                            timings_ms=timings))
+        prepared = entry.features(self._prepare_entry)
+        timings["ego_features"] = (time.perf_counter() - t0) * 1e3  # waited for, or computed here
         return entry.frame, prepared
 
     def _finish(self, job: Job, result: Result) -> Result:

@@ -18,6 +18,7 @@ import numpy as np
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
+from tqdm import tqdm
 
 from ..geometry import pose_error, se2_params
 
@@ -45,9 +46,9 @@ def _row(result, truth: dict, sent: dict, received_at: float) -> dict:
            "service_steps_ms": {
                "queue_wait": result.timings_ms.get("queue_wait", 0.0),
                "peer_prepare": sum(v for k, v in result.timings_ms.items() if k.startswith("peer_")),
-               "ego_wait": result.timings_ms.get("ego_wait", 0.0),
+               "ego_features": result.timings_ms.get("ego_features", 0.0),
                "align": result.timings_ms.get("align_total", 0.0)}}
-    if ego_seq is not None and (ego_seq, ego) in truth:
+    if ego_seq is not None and (ego, ego_seq) in sent:
         T_true = np.linalg.inv(truth[(ego_seq, ego)]) @ truth[(seq, peer)]
         T_gnss = np.linalg.inv(sent[(ego, ego_seq)]["reported"]) @ sent[(peer, seq)]["reported"]
         yaw, tx, ty = se2_params(T_true)
@@ -114,30 +115,67 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
         "latency_ms_median": q(lat, 50), "latency_ms_p90": q(lat, 90), "latency_ms_max": q(lat, 100),
         "service_latency_ms_median": q(svc, 50),
         "service_steps_ms_median": {k: q(np.array([r["service_steps_ms"][k] for r in rows]), 50)
-                                    for k in ("queue_wait", "peer_prepare", "ego_wait", "align")} if rows else {},
+                                    for k in ("queue_wait", "peer_prepare", "ego_features", "align")} if rows else {},
         "bytes_per_frame_mean": float(np.mean([r["bytes"] for r in rows])) if rows else None,
         "raw_points_bytes_mean": float(np.mean([r["raw_points_bytes"] for r in raw])) if raw else None,
         "ratio_vs_points_mean": float(np.mean([r["bytes"] / r["raw_points_bytes"] for r in raw])) if raw else None,
     }
 
 
+def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, encode_frame):
+    """Simulate and encode every frame up front (so publishing keeps its pace): per frame, (name, bytes) with
+    the ego first; the true and the reported (noisy) poses by (seq, name)."""
+    frames, truth, reported = [], {}, {}
+    t_base = time.time()  # stamps on the wall clock: a later run never pairs with an earlier run's ego frames
+    order = ["0"] + [a for a in scenario.agent_ids if a != "0"]
+    for i in tqdm(range(n_frames), desc="simulating and encoding", unit="frame"):
+        frame = scenario.frame(i, DT_S)
+        msgs = []
+        for aid in order:
+            agent, name = frame.agents[aid], names[aid]
+            truth[(i, name)] = agent.T_world_sensor
+            reported[(i, name)] = _noisy(agent.T_world_sensor, rng)
+            msgs.append((aid, encode_frame(agent.points, agent.boxes, vehicle_id=name, stamp=t_base + frame.stamp, seq=i,
+                                           pose=reported[(i, name)], scores=np.clip(agent.scores, 0, 1), **bev)))
+        frames.append(msgs)
+    return frames, truth, reported
+
+
 def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_frames: int = 10, seed: int = 0,
              distance_m: float | None = 30.0, rate_hz: float = 0.0, timeout_s: float = 30.0,
              prefix: str = "bbalign", range_m: float | None = None, json_out: Path | None = None,
              plot: Path | None = None, console: Console | None = None) -> dict:
+    """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
+    service's results against the truth. Every wait is bounded by timeout_s."""
     from bb_align_client import ZenohPeer, encode_frame
 
     from ..sim import Scenario
 
-    console = console or Console(width=max(Console().width, 130))
+    console = console or Console(width=max(Console().width, 170))
     scenario = Scenario(seed, n_agents, distance_m)
     names = {aid: (ego_id if aid == "0" else f"car{aid}") for aid in scenario.agent_ids}
-    bev = {} if range_m is None else {"range_m": range_m}
-    rng = np.random.default_rng([seed, 99])
-    truth: dict = {}  # (seq, name) -> T_world_sensor
-    sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": noisy pose}
+    frames, truth, reported = _encode_scene(scenario, names, n_frames, {} if range_m is None else
+                                            {"range_m": range_m}, np.random.default_rng([seed, 99]), encode_frame)
+    sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
+    n_sent = 0
     cars = {aid: ZenohPeer(name, connect=connect, prefix=prefix) for aid, name in names.items()}
+    title = f"bb-align demo: {n_agents} cars, seed {seed}, via {', '.join(connect)}"
+
+    def collect(deadline: float, expected: set, live) -> None:
+        while True:
+            try:
+                res = stream.get(timeout=max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                return
+            if (res.peer_id, res.peer_seq) not in sent:  # not this run's frame
+                continue
+            rows.append(_row(res, truth, sent, time.perf_counter()))
+            live.update(_table(rows, title))
+            expected.discard((res.peer_id, res.peer_seq))
+            if not expected:
+                return
+
     try:
         for car in cars.values():
             car.open()
@@ -147,45 +185,25 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
                           f"running?[/red]")
             return summarize(rows, 0)
         time.sleep(0.2)  # let the pose subscription reach the service too
-        title = f"bb-align demo: {n_agents} cars, seed {seed}, via {', '.join(connect)}"
-        n_sent = 0
+        pending: set = set()
         with Live(_table(rows, title), console=console, refresh_per_second=4) as live:
-            for i in range(n_frames):
-                t_frame = time.monotonic()
-                frame = scenario.frame(i, DT_S)
-                for aid in ["0"] + [a for a in scenario.agent_ids if a != "0"]:  # ego first
-                    agent, name = frame.agents[aid], names[aid]
-                    reported = _noisy(agent.T_world_sensor, rng)
-                    data = encode_frame(agent.points, agent.boxes, vehicle_id=name, stamp=frame.stamp, seq=i,
-                                        pose=reported, scores=np.clip(agent.scores, 0, 1), **bev)
-                    truth[(i, name)] = agent.T_world_sensor
-                    sent[(name, i)] = {"t": time.perf_counter(), "reported": reported}
+            t0 = time.monotonic()
+            for i, msgs in enumerate(frames):
+                for aid, data in msgs:
+                    sent[(names[aid], i)] = {"t": time.perf_counter(), "reported": reported[(i, names[aid])]}
                     cars[aid].publish(data)
-                    n_sent += aid != "0"
-                expected = {(names[a], i) for a in scenario.agent_ids if a != "0"}
-                deadline = time.monotonic() + (timeout_s if rate_hz == 0 else max(0.0, 1 / rate_hz -
-                                                                                    (time.monotonic() - t_frame)))
-                while True:
-                    try:
-                        res = stream.get(timeout=max(0.0, deadline - time.monotonic()))
-                    except TimeoutError:
-                        break
-                    if (res.peer_id, res.peer_seq) not in sent:  # not this run's frame
-                        continue
-                    rows.append(_row(res, truth, sent, time.perf_counter()))
-                    expected.discard((res.peer_id, res.peer_seq))
-                    live.update(_table(rows, title))
-                    if rate_hz == 0 and not expected:
-                        break
-            end = time.monotonic() + (timeout_s if rate_hz > 0 else 0.0)  # paced: collect the stragglers
-            while len(rows) < n_sent and time.monotonic() < end:
-                try:
-                    res = stream.get(timeout=max(0.0, end - time.monotonic()))
-                except TimeoutError:
-                    break
-                if (res.peer_id, res.peer_seq) in sent:
-                    rows.append(_row(res, truth, sent, time.perf_counter()))
-                live.update(_table(rows, title))
+                    if aid != "0":
+                        n_sent += 1
+                        pending.add((names[aid], i))
+                if rate_hz == 0:  # lockstep: this frame's results (or the timeout) before the next frame
+                    collect(time.monotonic() + timeout_s, pending, live)
+                    pending.clear()
+                else:  # paced: results as they come until this frame's slot ends
+                    slot_end = t0 + (i + 1) / rate_hz
+                    collect(slot_end, pending, live)
+                    time.sleep(max(0.0, slot_end - time.monotonic()))
+            if pending:  # paced: the stragglers (frames the service dropped never come)
+                collect(time.monotonic() + min(timeout_s, 5.0), pending, live)
     finally:
         for car in cars.values():
             car.close()

@@ -3,8 +3,8 @@
 Stream frames (Zenoh ``frames/*``, REST ``/v1/frames``) wait in a per-sender queue of ``depth`` entries (1:
 latest only); a newer frame pushes the oldest out and the push reports it as dropped. Requests (REST
 ``/v1/align``, Zenoh queries) must each be answered, so they wait in one bounded FIFO and are refused when it
-is full. Workers take senders and the request queue in round-robin order of readiness; a sender's frames are
-handled by one worker at a time, so its results come out in order.
+is full. Workers take senders and the request queue in round-robin order of readiness (``priority`` senders
+first); a sender's frames are handled by one worker at a time, so its results come out in order.
 """
 
 from __future__ import annotations
@@ -28,12 +28,14 @@ class Job:
     ego: Any = None  # a request's own ego frame (REST /v1/align with "ego")
     nbytes: int = 0
     reply: Callable[[Any], None] | None = None  # requests: called once with a Result or an exception
+    task: str = "frame"  # or "ego_features": compute the features of the cache entry in ``meta["entry"]``
     meta: dict = field(default_factory=dict)
 
 
 class Scheduler:
-    def __init__(self, depth: int = 1, max_requests: int = 8):
+    def __init__(self, depth: int = 1, max_requests: int = 8, priority: frozenset[str] = frozenset()):
         self.depth = depth
+        self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
         self._cv = threading.Condition()
         self._streams: dict[str, deque[Job]] = {}
@@ -42,13 +44,13 @@ class Scheduler:
         self._busy: set[str] = set()
         self._closed = False
 
-    def put_frame(self, job: Job) -> Job | None:
+    def put_frame(self, job: Job, depth: int | None = None) -> Job | None:
         """Queue a stream frame; returns the frame it pushed out (dropped), if any."""
         with self._cv:
             if self._closed:
                 return job
             q = self._streams.setdefault(job.sender, deque())
-            dropped = q.popleft() if len(q) >= self.depth else None
+            dropped = q.popleft() if len(q) >= (depth or self.depth) else None
             q.append(job)
             if job.sender not in self._busy and job.sender not in self._ready:
                 self._ready.append(job.sender)
@@ -71,7 +73,11 @@ class Scheduler:
         with self._cv:
             if not self._cv.wait_for(lambda: self._ready or self._closed, timeout) or self._closed:
                 return None
-            key = self._ready.popleft()
+            key = next((k for k in self._ready if k in self.priority), None)
+            if key is None:
+                key = self._ready.popleft()
+            else:
+                self._ready.remove(key)
             if key is _REQUESTS:
                 job = self._requests.popleft()
                 if self._requests:
