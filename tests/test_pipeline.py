@@ -99,3 +99,19 @@ def test_paper_mode_applies_the_box_correction(world):
     assert res.success and res.stage2_applied
     np.testing.assert_allclose(res.T_ego_peer[:2, :2], (res.T_box @ res.T_bv)[:2, :2], atol=1e-12)
     assert pose_error(res.T_ego_peer, T_true)[0] < 0.3
+
+
+def test_prior_pose_gates_matches(world):
+    from bb_align.geometry import se2_params
+
+    pts_ego, _, pts_peer, _, T_true = _pair(world, 120.0, (30.0, -12.0))
+    aligner = Aligner()
+    ego, peer = aligner.prepare(pts_ego), aligner.prepare(pts_peer)
+    yaw, tx, ty = se2_params(T_true)
+    noisy = se2(yaw + np.radians(3.0), tx + 2.5, ty - 2.0)  # GPS-grade prior: metres and degrees off
+    res = aligner.align(ego, peer, T_prior=noisy)
+    assert res.success and "matches gated by the prior pose" in res.notes
+    assert pose_error(res.T_ego_peer, T_true)[0] < 0.3
+    wrong = se2(yaw + np.pi / 2, tx + 40.0, ty)  # a prior far from the truth leaves no consistent evidence
+    res = aligner.align(ego, peer, T_prior=wrong)
+    assert not res.success

@@ -66,3 +66,18 @@ def test_matching_nearest_mutual_ratio():
     assert iq.tolist() == [1]
     iq, it = match_descriptors(np.array([[1, 0, 0], [0.95, 0.05, 0]], np.float32), t[:1], mutual=True)
     assert iq.tolist() == [1]  # t[0] is nearer query 1 (0.07) than query 0 (0.14): only 1 is mutual
+
+
+def test_prior_gating_keeps_consistent_candidates_only():
+    from bb_align.matching import match_with_prior
+
+    xy_q = np.array([[10.0, 0.0], [0.0, 30.0]])
+    xy_t = np.array([[10.5, 0.2], [40.0, 40.0], [0.3, 30.2], [-50.0, 0.0]])
+    # Query 0 is nearest (in descriptor space) to train 1, then train 0; query 1 to train 3, then train 2.
+    q = np.array([[1, 0, 0, 0], [0, 0, 1, 0]], np.float32)
+    t = np.array([[0.9, 0.1, 0, 0], [1, 0, 0, 0], [0, 0, 0.9, 0.1], [0, 0, 1, 0]], np.float32)
+    i_q, i_t = match_with_prior(q, t, xy_q, xy_t, np.eye(3), max_translation=2.0, max_yaw_rad=np.radians(2),
+                                top_k=2)
+    assert sorted(zip(i_q.tolist(), i_t.tolist())) == [(0, 0), (1, 2)]
+    i_q, _ = match_with_prior(q, t, xy_q, xy_t, np.eye(3), max_translation=2.0, max_yaw_rad=0.01, top_k=1)
+    assert len(i_q) == 0  # the single nearest candidates are both inconsistent with the prior

@@ -68,6 +68,15 @@ class MatchConfig(_Frozen):
     seed: int = 0
 
 
+class PriorConfig(_Frozen):
+    """Optional prior pose (e.g. from the cars' reported GPS poses) used to gate descriptor matches. Without a
+    prior the engine searches every yaw and shift (the paper's setting)."""
+
+    max_translation_m: float = Field(10.0, gt=0, description="how far the true pose may be from the prior")
+    max_yaw_deg: float = Field(10.0, gt=0, le=180)
+    top_k: int = Field(4, ge=1, le=32, description="descriptor candidates per peer keypoint kept for gating")
+
+
 class RefineConfig(_Frozen):
     """Dense point-to-line ICP on the lit BV pixels after stage 1 (not in the paper; see bb_align.refine)."""
 
@@ -120,6 +129,7 @@ class AlignConfig(_Frozen):
     mim: MimConfig = MimConfig()
     features: FeatureConfig = FeatureConfig()
     match: MatchConfig = MatchConfig()
+    prior: PriorConfig = PriorConfig()
     refine: RefineConfig = RefineConfig()
     box: BoxConfig = BoxConfig()
     success: SuccessRule = SuccessRule()

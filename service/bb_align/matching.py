@@ -5,6 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 
+def _sq_distances(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    d2 = (q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2.0 * (q @ t.T)
+    return np.maximum(d2, 0.0, out=d2)
+
+
 def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual: bool = False,
                       ratio: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i_query, i_train) of each query descriptor's nearest train descriptor.
@@ -16,8 +21,7 @@ def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual:
     t = np.asarray(desc_train, dtype=np.float32)
     if len(q) == 0 or len(t) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    d2 = (q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2.0 * (q @ t.T)
-    np.maximum(d2, 0.0, out=d2)
+    d2 = _sq_distances(q, t)
     nn = d2.argmin(axis=1)
     keep = (q * q).sum(1) > 0
     if ratio < 1.0 and t.shape[0] > 1:
@@ -28,3 +32,24 @@ def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual:
         keep &= back[nn] == np.arange(len(q))
     i_q = np.flatnonzero(keep)
     return i_q, nn[i_q]
+
+
+def match_with_prior(desc_query: np.ndarray, desc_train: np.ndarray, xy_query: np.ndarray, xy_train: np.ndarray,
+                     T_train_query: np.ndarray, *, max_translation: float, max_yaw_rad: float,
+                     top_k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``top_k`` nearest train descriptors of each query, kept only where the prior pose T_train_query (3x3)
+    puts the two keypoints within ``max_translation`` plus the displacement a ``max_yaw_rad`` rotation error
+    causes at the query's range. Returns (i_query, i_train) pairs (a query may keep several)."""
+    q = np.asarray(desc_query, dtype=np.float32)
+    t = np.asarray(desc_train, dtype=np.float32)
+    if len(q) == 0 or len(t) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    k = min(top_k, len(t))
+    d2 = _sq_distances(q, t)
+    cand = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < len(t) else np.tile(np.arange(len(t)), (len(q), 1))
+    pred = xy_query @ T_train_query[:2, :2].T + T_train_query[:2, 2]
+    gate = max_translation + np.linalg.norm(xy_query, axis=1) * 2.0 * np.sin(max_yaw_rad / 2.0)
+    dist = np.linalg.norm(pred[:, None, :] - xy_train[cand], axis=2)
+    ok = (dist < gate[:, None]) & ((q * q).sum(1) > 0)[:, None]
+    i_q, j = np.nonzero(ok)
+    return i_q, cand[i_q, j]

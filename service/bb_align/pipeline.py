@@ -21,10 +21,10 @@ from .bev import BevImage, make_bev
 from .boxes import align_boxes, as_boxes
 from .config import AlignConfig
 from .descriptors import bvft_descriptors, flip_180
-from .geometry import se2_params, se3_from_se2
+from .geometry import se2, se2_params, se3_from_se2
 from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
-from .matching import match_descriptors
+from .matching import match_descriptors, match_with_prior
 from .ransac import rigid_ransac
 from .refine import BevCloud, bev_cloud, bev_points, refine_icp
 from .result import AlignResult, FailureReason
@@ -114,8 +114,11 @@ class Aligner:
 
     # ---- Algorithm 1, lines 9-17: pair ------------------------------------------------------------------
     def align(self, ego: PreparedFrame, peer: PreparedFrame, *, tz: float = 0.0, roll: float = 0.0,
-              pitch: float = 0.0) -> AlignResult:
-        """T_ego_peer from prepared frames. tz, roll, pitch (metres, radians) are Eq. 1's constants."""
+              pitch: float = 0.0, T_prior: np.ndarray | None = None) -> AlignResult:
+        """T_ego_peer from prepared frames. tz, roll, pitch (metres, radians) are Eq. 1's constants.
+
+        ``T_prior`` (3x3 or 4x4 ego <- peer, e.g. from both cars' reported poses) is optional: when given,
+        descriptor matches are gated by it (config.prior); without it every yaw and shift is searched."""
         cfg = self.config
         timings: dict[str, float] = {}
         result = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3),
@@ -143,8 +146,16 @@ class Aligner:
         # Lines 9-10: match peer descriptors against the ego's (and their 180-degree copies).
         with _timed(timings, "matching"):
             desc_ego = np.concatenate([ego.descriptors, ego.descriptors_flipped])
-            i_peer, i_ego = match_descriptors(peer.descriptors, desc_ego, mutual=cfg.match.mutual,
-                                              ratio=cfg.match.ratio)
+            if T_prior is None:
+                i_peer, i_ego = match_descriptors(peer.descriptors, desc_ego, mutual=cfg.match.mutual,
+                                                  ratio=cfg.match.ratio)
+            else:
+                yaw, tx, ty = se2_params(T_prior)
+                i_peer, i_ego = match_with_prior(
+                    peer.descriptors, desc_ego, peer.keypoints_xy, np.concatenate([ego.keypoints_xy] * 2),
+                    se2(yaw, tx, ty), max_translation=cfg.prior.max_translation_m,
+                    max_yaw_rad=np.radians(cfg.prior.max_yaw_deg), top_k=cfg.prior.top_k)
+                result.notes.append("matches gated by the prior pose")
             i_ego = i_ego % len(ego.descriptors)
             pts_peer = peer.keypoints_xy[i_peer]
             pts_ego = ego.keypoints_xy[i_ego]
