@@ -164,3 +164,5 @@ def test_service_throughput_over_zenoh_loopback():
     assert run["results"] > 0 and run["results"] + run["dropped"] == run["sent"]
     assert 0 < run["latency_ms"]["p50"] <= run["latency_ms"]["p99"]
     assert run["service_frames_dropped_total"] >= 0 and sum(run["outcomes"].values()) == run["results"]
+    assert run["service_memory"]["rss_peak_mb"] > 50  # the service process itself, read from /proc
+    assert "queue_wait" in run["service_timings_ms_p50"]

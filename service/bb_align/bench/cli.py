@@ -55,7 +55,9 @@ def _summary(report: dict) -> str:
             lines.append(f"  {peers} peer(s): offered {r['offered_fps']:.1f}/s, results {r['results_fps']:.1f}/s, "
                          f"dropped {r['dropped']} ({100 * r['drop_fraction']:.0f}%), latency p50 "
                          f"{r['latency_ms']['p50']:.0f} ms p99 {r['latency_ms']['p99']:.0f} ms, "
-                         f"service CPU {r['service_cpu_cores']:.2f} cores, sustained: {r['sustained']}")
+                         f"{100 * r['success_fraction']:.0f}% aligned, service CPU {r['service_cpu_cores'] or 0:.2f} "
+                         f"cores, RSS peak {r['service_memory']['rss_peak_mb'] or 0:.0f} MB, sustained: "
+                         f"{r['sustained']}")
     elif service and service.get("error"):
         lines.append(f"service: not measured ({service['error']})")
     load = report["load_avg"]

@@ -105,6 +105,18 @@ class ServiceProcess:
         except (OSError, ValueError, IndexError):
             return None
 
+    def rss_mb(self) -> dict[str, float | None]:
+        """Current and peak resident memory of the service process (Linux /proc VmRSS, VmHWM), MB."""
+        out: dict[str, float | None] = {"rss_mb": None, "rss_peak_mb": None}
+        try:
+            for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+                key = {"VmRSS:": "rss_mb", "VmHWM:": "rss_peak_mb"}.get(line.split(maxsplit=1)[0] if line else "")
+                if key:
+                    out[key] = int(line.split()[1]) / 1024.0
+        except (OSError, ValueError, IndexError):
+            pass
+        return out
+
     def get(self, path: str) -> dict:
         import httpx
 
@@ -231,6 +243,7 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
             time.sleep(0.05)
         sub.undeclare()
         peers_status = svc.get("/v1/peers")
+        memory = svc.rss_mb()
     finally:
         for s in senders:
             s.close()
@@ -279,11 +292,14 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         "latency_ms_second_half_p50": lat_second,
         "service_latency_ms": _pct([r.latency_ms for _, r, _ in results if r.latency_ms is not None]),
         "queue_wait_ms": _pct([r.timings_ms.get("queue_wait", 0.0) for _, r, _ in results]),
+        "service_timings_ms_p50": {k: float(np.median([r.timings_ms.get(k, 0.0) for _, r, _ in results]))
+                                   for k in sorted({k for _, r, _ in results for k in r.timings_ms})},
         "success_fraction": float(np.mean([r.success for _, r, _ in results])) if results else 0.0,
         "outcomes": dict(Counter("success" if r.success else str(r.reason) for _, r, _ in results)),
         "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
         "r_err_median_deg": float(np.median([e[1] for e in errors])) if errors else None,
         "service_cpu_cores": cores,
+        "service_memory": memory,
         "sustained": sustained,
     }
 
