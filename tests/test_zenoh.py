@@ -155,3 +155,20 @@ def test_frame_whose_id_differs_from_its_key_is_refused(pair):
             car.publish(_enc(peer, "car2", stamp, 0))
             _wait(lambda: 'error="invalid"' in httpx.get(f"{url}/metrics").text, what="the refusal")
         assert "car2" not in httpx.get(f"{url}/v1/peers").json()
+
+
+def test_oversized_messages_are_refused_at_the_door(pair):
+    settings = service_settings(limits={"max_message_bytes": 4096})
+    stamp, _, peer = pair[0]
+    data = _enc(peer, "car1", stamp, 0)
+    assert len(data) > 4096
+    with running_service(settings) as (app, url):
+        with ZenohPeer("car1", connect=_endpoint(settings)) as car:
+            car.wait_for_subscriber(10)
+            with pytest.raises(ServiceError) as e:
+                car.request_align(data, ego_id="ego", timeout=20)
+            assert (e.value.body.error, e.value.body.field, e.value.body.limit) == ("too_large", "message", 4096)
+            car.publish(data)
+            _wait(lambda: 'bbalign_frames_rejected_total{door="zenoh",error="too_large"} 2.0' in
+                  httpx.get(f"{url}/metrics").text, what="the refusal")
+        assert app.state.service.meter.peer("car1") is None  # never admitted, never queued

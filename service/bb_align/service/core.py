@@ -126,12 +126,14 @@ class AlignService:
 
     def submit_request(self, reply: Callable[[object], None], *, data: bytes | None = None,
                        frame: Frame | None = None, ego: Frame | None = None, nbytes: int = 0,
-                       encoding: str = MSGPACK, door: str = "rest", received: float | None = None) -> bool:
+                       encoding: str = MSGPACK, door: str = "rest", received: float | None = None,
+                       refused: WireError | None = None) -> bool:
         """A frame to align and answer through ``reply`` (called once, from a worker, with a Result or an
-        exception). False when the request queue is full: the caller answers 'overloaded' itself."""
+        exception; ``refused``: the door already knows the answer is this error). False when the request queue
+        is full: the caller answers 'overloaded' itself."""
         job = Job(frame.vehicle_id if frame is not None else "", received or time.perf_counter(), door,
                   data=data, frame=frame, ego=ego, nbytes=nbytes or len(data or b""), encoding=encoding,
-                  reply=reply)
+                  reply=reply, meta={"refused": refused} if refused is not None else {})
         if not self.scheduler.put_request(job):
             self.metrics.rejected.labels(door, "overloaded").inc()
             return False
@@ -185,6 +187,8 @@ class AlignService:
         if job.task == "ego_features":
             job.meta["entry"].features(self._prepare_entry)
             return None
+        if "refused" in job.meta:
+            raise job.meta["refused"]
         frame = job.frame
         if frame is None:
             frame = load_frame(job.data, self.settings.limits, job.encoding)

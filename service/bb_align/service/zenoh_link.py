@@ -70,13 +70,19 @@ class ZenohLink:
     # ---- callbacks (Zenoh threads: enqueue only) -----------------------------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:
         sender = str(sample.key_expr).rsplit("/", 1)[-1]
+        if len(sample.payload) > self.settings.limits.max_message_bytes:  # refused before it is even copied
+            self.service.metrics.rejected.labels("zenoh", "too_large").inc()
+            return
         self.service.submit_message(sender, sample.payload.to_bytes(), door="zenoh")
 
     def _on_query(self, query: zenoh.Query) -> None:
         payload = query.payload
-        data = payload.to_bytes() if payload is not None else b""
+        size, limit = (len(payload) if payload is not None else 0), self.settings.limits.max_message_bytes
+        refused = WireError(413, "too_large", f"{size} bytes exceed the limit of {limit} bytes", "message",
+                            limit) if size > limit else None  # answered by a worker, never copied
+        data = payload.to_bytes() if payload is not None and refused is None else b""
         accepted = self.service.submit_request(lambda outcome: self._reply(query, outcome), data=data,
-                                               door="zenoh")
+                                               door="zenoh", refused=refused)
         if not accepted:
             log.warning("request queue full: a query on %s is left without a reply", self.align_key)
         # Not accepted: the query object is released here, which finalizes it with no reply.
