@@ -2,8 +2,9 @@
 
 The doors (Zenoh link, REST app) only hand messages over: ``submit_message`` (raw stream bytes, from a Zenoh
 callback), ``submit_frame`` (a decoded stream frame, REST) and ``submit_request`` (a frame to answer, REST or a
-Zenoh query). Workers decode, validate, prepare ego frames into the cache, align peer frames against the ego
-frame nearest in time, and hand each result to the publishers (the Zenoh link) or to the request's reply.
+Zenoh query). Workers decode and validate; ego frames enter the cache (their features computed once, see
+cache.py); peer frames are aligned against the cached ego frame nearest in time, and each result goes to the
+publishers (the Zenoh link) or to the request's reply.
 """
 
 from __future__ import annotations
