@@ -21,7 +21,8 @@ from tqdm import tqdm
 from ..boxes import transform_boxes
 from ..config import AlignConfig
 from ..dataset import AgentFrame, FrameGroup, iter_frames
-from ..geometry import pose_error, se2, se2_params, se3_from_se2
+from ..geometry import pose_error, se2, se2_params, se3_from_se2, transform_points_2d
+from ..matching import match_descriptors
 from ..pipeline import Aligner
 from ..result import FailureReason
 from ..sim.detections import DetectionModel, count_points_in_boxes, detect
@@ -80,6 +81,11 @@ class PairRecord:
     baseline_r_err_deg: float
     prepare_ms: float
     align_ms: float
+    matches_bv: int = 0
+    # Oracle diagnostics (true pose known): peer keypoints with an ego keypoint within 2 m under the true pose
+    # (what overlap allows), and how many of the engine's descriptor matches are right (what matching finds).
+    oracle_repeatable_kp: int = 0
+    oracle_correct_matches: int = 0
     # AP material: {pose: {range: {"n_gt": int, "scores": [...], "tp@0.5": [...], "tp@0.7": [...]}}}
     ap: dict = field(default_factory=dict, repr=False)
 
@@ -169,6 +175,21 @@ def _ap_material(ego: _Agent, peer: _Agent, T_ego_peer_by_pose: dict[str, np.nda
     return out
 
 
+def _oracle(ego, peer, T_ego_peer_true: np.ndarray, cfg: EvalConfig, tol_m: float = 2.0) -> tuple[int, int]:
+    """(repeatable peer keypoints, correct descriptor matches) under the true pose: a diagnosis of stage 1."""
+    e, p = ego.prepared, peer.prepared
+    if not len(e.keypoints_xy) or not len(p.keypoints_xy):
+        return 0, 0
+    kp_peer = transform_points_2d(se2(*se2_params(T_ego_peer_true)), p.keypoints_xy)
+    d = np.linalg.norm(kp_peer[:, None, :] - e.keypoints_xy[None, :, :], axis=2)
+    repeatable = int((d.min(axis=1) < tol_m).sum())
+    i_p, i_e = match_descriptors(p.descriptors, np.concatenate([e.descriptors, e.descriptors_flipped]),
+                                 mutual=cfg.align.match.mutual, ratio=cfg.align.match.ratio)
+    i_e = i_e % len(e.descriptors)
+    correct = int((np.linalg.norm(kp_peer[i_p] - e.keypoints_xy[i_e], axis=1) < tol_m).sum())
+    return repeatable, correct
+
+
 def _noisy(T_ego_peer_true: np.ndarray, rng: np.random.Generator, cfg: EvalConfig) -> np.ndarray:
     """OpenCOOD-style pose noise on the peer: Gaussian on its x, y (sigma_t) and yaw (sigma_theta)."""
     yaw, tx, ty = se2_params(T_ego_peer_true)
@@ -196,6 +217,7 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
         rng = _frame_rng(cfg, group.scenario, group.timestamp, peer_frame.agent, "noise")
         T_noisy = _noisy(T_true, rng, cfg)
         T_rec = res.T_ego_peer if res.success else T_noisy  # a failed recovery keeps the reported pose
+        rep, correct = _oracle(ego, peer, T_true, cfg)
         yaw, tx, ty = se2_params(T_true)
         records.append(PairRecord(
             scenario=group.scenario, timestamp=group.timestamp, ego=ego.frame.agent, peer=peer_frame.agent,
@@ -207,7 +229,8 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
             confidence=float(res.confidence), stage2_applied=bool(res.stage2_applied), stage1_success=bool(s1_ok),
             stage1_t_err_m=s1_t, stage1_r_err_deg=s1_r, baseline_success=bool(gm.success),
             baseline_matches=int(gm.matches), baseline_t_err_m=g_t, baseline_r_err_deg=g_r,
-            prepare_ms=ego.prepare_ms + peer.prepare_ms, align_ms=align_ms,
+            prepare_ms=ego.prepare_ms + peer.prepare_ms, align_ms=align_ms, matches_bv=int(res.matches_bv),
+            oracle_repeatable_kp=rep, oracle_correct_matches=correct,
             ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg)))
     return records
 

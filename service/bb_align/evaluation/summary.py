@@ -100,6 +100,17 @@ def _nan_none(v: float) -> float | None:
     return None if not math.isfinite(v) else float(v)
 
 
+def _diagnosis(records: list[PairRecord]) -> dict:
+    """Medians per distance bucket: repeatable keypoints (overlap), correct matches (descriptors), inliers."""
+    out = {}
+    for name, (lo, hi) in DIST_BUCKETS.items():
+        rs = [x for x in records if lo <= x.distance_m < hi]
+        if rs:
+            out[name] = {k: float(np.median([getattr(x, k) for x in rs])) for k in
+                         ("oracle_repeatable_kp", "oracle_correct_matches", "inliers_bv", "matches_bv")}
+    return out
+
+
 def summarize(records: list[PairRecord]) -> dict:
     """The JSON summary: top-level keys as the issue asks, then the breakdowns."""
     if not records:
@@ -123,6 +134,7 @@ def summarize(records: list[PairRecord]) -> dict:
         "stage1_only": _block(records, "stage1"),
         "baseline_graph_matching": _block(records, "baseline"),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        "stage1_diagnosis_by_distance": _diagnosis(records),
         "detection_ap": detection_ap(records),
         "timing_ms": {
             "prepare_per_frame_median": float(np.median([x.prepare_ms / 2 for x in records])),

@@ -164,8 +164,9 @@ def cast_sweep(world: World, vehicle: int, sensor: SensorModel, mount: Mount, t_
         kin, kout = t_in[rows, idx], t_out[rows, idx]
         zb, zt = shapes.zb[idx], shapes.zt[idx]
         por, refl, own = shapes.porosity[idx], shapes.reflect[idx], shapes.owner[idx]
+        relief = shapes.relief[idx]
     else:
-        kin = kout = zb = zt = por = refl = np.zeros((n, 0))
+        kin = kout = zb = zt = por = refl = relief = np.zeros((n, 0))
         own = np.zeros((n, 0), dtype=np.int64)
 
     # Beam geometry (true directions include calibration error and the residual tilt).
@@ -190,6 +191,10 @@ def cast_sweep(world: World, vehicle: int, sensor: SensorModel, mount: Mount, t_
         with np.errstate(invalid="ignore"):
             depth = np.where(hit & porous, np.minimum(leave - enter, 1.0) * rng.random(hit.shape), 0.0)
         enter = enter + depth
+    rough = relief[:, None, :] > 0
+    if rough.any():
+        with np.errstate(invalid="ignore"):
+            enter = enter + np.where(hit & rough, relief[:, None, :] * rng.random(hit.shape), 0.0)
     d_obj = np.where(hit, enter, np.inf)
     if d_obj.shape[2]:
         kbest = np.argmin(d_obj, axis=2)

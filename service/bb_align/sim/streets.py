@@ -108,9 +108,11 @@ class _Side:
         self.sh.cyl(x, y, r.uniform(0.4, 1.6) * big, 0.0, r.uniform(0.5, 1.9) * big, porosity=r.uniform(0.2, 0.5),
                     reflect=0.3)
 
-    def wall(self, s0, s1, lat, h, thick=0.15, zb=0.0, porosity=0.0, step=6.0):
-        """A fence / wall / hedge / rail following the road in short straight pieces."""
+    def wall(self, s0, s1, lat, h, thick=0.15, zb=0.0, porosity=0.0, step=6.0, gap_prob=0.0):
+        """A fence / wall / hedge / rail following the road in short straight pieces (some left out as gaps)."""
         for a in np.arange(s0, s1 - 1.0, step):
+            if gap_prob and self.rng.random() < gap_prob:
+                continue
             b = min(a + step, s1)
             x, y, yaw = self.at((a + b) / 2, lat)
             if self.free(x, y, kerb=True):
@@ -160,11 +162,13 @@ class _Side:
             if not self.occ.claim_rect(cx, cy, hl, hw, yaw_b, self.occ.any_corridor):
                 continue
             h = max(3.0, base_h * r.uniform(0.6, 1.4))
-            self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(0.2, 0.6))
+            relief = {"city": r.uniform(0.2, 1.0), "suburb": r.uniform(0.1, 0.6), "industrial": r.uniform(0.05, 0.3)}
+            self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(0.2, 0.6), relief=relief[style])
             if r.random() < 0.4:  # annex, porch or stepped roof
                 off = self.side * hw * r.uniform(0.3, 0.9)
                 self.sh.prism(cx - np.sin(yaw_b) * off, cy + np.cos(yaw_b) * off, hl * r.uniform(0.3, 0.7),
-                              hw * 0.6, yaw_b, 0.0, h * r.uniform(0.3, 1.6), reflect=r.uniform(0.2, 0.6))
+                              hw * 0.6, yaw_b, 0.0, h * r.uniform(0.3, 1.6), reflect=r.uniform(0.2, 0.6),
+                              relief=relief[style])
             if r.random() < {"city": 0.7, "suburb": 0.5, "industrial": 0.4}[style]:  # a second row behind
                 depth2 = depth * r.uniform(0.6, 1.3)
                 lat2 = self.edge + setback + depth + r.uniform(3, 15) + depth2 / 2
@@ -172,7 +176,8 @@ class _Side:
                 hl2 = hl * r.uniform(0.6, 1.2)
                 if self.occ.claim_rect(x2, y2, hl2, depth2 / 2, yaw_b, self.occ.any_corridor):
                     self.sh.prism(x2, y2, hl2, depth2 / 2, yaw_b + r.normal(0, 0.03), 0.0,
-                                  max(3.0, base_h * r.uniform(0.5, 1.6)), reflect=r.uniform(0.2, 0.6))
+                                  max(3.0, base_h * r.uniform(0.5, 1.6)), reflect=r.uniform(0.2, 0.6),
+                                  relief=relief[style])
             if style == "suburb":
                 self._yard(s + a, s + b, setback)
                 self._yard(s + a, s + b, setback + depth + r.uniform(2, 12))  # back yard
@@ -241,10 +246,18 @@ class _Side:
                     x, y, _ = self.at(sp, self.edge - self.road.sidewalk / 2)
                     if r.random() > 0.2 and self.free(x, y, kerb=True):
                         self.tree(x, y, scale=r.uniform(0.7, 1.1))
-            if self.road.parking > 0 and r.random() < 0.7:  # kerb-side parking
+            if style != "open" and r.random() < 0.5:  # low wall, hedge or fence along the property line
+                kind = r.integers(3)
+                self.wall(s, end, self.edge + 0.3, (r.uniform(0.6, 1.2), r.uniform(0.8, 2.0), r.uniform(1.0, 2.2))[kind],
+                          thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind], porosity=(0.0, 0.3, 0.5)[kind], gap_prob=0.25)
+            for _ in range(int(r.poisson((end - s) / {"city": 12, "suburb": 60}.get(style, 120)))):  # people
+                x, y, _ = self.at(r.uniform(s, end), self.edge - r.uniform(0.3, self.road.sidewalk - 0.2))
+                if self.free(x, y, kerb=True):
+                    self.sh.cyl(x, y, r.uniform(0.2, 0.3), 0.0, r.uniform(1.5, 1.9), reflect=0.3)
+            if self.road.parking > 0 and r.random() < 0.85:  # kerb-side parking
                 for sp in np.arange(s, end, 6.3):
                     x, y, yaw = self.at(sp, self.road.half_width - self.road.parking / 2)
-                    if r.random() > 0.4 and self.free(x, y, kerb=True):
+                    if r.random() > 0.3 and self.free(x, y, kerb=True):
                         self.park(x, y, yaw + (np.pi if self.side > 0 else 0.0) + r.normal(0, 0.03))
             while s < end:
                 if style == "open":
@@ -319,14 +332,16 @@ def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traff
     ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world).
     """
     main = build_centreline(rng, main_length_m, start_heading=float(rng.uniform(-np.pi, np.pi)))
-    roads = [Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5])), float(rng.uniform(2, 4)))]
+    roads = [Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
+                  float(rng.uniform(2, 4)))]
     for _ in range(int(rng.integers(1, 4))):
         s_x = float(rng.uniform(120, main.length - 120))
         x, y, yaw = (float(v) for v in main.pose_at(s_x))
         ang = yaw + np.radians(rng.uniform(65, 115)) * rng.choice([-1, 1])
         half = float(rng.uniform(110, 180))
         c = straight((x - half * np.cos(ang), y - half * np.sin(ang)), ang, 2 * half)
-        roads.append(Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5])), float(rng.uniform(2, 4))))
+        roads.append(Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
+                          float(rng.uniform(2, 4))))
     occ = _Occupancy(roads)
     sh = Shapes()
     parked: list[tuple[float, float, float]] = []

@@ -4,7 +4,8 @@ Everything standing is an extruded footprint (the LiDAR ray caster's two primiti
 - prisms: oriented rectangles (centre, half length, half width, yaw) between heights zb and zt (buildings,
   walls, guard rails, car bodies and cabins, signs);
 - cylinders: circles (centre, radius) between zb and zt (poles, trunks, tree crowns, bushes).
-A ``porosity`` in [0, 1) lets a fraction of rays pass (vegetation). The ground is a height field (flat roads,
+A ``porosity`` in [0, 1) lets a fraction of rays pass (vegetation); ``relief`` (metres) scatters the hit depth
+behind the footprint's face (facade detail: recessed windows, balconies, pillars). The ground is a height field (flat roads,
 raised sidewalks, gently rolling verges) with a grass layer that catches grazing rays.
 
 The generator lives in ``streets``; this module holds the data types.
@@ -34,15 +35,16 @@ class Shapes:
     zt: list[float] = field(default_factory=list)
     porosity: list[float] = field(default_factory=list)
     reflect: list[float] = field(default_factory=list)
+    relief: list[float] = field(default_factory=list)
 
-    def prism(self, x, y, hl, hw, yaw, zb, zt, porosity=0.0, reflect=0.4):
-        self._add("prism", x, y, hl, hw, yaw, zb, zt, porosity, reflect)
+    def prism(self, x, y, hl, hw, yaw, zb, zt, porosity=0.0, reflect=0.4, relief=0.0):
+        self._add("prism", x, y, hl, hw, yaw, zb, zt, porosity, reflect, relief)
 
-    def cyl(self, x, y, r, zb, zt, porosity=0.0, reflect=0.3):
-        self._add("cyl", x, y, r, 0.0, 0.0, zb, zt, porosity, reflect)
+    def cyl(self, x, y, r, zb, zt, porosity=0.0, reflect=0.3, relief=0.0):
+        self._add("cyl", x, y, r, 0.0, 0.0, zb, zt, porosity, reflect, relief)
 
     def _add(self, *vals):
-        for name, v in zip(("kind", "x", "y", "a", "b", "yaw", "zb", "zt", "porosity", "reflect"), vals):
+        for name, v in zip(("kind", "x", "y", "a", "b", "yaw", "zb", "zt", "porosity", "reflect", "relief"), vals):
             getattr(self, name).append(v if name == "kind" else float(v))
 
     def arrays(self) -> "ShapeArrays":
@@ -50,7 +52,7 @@ class Shapes:
         f = lambda v: np.asarray(v, dtype=np.float64)  # noqa: E731
         return ShapeArrays(is_cyl, np.stack([f(self.x), f(self.y)], 1).reshape(-1, 2), f(self.a), f(self.b),
                            f(self.yaw), f(self.zb), f(self.zt), f(self.porosity), f(self.reflect),
-                           np.full(len(self.kind), -1, dtype=np.int64))
+                           f(self.relief), np.full(len(self.kind), -1, dtype=np.int64))
 
 
 @dataclass
@@ -64,6 +66,7 @@ class ShapeArrays:
     zt: np.ndarray
     porosity: np.ndarray
     reflect: np.ndarray
+    relief: np.ndarray
     owner: np.ndarray  # vehicle index or -1 (static)
 
     def __len__(self) -> int:

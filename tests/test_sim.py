@@ -1,0 +1,142 @@
+"""Simulator: the ray caster on a hand-built scene (wall ranges, ground ranges, the tear that self-motion
+distortion puts behind a moving car), the detector model, determinism, and a round trip through the reader."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bb_align.dataset import iter_frames
+from bb_align.sim import DetectionModel, Scenario, SimConfig, detect, simulate_sequence
+from bb_align.sim.paths import straight
+from bb_align.sim.raycast import Mount, cast_sweep
+from bb_align.sim.sensors import SensorModel
+from bb_align.sim.world import Shapes, Terrain, Vehicle, World
+from bb_align.sim.writer import scenario_distance, scenario_seed, write_scenario
+
+SENSOR = SensorModel(name="ideal", elevations_deg=(-10.0, -5.0, 0.0, 5.0), columns=3600, max_range_m=100,
+                     range_noise_m=0.0, dropout=0.0, far_falloff=60.0, elevation_jitter_deg=0.0)
+
+
+def _walls_world(speed: float) -> World:
+    """Walls facing the car at x = +10 m and x = -10 m (5 m high); the car drives along +x at ``speed``."""
+    sh = Shapes()
+    sh.prism(10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
+    sh.prism(-10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
+    terrain = Terrain(np.array([-200.0, -200.0]), 2.0, np.zeros((201, 201)), np.zeros((201, 201)))
+    car = Vehicle(0, 4.5, 1.8, 1.5, "car", path=straight((-100.0, 0.0), 0.0, 200.0), s0=100.0, speed=speed)
+    return World([], sh.arrays(), [car], terrain, [])
+
+
+def test_ray_caster_ranges_on_a_hand_built_scene():
+    sweep = cast_sweep(_walls_world(0.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0))
+    p = sweep.points
+    np.testing.assert_allclose(sweep.T_world_sensor[:3, 3], [0, 0, 2])
+    front = (p[:, 0] > 5) & (np.abs(p[:, 1]) < 5)
+    rear = (p[:, 0] < -5) & (np.abs(p[:, 1]) < 5)
+    # every beam of these columns meets the wall face before the ground (the -10 deg beam at z = 0.24 m)
+    assert front.sum() == rear.sum() > 4 * 100
+    np.testing.assert_allclose(p[front, 0], 10.0, atol=1e-4)
+    np.testing.assert_allclose(p[rear, 0], -10.0, atol=1e-4)
+    # ground, where no wall stands: the -10 and -5 deg beams meet it 2 / tan(10 deg) = 11.34 m and
+    # 2 / tan(5 deg) = 22.86 m away
+    ground = sweep.owner == -2
+    assert ground.any()
+    np.testing.assert_allclose(p[ground, 2], -2.0, atol=1e-4)
+    d = np.hypot(p[ground, 0], p[ground, 1])
+    expected = 2 / np.tan(np.radians([10.0, 5.0]))
+    np.testing.assert_allclose(np.abs(d[:, None] - expected).min(axis=1), 0.0, atol=1e-3)
+    assert (np.abs(d - expected[0]) < 1e-3).any() and (np.abs(d - expected[1]) < 1e-3).any()
+
+
+@pytest.mark.parametrize("distortion", [True, False])
+def test_self_motion_distortion_tears_the_scan_behind_a_moving_car(distortion):
+    # 10 m/s, 10 Hz: the sweep starts facing backwards 0.05 s before mid-sweep (car 0.5 m behind its mid-sweep
+    # pose: rear wall 9.5 m away) and ends facing backwards 0.05 s after (10.5 m away); the front wall is
+    # swept at mid-sweep (10 m).
+    sweep = cast_sweep(_walls_world(10.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0),
+                       distortion=distortion)
+    p = sweep.points
+    front = (p[:, 0] > 5) & (np.abs(p[:, 1]) < 0.3)
+    rear_start = (p[:, 0] < -5) & (p[:, 1] > 0) & (p[:, 1] < 0.3)  # azimuth just under +180: fired first
+    rear_end = (p[:, 0] < -5) & (p[:, 1] < 0) & (p[:, 1] > -0.3)  # azimuth just over -180: fired last
+    assert front.any() and rear_start.any() and rear_end.any()
+    np.testing.assert_allclose(p[front, 0], 10.0, atol=0.01)
+    if distortion:
+        np.testing.assert_allclose(p[rear_start, 0], -9.5, atol=0.01)
+        np.testing.assert_allclose(p[rear_end, 0], -10.5, atol=0.01)
+    else:
+        np.testing.assert_allclose(p[rear_start | rear_end, 0], -10.0, atol=1e-4)
+
+
+def test_detection_model_keeps_vehicles_with_enough_points_and_applies_flips():
+    boxes = np.array([[10, 0, -1, 4.5, 1.8, 1.5, 0.3], [30, 5, -1, 4.5, 1.8, 1.5, -1.0], [50, -5, -1, 4, 1.8, 1.5, 2]])
+    counts = np.array([50, 9, 10])
+    exact = DetectionModel(min_points=10, miss_prob=0, miss_prob_far=0, centre_sigma_m=0, centre_sigma_far_m=0,
+                           z_sigma_m=0, size_sigma_m=0, yaw_sigma_deg=0, flip_prob=0, false_positives=0)
+    det = detect(boxes, counts, None, np.random.default_rng(1), exact)
+    np.testing.assert_array_equal(det.truth, [0, 2])
+    np.testing.assert_allclose(det.boxes, boxes[[0, 2]])
+    assert np.all((det.scores > 0) & (det.scores < 1))
+    flipped = detect(boxes, counts, None, np.random.default_rng(1), exact.model_copy(update={"flip_prob": 1.0}))
+    d_yaw = np.angle(np.exp(1j * (flipped.boxes[:, 6] - boxes[[0, 2], 6])))
+    np.testing.assert_allclose(np.abs(d_yaw), np.pi, atol=1e-9)
+    fp = detect(boxes, counts, None, np.random.default_rng(1), exact.model_copy(update={"false_positives": 5.0}))
+    assert (fp.truth == -1).sum() >= 1 and np.all(np.hypot(*fp.boxes[fp.truth == -1, :2].T) < 100.5)
+    with pytest.raises(ValueError, match="n_points"):
+        detect(boxes, counts[:2], None, np.random.default_rng(1), exact)
+
+
+def test_simulate_sequence_is_deterministic_and_cars_move():
+    a = simulate_sequence(seed=7, n_frames=2, distance_m=25.0)
+    b = simulate_sequence(seed=7, n_frames=2, distance_m=25.0)
+    assert [f.stamp for f in a] == pytest.approx([0.0, 0.1])
+    for fa, fb in zip(a, b):
+        assert list(fa.agents) == ["0", "1"]
+        for k in fa.agents:
+            np.testing.assert_array_equal(fa.agents[k].points, fb.agents[k].points)
+            np.testing.assert_array_equal(fa.agents[k].boxes, fb.agents[k].boxes)
+            np.testing.assert_array_equal(fa.agents[k].T_world_sensor, fb.agents[k].T_world_sensor)
+    f0 = a[0]
+    ego, peer = f0.agents["0"], f0.agents["1"]
+    assert ego.sensor != peer.sensor  # heterogeneous LiDARs
+    assert ego.points.dtype == np.float32 and ego.points.shape[1] == 4 and len(ego.points) > 10_000
+    assert ego.boxes.shape[1] == 7
+    T_ego_peer = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+    assert np.hypot(*T_ego_peer[:2, 3]) == pytest.approx(25.0, abs=2.0)
+    # ground returns sit about one mounting height below the sensor
+    assert -2.3 < np.percentile(ego.points[:, 2], 5) < -1.4
+    # consecutive frames: each car moved at most 16 m/s * 0.1 s, and the scans differ
+    for k in ("0", "1"):
+        step = np.linalg.norm(a[1].agents[k].T_world_sensor[:2, 3] - a[0].agents[k].T_world_sensor[:2, 3])
+        assert step <= 1.7
+    assert not np.array_equal(a[0].agents["0"].points, a[1].agents["0"].points)
+    c = simulate_sequence(seed=8, n_frames=1, distance_m=25.0)
+    assert not np.array_equal(c[0].agents["0"].points[:100], f0.agents["0"].points[:100])
+
+
+def test_simulate_sequence_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="n_frames"):
+        simulate_sequence(seed=1, n_frames=0)
+    with pytest.raises(ValueError, match="distance_m"):
+        simulate_sequence(seed=1, distance_m=-5.0)
+    with pytest.raises(ValueError, match="dt"):
+        simulate_sequence(seed=1, dt=0.0)
+
+
+def test_simulated_scenario_round_trips_through_the_reader(tmp_path):
+    cfg = SimConfig()
+    name = write_scenario(tmp_path, seed=3, index=1, n_scenarios=4, config=cfg)
+    frame = Scenario(scenario_seed(3, 1), 2, scenario_distance(3, 1, 4, cfg), cfg).frame(0)
+    (g,) = list(iter_frames(tmp_path))
+    assert g.scenario == name and list(g.agents) == ["0", "1"]
+    for k, agent in g.agents.items():
+        sim = frame.agents[k]
+        np.testing.assert_allclose(agent.load_points(), sim.points)
+        np.testing.assert_allclose(agent.T_world_sensor, sim.T_world_sensor, atol=1e-9)
+        np.testing.assert_allclose(agent.detections, sim.boxes, atol=1e-9)
+        np.testing.assert_allclose(agent.detection_scores, sim.scores, atol=1e-9)
+        assert agent.extra["sensor"] == sim.sensor
+        # the other agent is among this agent's vehicles, itself is not
+        other = frame.agents["1" if k == "0" else "0"].vehicle_id
+        assert str(other) in agent.vehicles and str(sim.vehicle_id) not in agent.vehicles
