@@ -77,8 +77,9 @@ def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
     return tuple(cv2.getOptimalDFTSize(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
 
 
-def orientation_amplitudes(image: np.ndarray, cfg: MimConfig) -> np.ndarray:
-    """(No, H, W) float32: A_o = sum_s |IFFT(F * G_s * S_o)| over the image (margin cropped away)."""
+def orientation_amplitudes(image: np.ndarray, cfg: MimConfig):
+    """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
+    The yielded array is reused: consume it before advancing."""
     h, w = image.shape
     m = cfg.fft_margin_px
     shape = fft_shape((h, w), m)
@@ -86,22 +87,25 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig) -> np.ndarray:
     padded[m : m + h, m : m + w] = image
     spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)  # (H, W, 2)
     bank = _bank_two_channel(shape, cfg)
-    amps = np.empty((cfg.n_orient, h, w), dtype=np.float32)
     acc = np.empty(shape, dtype=np.float32)
     for o in range(cfg.n_orient):
         acc.fill(0.0)
         for s in range(cfg.n_scales):
             eo = cv2.idft(cv2.multiply(spectrum, bank[o, s]), flags=cv2.DFT_COMPLEX_OUTPUT)
             cv2.add(acc, cv2.magnitude(*cv2.split(eo)), dst=acc)
-        amps[o] = acc[m : m + h, m : m + w]
-    return amps
+        yield o, acc[m : m + h, m : m + w]
 
 
 def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
-    """BV image (uint8 or float, 0..255) -> (MIM uint8 in 0..No, max amplitude float32), both image-sized."""
+    """BV image (uint8 or float, 0..255) -> (MIM uint8 in 0..No, max amplitude float32), both image-sized.
+    The arg-max over orientations is kept incrementally (the first orientation wins ties)."""
     cfg = cfg or MimConfig()
-    amps = orientation_amplitudes(np.asarray(image, dtype=np.float32), cfg)
-    max_amp = amps.max(axis=0)
-    mim = (amps.argmax(axis=0) + 1).astype(np.uint8)
+    image = np.asarray(image, dtype=np.float32)
+    max_amp = np.zeros(image.shape, dtype=np.float32)
+    mim = np.zeros(image.shape, dtype=np.uint8)
+    for o, amp in orientation_amplitudes(image, cfg):
+        better = cv2.compare(amp, max_amp, cv2.CMP_GT) if o else np.full(image.shape, 255, np.uint8)
+        mim[better > 0] = o + 1
+        cv2.max(max_amp, amp, dst=max_amp)
     mim[max_amp <= cfg.min_amplitude] = 0
     return mim, max_amp
