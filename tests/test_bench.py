@@ -82,9 +82,15 @@ def test_fast_keypoints_are_the_engines_without_the_cap():
     engine = {tuple(p) for p in detect_keypoints(img, cfg)}
     base = {tuple(p) for p in bl.fast_keypoints(img, cfg)}
     assert len(engine) > 30
-    # The baseline pads the image first (as the reference does), so it may add corners on the image border.
-    assert engine <= base
-    assert all(min(r, c) < 3 or max(r, c) >= img.shape[0] - 3 for r, c in base - engine)
+    # The baseline pads the image first (as the reference does): FAST's 3-px ring (and the 3x3 non-maximum
+    # suppression) then sees zeros instead of nothing near the border, so only there may the two differ.
+    n = img.shape[0]
+
+    def inner(points):
+        return {(r, c) for r, c in points if min(r, c) >= 4 and max(r, c) < n - 4}
+
+    assert inner(engine) == inner(base)
+    assert len(inner(engine)) > 0.8 * len(engine)
 
 
 def test_brute_force_matching_equals_the_engine():
@@ -123,9 +129,10 @@ def test_ransac_without_a_valid_sample_returns_none():
 def test_quick_bench_reports_the_promised_keys(tmp_path):
     out = tmp_path / "bench.json"
     png = tmp_path / "bench.png"
+    md = tmp_path / "bench.md"
     # A 40 m BV range (200 px images) keeps the slow baseline short; everything else is the --quick run.
     res = CliRunner().invoke(app, ["bench", "--quick", "--no-service", "--runs", "1", "--range-m", "40",
-                                   "--json", str(out), "--plot", str(png)])
+                                   "--json", str(out), "--plot", str(png), "--markdown", str(md)])
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
     for key in ("peer_vs_cached_ego_ms_p50", "peer_vs_cached_ego_ms_p90", "cold_pair_ms_p50", "cold_pair_ms_p90"):
@@ -149,6 +156,9 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
     assert report["service"] is None
     assert report["config"]["bev"]["range_m"] == 40.0 and report["workload"]["image_px"] == [200, 200]
     assert png.stat().st_size > 10_000
+    assert report["memory"]["process_engine_runs"]["rss_peak_mb"] > 50
+    table = md.read_text()
+    assert "| peer frame vs cached ego frame |" in table and "| ransac |" in table
 
 
 def test_service_throughput_over_zenoh_loopback():

@@ -1,7 +1,8 @@
 """The in-benchmark baseline: the same stages as the engine, done the straightforward way the reference does them.
 
 This is the yardstick of ``bb-align bench``, never used by the service. It is written independently of the engine
-modules (it imports only their configuration, 2-D geometry helpers and the FFT size choice) so that engine speed-ups never change it:
+modules (it imports only their configuration, 2-D geometry helpers and the FFT size choice) so that engine
+speed-ups never change it:
 
 - Log-Gabor MIM: float64 image, complex128 numpy FFTs, the filter bank rebuilt on every call, all Ns x No
   inverse FFTs one by one (as the reference);
@@ -325,6 +326,7 @@ class BaselineFeatures:
     descriptors: np.ndarray
     descriptors_flipped: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
+    mim: np.ndarray | None = None
 
 
 @dataclass
@@ -360,7 +362,7 @@ class BaselineAligner:
             desc = bvft_descriptors(mim, amp, rc, cfg.features, cfg.mim.n_orient)
             desc_flip = flip_180(desc, cfg.features)
         boxes = np.zeros((0, 7)) if boxes is None else np.asarray(boxes, dtype=float).reshape(-1, 7)
-        return BaselineFeatures(bev, boxes, rc, bev.pixel_to_metre(rc), desc, desc_flip, timings)
+        return BaselineFeatures(bev, boxes, rc, bev.pixel_to_metre(rc), desc, desc_flip, timings, mim)
 
     def align(self, ego: BaselineFeatures, peer: BaselineFeatures) -> BaselineResult:
         cfg = self.config
@@ -407,6 +409,6 @@ class BaselineAligner:
         yaw, tx, ty = se2_params(T_fit)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish("box_correction_too_large")
-        if getattr(cfg.box, "apply", "always") == "always" or not refined:  # else stage 2 only verifies
+        if cfg.box.apply == "always" or not refined:  # else stage 2 only verifies the refined pose
             T_box = T_fit
         return finish(None)

@@ -42,11 +42,16 @@ def _summary(report: dict) -> str:
         lines.append(f"accuracy {name}: {s['success']}/{s['pairs']} succeeded{extra}")
     lines.append(f"engine and baseline agree on {acc['agree']}/{len(acc['pairs'])} pairs (success, and pose within "
                  f"{acc['tolerance']['t_m']} m / {acc['tolerance']['r_deg']} deg)")
+    mim, kp = report["features"]["mim_equal_fraction_of_lit"], report["features"]["keypoints_per_image"]
+    lines.append(f"features: engine MIM equals the complex128 baseline's on {100 * mim['median']:.2f}% of lit pixels "
+                 f"(median image; worst {100 * mim['min']:.2f}%); keypoints per image engine {kp['engine']:.0f}, "
+                 f"baseline {kp['baseline']:.0f}")
     mem = report["memory"]
     lines.append(f"memory: tracemalloc peak engine {mem['engine_tracemalloc_peak_mb'][HOT]:.1f} MB hot / "
                  f"{mem['engine_tracemalloc_peak_mb'][COLD]:.1f} MB cold, baseline "
                  f"{mem['baseline_tracemalloc_peak_mb'][COLD]:.1f} MB cold; process RSS peak "
-                 f"{mem['after_baseline']['rss_peak_mb']:.0f} MB")
+                 f"{mem['process_engine_runs']['rss_peak_mb']:.0f} MB during the engine runs (before them "
+                 f"{mem['process_before']['rss_mb'] or 0:.0f} MB)")
     service = report.get("service")
     if service and service.get("runs"):
         lines.append(f"service over Zenoh ({service['workers']} workers, peers at {service['rate_hz']:g} Hz, "
@@ -72,6 +77,7 @@ def bench(
     runs: Optional[int] = typer.Option(None, min=1, help="timed passes over the workload [10; --quick 3]"),
     quick: bool = typer.Option(False, "--quick", help="2 pairs, 3 runs, short service runs (1 and 4 peers)"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="write the stage-breakdown figure (PNG) here"),
+    markdown: Optional[Path] = typer.Option(None, "--markdown", help="write the tables as Markdown here"),
     no_service: bool = typer.Option(False, "--no-service", help="skip the service throughput part"),
     data: Optional[Path] = typer.Option(None, "--data", exists=True, file_okay=False,
                                        help="real scans in the OPV2V/V2V4Real layout instead of the simulator"),
@@ -133,11 +139,18 @@ def bench(
         from .plot import plot_report
 
         plot_report(report, plot)
+    if markdown is not None:
+        from .markdown import report_markdown
+
+        markdown.parent.mkdir(parents=True, exist_ok=True)
+        markdown.write_text(report_markdown(report))
     typer.echo(_summary(report))
     if json_out is not None:
         typer.echo(f"report: {json_out}")
     if plot is not None:
         typer.echo(f"plot: {plot}")
+    if markdown is not None:
+        typer.echo(f"markdown: {markdown}")
 
 
 def register(app: typer.Typer) -> None:

@@ -65,7 +65,8 @@ class Measurements:
     samples: dict[str, list[Sample]] = field(default_factory=lambda: {p: [] for p in PATHS})
     outcomes: dict[str, Outcome] = field(default_factory=dict)  # pair name -> result of the last run
     ego_prepare_ms: list[float] = field(default_factory=list)  # per ego frame, once (cached afterwards)
-    peak_mb: dict[str, float] = field(default_factory=dict)  # path -> tracemalloc peak, max over pairs
+    peak_mb: dict[str, float] = field(default_factory=dict)  # path -> tracemalloc peak (first pair)
+    ego_features: list = field(default_factory=list)  # each pair's prepared ego frame (MIM kept)
 
 
 # ---- one engine / baseline call each --------------------------------------------------------------------------
@@ -93,7 +94,7 @@ class EngineRunner:
 
     def prepare_ego(self, pair: BenchPair):
         """Everything the service caches per ego frame (features and the BV cloud the refinement uses)."""
-        ego = self.aligner.prepare(BevImage.from_png(pair.ego_png, **pair.bev_meta), pair.boxes_ego)
+        ego = self.aligner.prepare(BevImage.from_png(pair.ego_png, **pair.bev_meta), pair.boxes_ego, keep_maps=True)
         ego.cloud(self.refine_min_value)
         return ego
 
@@ -155,6 +156,7 @@ def measure(runner: EngineRunner, pairs: list[BenchPair], *, runs: int, warmup: 
             out.samples[HOT].append(hot)
             out.samples[COLD].append(cold)
             out.outcomes[pair.name] = outcome
+    out.ego_features = egos
     # Peak traced memory (numpy buffers included) of each path: one untimed call on the first pair (every
     # pair has the same image size, so the big buffers are the same).
     for path in PATHS:
@@ -225,6 +227,18 @@ def accuracy(pairs: list[BenchPair], engine: dict[str, Outcome], baseline: dict[
             "baseline": summary("baseline"), "agree": int(sum(r["agree"] for r in rows)), "pairs": rows}
 
 
+def feature_agreement(engine: list, baseline: list) -> dict:
+    """How closely the engine's MIM follows the exact complex128 one on the same images, and how many
+    keypoints each describes (the engine caps them, the baseline does not)."""
+    agree = []
+    for e, b in zip(engine, baseline):
+        lit = (e.mim > 0) | (b.mim > 0)
+        agree.append(float(np.mean(e.mim[lit] == b.mim[lit])) if lit.any() else 1.0)
+    return {"mim_equal_fraction_of_lit": {"min": float(np.min(agree)), "median": float(np.median(agree))},
+            "keypoints_per_image": {"engine": float(np.mean([len(e.keypoints_rc) for e in engine])),
+                                    "baseline": float(np.mean([len(b.keypoints_rc) for b in baseline]))}}
+
+
 # ---- environment ----------------------------------------------------------------------------------------------
 def git_commit(repo: Path | None = None) -> dict:
     """HEAD of the repository holding this package, and whether the engine sources differ from it."""
@@ -263,15 +277,29 @@ def machine_info() -> dict:
             "opencv": cv2.__version__}
 
 
-def rss_mb() -> dict:
-    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: kB
-    current = None
+def reset_peak_rss() -> bool:
+    """Restart the kernel's peak-RSS count of this process (Linux: write 5 to /proc/self/clear_refs)."""
     try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-        current = pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def rss_mb(since_reset: bool = False) -> dict:
+    """Current and peak resident memory of this process, MB (the peak since the last reset_peak_rss when
+    ``since_reset``; since the process started otherwise)."""
+    out = {"rss_mb": None, "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+           "peak_since": "reset" if since_reset else "process start"}
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                out["rss_mb"] = int(line.split()[1]) / 1024.0
+            elif line.startswith("VmHWM:"):
+                out["rss_peak_mb"] = int(line.split()[1]) / 1024.0
     except (OSError, ValueError, IndexError):
-        pass
-    return {"rss_peak_mb": peak_kb / 1024.0, "rss_mb": current}
+        out["peak_since"] = "process start"
+    return out
 
 
 # ---- the whole benchmark --------------------------------------------------------------------------------------
@@ -284,11 +312,15 @@ def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup:
         raise ValueError(f"runs ({runs}) and baseline_runs ({baseline_runs}) must be >= 1, warmup ({warmup}) >= 0")
     load_start = os.getloadavg()
     t_start = time.time()
+    memory_before = rss_mb()
+    reset = reset_peak_rss()
     engine = measure(EngineRunner(config), workload.pairs, runs=runs, warmup=warmup, progress=progress,
                      label="engine")
-    memory_after_engine = rss_mb()
+    memory_engine = rss_mb(since_reset=reset)
+    reset = reset_peak_rss()
     base = measure(BaselineRunner(config), workload.pairs, runs=baseline_runs, warmup=0, progress=progress,
                    label="baseline")
+    memory_baseline = rss_mb(since_reset=reset)
 
     report: dict = {"schema": 1, "started_unix": t_start, "git": git_commit(), "machine": machine_info(),
                     "workload": workload.describe(), "config": config.model_dump(mode="json"),
@@ -315,8 +347,10 @@ def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup:
                         for p in PATHS},
         "stages": stages,
         "memory": {"engine_tracemalloc_peak_mb": engine.peak_mb, "baseline_tracemalloc_peak_mb": base.peak_mb,
-                   "after_engine": memory_after_engine, "after_baseline": rss_mb()},
+                   "process_before": memory_before, "process_engine_runs": memory_engine,
+                   "process_baseline_runs": memory_baseline},
         "accuracy": accuracy(workload.pairs, engine.outcomes, base.outcomes),
+        "features": feature_agreement(engine.ego_features, base.ego_features),
     })
     report["targets"] = {
         "peer_vs_cached_ego_ms_p50_max": TARGET_HOT_P50_MS,
