@@ -22,9 +22,10 @@ _CHUNK = 32  # keypoints per vectorised block
 
 
 @lru_cache(maxsize=4)
-def _orientation_window(radius: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat offsets (in an image ``width`` px wide) of the disc of ``radius`` px and weights (1 - d/radius)^2."""
-    off = np.arange(-radius, radius + 1)
+def _orientation_window(radius: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Flat offsets (in an image ``width`` px wide) of the disc of ``radius`` px, every ``stride``-th pixel
+    each way (symmetric about the centre), and the weights (1 - d/radius)^2."""
+    off = np.arange(-(radius // stride) * stride, radius + 1, stride)
     dr, dc = np.meshgrid(off, off, indexing="ij")
     d = np.hypot(dr, dc)
     inside = d < radius
@@ -61,7 +62,8 @@ def _shift_table(n_orient: int, merge_bins: bool) -> np.ndarray:
     return lut
 
 
-def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int) -> np.ndarray:
+def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int,
+                         stride: int = 1) -> np.ndarray:
     """(K,) dominant orientation m in 1..No per keypoint (0 when the disc holds no MIM value).
 
     If the lower cyclic neighbour of the peak bin beats the upper one, the lower bin is taken (the reference's
@@ -69,7 +71,7 @@ def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radiu
     """
     k = len(rc)
     width = mim.shape[1] + 2 * radius
-    offsets, w = _orientation_window(radius, width)
+    offsets, w = _orientation_window(radius, width, stride)
     mim_p = np.pad(mim, radius).ravel()
     amp_p = np.pad(amp.astype(np.float64), radius).ravel()  # float64 weights: numpy's fast bincount path
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
@@ -103,7 +105,7 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
         return np.zeros((0, n_cells * n_bins), dtype=np.float32)
 
     radius = int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))  # 69 px for J = 96; also covers the rotated window
-    m = dominant_orientation(mim, amp, rc, radius, n_orient)
+    m = dominant_orientation(mim, amp, rc, radius, n_orient, cfg.orientation_stride)
 
     width = mim.shape[1] + 2 * radius
     offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width)
