@@ -8,6 +8,7 @@ import time
 
 import httpx
 import msgpack
+import numpy as np
 import pytest
 
 from bb_align.geometry import pose_error
@@ -166,3 +167,21 @@ def test_full_request_queue_answers_503(pair):
         codes = sorted(r.status_code for r in responses)
         assert set(codes) <= {200, 503} and 200 in codes and 503 in codes
         assert all(r.json()["error"] == "overloaded" for r in responses if r.status_code == 503)
+
+
+def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
+    from bb_align.geometry import se2, se3_from_se2
+
+    _, http = server
+    stamp, ego, peer = pair[1]
+    noisy = peer.T_world_sensor @ se3_from_se2(se2(np.radians(2.0), 1.5, -1.0))  # GNSS-grade error
+    p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=5, range_m=RANGE_M, pose=noisy)
+    e = encode_frame(ego.points, ego.boxes, vehicle_id="ego", stamp=stamp, seq=5, range_m=RANGE_M,
+                     pose=ego.T_world_sensor)
+    res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
+    assert res.success and "matches gated by the prior pose" in res.notes
+    assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3
+    liar = peer.T_world_sensor @ se3_from_se2(se2(np.radians(90.0), 35.0, 0.0))
+    p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
+    res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
+    assert not res.success, "a false reported pose must not produce a confident pose near it"

@@ -82,6 +82,9 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="REST port (0: any free port)")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     align: AlignConfig = Field(default_factory=AlignConfig)
+    use_pose_prior: bool = Field(
+        True, description="when both frames carry a reported pose, gate descriptor matches by it (align.prior "
+        "tolerances, 10 m / 10 deg by default); a wrong report then fails the alignment instead of biasing it")
     limits: Limits = Field(default_factory=Limits)
     ego_cache_size: int = Field(10, ge=1, le=1000, description="K: last ego frames kept with their features")
     max_ego_skew_s: float = Field(0.15, ge=0, description="a peer frame needs an ego frame this close in time")

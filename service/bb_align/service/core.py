@@ -43,11 +43,19 @@ class PeerStatus(BaseModel):
     bandwidth: PeerBandwidth | None = None
 
 
-def relative_prior(ego: Frame, peer: Frame) -> tuple[float, float, float] | None:
-    """(tz, roll, pitch) of T_ego_peer from the two reported poses (Eq. 1's constants); None without both."""
+def reported_relative_pose(ego: Frame, peer: Frame) -> np.ndarray | None:
+    """T_ego_peer (4x4) as the two cars' reported poses say; None without both."""
     if ego.pose is None or peer.pose is None:
         return None
-    rel = Pose.from_matrix(np.linalg.inv(ego.pose.matrix()) @ peer.pose.matrix())
+    return np.linalg.inv(ego.pose.matrix()) @ peer.pose.matrix()
+
+
+def relative_prior(ego: Frame, peer: Frame) -> tuple[float, float, float] | None:
+    """(tz, roll, pitch) of T_ego_peer from the two reported poses (Eq. 1's constants); None without both."""
+    T = reported_relative_pose(ego, peer)
+    if T is None:
+        return None
+    rel = Pose.from_matrix(T)
     return rel.z, rel.roll, rel.pitch
 
 
@@ -253,7 +261,8 @@ class AlignService:
         prior = relative_prior(ego_frame, peer)
         tz, roll, pitch = prior if prior is not None else (0.0, 0.0, 0.0)
         t0 = time.perf_counter()
-        res = self.aligner.align(ego_prep, peer_prep, tz=tz, roll=roll, pitch=pitch)
+        T_prior = reported_relative_pose(ego_frame, peer) if self.settings.use_pose_prior else None
+        res = self.aligner.align(ego_prep, peer_prep, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior)
         self.metrics.engine.labels("align").observe(time.perf_counter() - t0)
         timings.update({f"peer_{k}": v for k, v in peer_prep.timings_ms.items()}, **res.timings_ms)
         return self._finish(job, _from_engine(res, base, prior is not None, timings))
