@@ -22,3 +22,12 @@ run: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.egg-info
+
+# Accuracy benchmark: 200 seeded simulated pairs (0-100 m, heterogeneous LiDARs, self-motion distortion),
+# summary JSON, per-pair records and figures into docs/accuracy/ (see docs/accuracy.md).
+BENCH_ACC_DIR ?= out/bench_accuracy
+bench-accuracy: $(STAMP)
+	rm -rf $(BENCH_ACC_DIR)
+	$(VENV)/bin/bb-align sim $(BENCH_ACC_DIR) --scenarios 200 --seed 2024 --workers 2
+	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --json docs/accuracy/summary.json \
+		--records docs/accuracy/pairs.jsonl --plots docs/accuracy

@@ -10,6 +10,8 @@ from typing import Optional
 
 import typer
 
+from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS
+
 
 def _git_commit() -> str | None:
     try:
@@ -71,6 +73,9 @@ def register(app: typer.Typer) -> None:
         min_distance: float = typer.Option(4.0, "--min-distance", min=0, help="closest spacing, metres"),
         max_distance: float = typer.Option(100.0, "--max-distance", min=1, max=300, help="farthest spacing, m"),
         distortion: bool = typer.Option(True, "--distortion/--no-distortion", help="self-motion distortion"),
+        fleet: str = typer.Option(",".join(DEFAULT_FLEET), "--fleet",
+                                  help=f"LiDAR models the cars draw from, all different while possible "
+                                       f"(comma list of {', '.join(SENSOR_MODELS)}; one name: every car the same)"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
     ) -> None:
         """Simulate V2V LiDAR scenarios (heterogeneous sensors, distortion, detections) into OUT_DIR."""
@@ -79,7 +84,12 @@ def register(app: typer.Typer) -> None:
 
         if max_distance <= min_distance:
             raise typer.BadParameter("--max-distance must be larger than --min-distance")
-        cfg = SimConfig(min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion)
+        models = tuple(m.strip() for m in fleet.split(",") if m.strip())
+        unknown = [m for m in models if m not in SENSOR_MODELS]
+        if not models or unknown:
+            raise typer.BadParameter(f"--fleet: unknown model(s) {unknown}; choose from {', '.join(SENSOR_MODELS)}")
+        cfg = SimConfig(min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion,
+                        fleet=models)
         names = write_benchmark(out_dir, scenarios, seed=seed, frames=frames, n_agents=agents, config=cfg,
                                 workers=workers)
         typer.echo(f"wrote {len(names)} scenarios x {frames} frame(s) x {agents} agents to {out_dir}")
@@ -102,12 +112,13 @@ def register(app: typer.Typer) -> None:
 
         sigma_t, sigma_deg = _parse_noise(pose_noise)
         cfg = EvalConfig(pose_noise_t_m=sigma_t, pose_noise_deg=sigma_deg, seed=seed)
+        commit = _git_commit()  # the engine version measured (taken before the run: others may commit meanwhile)
         try:
             records = evaluate_dataset(root, cfg, limit=limit, workers=workers)
         except (ValueError, FileNotFoundError) as exc:
             raise typer.BadParameter(str(exc)) from exc
         summary = summarize(records)
-        summary["meta"] = {"root": str(root), "commit": _git_commit(), "pose_noise": [sigma_t, sigma_deg],
+        summary["meta"] = {"root": str(root), "commit": commit, "pose_noise": [sigma_t, sigma_deg],
                            "seed": seed, "align_config": cfg.align.model_dump()}
         _print_summary(summary)
         if json_out is not None:

@@ -92,6 +92,32 @@ def figure(clouds: dict[str, np.ndarray], path: Path, cols: int = 4) -> None:
     plt.close(fig)
 
 
+def pair_overlay(seed: int, distance_m: float, path: Path) -> None:
+    """Ego BV (red) and peer BV moved into the ego frame with the true pose (green): the common view."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .scenario import Scenario
+
+    frame = Scenario(seed, n_agents=2, distance_m=distance_m).frame(0)
+    ego, peer = frame.agents["0"], frame.agents["1"]
+    T = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+    pts = peer.points[:, :3] @ T[:3, :3].T + T[:3, 3]
+    a, b = make_bev(ego.points).image > 0, make_bev(pts).image > 0
+    rgb = np.zeros(a.shape + (3,))
+    rgb[..., 0], rgb[..., 1] = a, b
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.imshow(rgb, interpolation="nearest")
+    ax.set_title(f"sim seed {seed}: ego {ego.sensor} (red), peer {peer.sensor} (green) at the true pose,\n"
+                 f"{np.hypot(*T[:2, 3]):.0f} m apart; yellow = both see it", fontsize=8)
+    ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out_dir", type=Path)
@@ -104,6 +130,8 @@ def main(argv=None) -> None:
     (args.out_dir / "bev_stats.json").write_text(json.dumps(stats, indent=2))
     figure({**real, **dict(list(sim.items())[:4])}, args.out_dir / "bev_real_vs_sim.png")
     figure(dict(list(sim.items())[4:]), args.out_dir / "bev_sim_more.png")
+    pair_overlay(21, 25.0, args.out_dir / "pair_overlay_25m.png")
+    pair_overlay(22, 55.0, args.out_dir / "pair_overlay_55m.png")
     for group, d in stats.items():
         for name, s in d.items():
             print(f"{group:4s} {name:40s} " + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
