@@ -44,8 +44,8 @@ def _summary(report: dict) -> str:
                  f"{acc['tolerance']['t_m']} m / {acc['tolerance']['r_deg']} deg)")
     mim, kp = report["features"]["mim_equal_fraction_of_lit"], report["features"]["keypoints_per_image"]
     lines.append(f"features: engine MIM equals the complex128 baseline's on {100 * mim['median']:.2f}% of lit pixels "
-                 f"(median image; worst {100 * mim['min']:.2f}%); keypoints per image engine {kp['engine']:.0f}, "
-                 f"baseline {kp['baseline']:.0f}")
+                 f"(median image; worst {100 * mim['min']:.2f}%); keypoints per ego image: engine {kp['engine']:.0f} "
+                 f"(max {kp['engine_max']}), baseline {kp['baseline']:.0f} (max {kp['baseline_max']})")
     mem = report["memory"]
     lines.append(f"memory: tracemalloc peak engine {mem['engine_tracemalloc_peak_mb'][HOT]:.1f} MB hot / "
                  f"{mem['engine_tracemalloc_peak_mb'][COLD]:.1f} MB cold, baseline "
@@ -68,7 +68,7 @@ def _summary(report: dict) -> str:
     load = report["load_avg"]
     lines.append(f"load average start {load['start'][0]:.2f}, end {load['end'][0]:.2f} on "
                  f"{report['machine']['cpus_usable']} CPUs; commit {(report['git'].get('commit') or '?')[:12]}"
-                 f"{' (engine sources modified)' if report['git'].get('dirty') else ''}")
+                 f"{' (uncommitted changes under service/ or client/)' if report['git'].get('dirty') else ''}")
     return "\n".join(lines)
 
 

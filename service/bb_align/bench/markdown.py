@@ -16,6 +16,11 @@ def _x(v: float | None) -> str:
     return "-" if not v else f"{v:.0f}x" if v >= 10 else f"{v:.1f}x"
 
 
+def _kp(features: dict, side: str) -> str:
+    kp = features["keypoints_per_image"]
+    return f"{kp[side]:.0f} mean, {kp.get(side + '_max', kp[side]):.0f} max"
+
+
 def report_markdown(report: dict) -> str:
     git = report.get("git") or {}
     m = report["machine"]
@@ -23,7 +28,8 @@ def report_markdown(report: dict) -> str:
     wl = report["workload"]
     out = [
         f"Command: `{report.get('command', 'bb-align bench')}` at commit `{(git.get('commit') or '?')[:12]}`"
-        f"{' (with uncommitted engine changes)' if git.get('dirty') else ''}; {m['cpus_usable']} CPUs "
+        f"{' (with uncommitted changes under service/ or client/)' if git.get('dirty') else ''}; "
+        f"{m['cpus_usable']} CPUs "
         f"({m.get('cpu_model') or 'unknown CPU'}), load average {load['start'][0]:.1f} at the start and "
         f"{load['end'][0]:.1f} at the end (other jobs shared the machine); numpy {m['numpy']}, scipy "
         f"{m['scipy']}, OpenCV {m['opencv']}.",
@@ -63,8 +69,8 @@ def report_markdown(report: dict) -> str:
     feat = report["features"]
     out.append(f"The engine's MIM equals the complex128 baseline's on "
                f"{100 * feat['mim_equal_fraction_of_lit']['median']:.2f}% of lit pixels (median image, worst "
-               f"{100 * feat['mim_equal_fraction_of_lit']['min']:.2f}%); keypoints per image: engine "
-               f"{feat['keypoints_per_image']['engine']:.0f}, baseline {feat['keypoints_per_image']['baseline']:.0f}.")
+               f"{100 * feat['mim_equal_fraction_of_lit']['min']:.2f}%); keypoints per ego image: engine "
+               f"{_kp(feat, 'engine')}, baseline {_kp(feat, 'baseline')}.")
     mem = report["memory"]
     out.append(f"Memory: tracemalloc peak per call, engine {mem['engine_tracemalloc_peak_mb'][HOT]:.1f} MB (hot) / "
                f"{mem['engine_tracemalloc_peak_mb'][COLD]:.1f} MB (cold), baseline "
@@ -80,7 +86,8 @@ def report_markdown(report: dict) -> str:
                 "service RSS peak | sustained |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for n, r in sorted(service["runs"].items(), key=lambda kv: int(kv[0])):
             out.append(f"| {n} | {r['offered_fps']:.0f} | {r['results_fps']:.1f} | "
-                       f"{100 * r['success_fraction']:.0f}% | {r['dropped']} ({100 * r['drop_fraction']:.0f}%) | {_ms(r['latency_ms']['p50'])} ms | "
+                       f"{100 * r['success_fraction']:.0f}% | {r['dropped']} ({100 * r['drop_fraction']:.0f}%) | "
+                       f"{_ms(r['latency_ms']['p50'])} ms | "
                        f"{_ms(r['latency_ms']['p99'])} ms | {r['service_cpu_cores'] or 0:.2f} cores | "
                        f"{r['service_memory']['rss_peak_mb'] or 0:.0f} MB | {'yes' if r['sustained'] else 'no'} |")
     return "\n".join(out) + "\n"

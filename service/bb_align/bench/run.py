@@ -228,7 +228,7 @@ def accuracy(pairs: list[BenchPair], engine: dict[str, Outcome], baseline: dict[
 
 
 def feature_agreement(engine: list, baseline: list) -> dict:
-    """How closely the engine's MIM follows the exact complex128 one on the same images, and how many
+    """How closely the engine's MIM follows the exact complex128 one on the same (ego) images, and how many
     keypoints each describes (the engine caps them, the baseline does not)."""
     agree = []
     for e, b in zip(engine, baseline):
@@ -236,7 +236,9 @@ def feature_agreement(engine: list, baseline: list) -> dict:
         agree.append(float(np.mean(e.mim[lit] == b.mim[lit])) if lit.any() else 1.0)
     return {"mim_equal_fraction_of_lit": {"min": float(np.min(agree)), "median": float(np.median(agree))},
             "keypoints_per_image": {"engine": float(np.mean([len(e.keypoints_rc) for e in engine])),
-                                    "baseline": float(np.mean([len(b.keypoints_rc) for b in baseline]))}}
+                                    "engine_max": int(max(len(e.keypoints_rc) for e in engine)),
+                                    "baseline": float(np.mean([len(b.keypoints_rc) for b in baseline])),
+                                    "baseline_max": int(max(len(b.keypoints_rc) for b in baseline))}}
 
 
 # ---- environment ----------------------------------------------------------------------------------------------
