@@ -55,7 +55,7 @@ def _summary(report: dict) -> str:
     service = report.get("service")
     if service and service.get("runs"):
         lines.append(f"service over Zenoh ({service['workers']} workers, peers at {service['rate_hz']:g} Hz, "
-                     f"{service['seconds']:g} s each):")
+                     f"{service['seconds']:g} s each, {service['poses']}):")
         for peers, r in sorted(service["runs"].items(), key=lambda kv: int(kv[0])):
             lines.append(f"  {peers} peer(s): offered {r['offered_fps']:.1f}/s, results {r['results_fps']:.1f}/s, "
                          f"dropped {r['dropped']} ({100 * r['drop_fraction']:.0f}%), latency p50 "
@@ -88,6 +88,9 @@ def bench(
     service_seconds: Optional[float] = typer.Option(None, min=1.0, help="measured seconds per service run [10]"),
     rate_hz: float = typer.Option(10.0, min=0.5, max=50.0, help="frame rate of the ego and every peer"),
     workers: int = typer.Option(2, min=1, max=16, help="service engine worker threads"),
+    pose_sigma_m: float = typer.Option(2.0, min=0.0, help="service runs: reported-pose noise, metres (1 sigma)"),
+    pose_sigma_deg: float = typer.Option(2.0, min=0.0, help="service runs: reported-pose yaw noise, degrees"),
+    no_pose: bool = typer.Option(False, "--no-pose", help="service runs: frames carry no reported pose"),
     range_m: Optional[float] = typer.Option(None, help="BV half width R in metres [config default, 80]"),
     resolution_m: Optional[float] = typer.Option(None, help="BV cell size in metres [config default, 0.4]"),
 ) -> None:
@@ -129,7 +132,8 @@ def bench(
         from .throughput import ServiceBenchConfig, measure_service
 
         sb = ServiceBenchConfig(peer_counts=peer_counts, seconds=seconds, rate_hz=rate_hz, workers=workers,
-                                frames=3 if quick else 6)
+                                frames=3 if quick else 6, send_pose=not no_pose, pose_sigma_m=pose_sigma_m,
+                                pose_sigma_deg=pose_sigma_deg)
         report["service"] = measure_service(sb, config, progress=_progress)
     report["command"] = "bb-align " + " ".join(sys.argv[1:])
     if json_out is not None:

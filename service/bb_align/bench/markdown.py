@@ -81,7 +81,8 @@ def report_markdown(report: dict) -> str:
     service = report.get("service")
     if service and service.get("runs"):
         out += ["", f"Service over Zenoh on loopback ({service['workers']} workers, every car at "
-                f"{service['rate_hz']:g} Hz, {service['seconds']:g} s measured after {service['warmup_s']:g} s):", "",
+                f"{service['rate_hz']:g} Hz, {service['seconds']:g} s measured after {service['warmup_s']:g} s, "
+                f"{service.get('poses', 'reported poses')}):", "",
                 "| peers | offered /s | results /s | aligned | dropped | latency p50 | latency p99 | service CPU | "
                 "service RSS peak | sustained |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for n, r in sorted(service["runs"].items(), key=lambda kv: int(kv[0])):

@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..config import AlignConfig
-from ..geometry import pose_error
+from ..geometry import pose_error, se2, se3_from_se2
 
 EGO_ID = "ego"
 PREFIX = "bbalign-bench"
@@ -49,6 +49,9 @@ class ServiceBenchConfig(BaseModel):
     workers: int = Field(2, ge=1, le=16)
     frames: int = Field(6, ge=1, le=100, description="simulated frames per car, replayed in a loop")
     seed: int = 303
+    send_pose: bool = Field(True, description="frames carry the car's reported pose (the service then gates matches)")
+    pose_sigma_m: float = Field(2.0, ge=0, description="reported-pose noise (GNSS), x and y, 1 sigma")
+    pose_sigma_deg: float = Field(2.0, ge=0, description="reported-pose yaw noise, 1 sigma")
     min_distance_m: float = Field(10.0, ge=0)
     max_distance_m: float = Field(40.0, gt=0, description="peers this close mostly align (the full engine runs)")
     startup_timeout_s: float = Field(90.0, gt=0)
@@ -83,10 +86,20 @@ def simulated_cars(cfg: ServiceBenchConfig, n_peers: int, config: AlignConfig,
     items = list(enumerate(ids))
     for a, vid in (progress(items, "service frames") if progress else items):
         agents = [f.agents[str(a)] for f in seq]
-        frames = [make_frame(ag.points, ag.boxes, vehicle_id=vid, stamp=0.0, seq=0, pose=ag.T_world_sensor,
-                             range_m=config.bev.range_m, resolution_m=config.bev.resolution_m) for ag in agents]
+        frames = [make_frame(ag.points, ag.boxes, vehicle_id=vid, stamp=0.0, seq=0,
+                             pose=reported_pose(ag.T_world_sensor, cfg, a, k) if cfg.send_pose else None,
+                             range_m=config.bev.range_m, resolution_m=config.bev.resolution_m)
+                  for k, ag in enumerate(agents)]
         cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents]))
     return cars
+
+
+def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int, frame: int) -> np.ndarray:
+    """The true pose with GNSS-like noise (x, y, yaw), seeded per car and frame."""
+    rng = np.random.default_rng([cfg.seed, car, frame, 11])
+    dx, dy = rng.normal(0.0, cfg.pose_sigma_m, 2)
+    noise = se3_from_se2(se2(np.radians(rng.normal(0.0, cfg.pose_sigma_deg)), dx, dy))
+    return noise @ np.asarray(T_world_sensor, dtype=float)
 
 
 # ---- the service process --------------------------------------------------------------------------------------
@@ -322,7 +335,9 @@ def measure_service(cfg: ServiceBenchConfig, config: AlignConfig,
     """One fresh service process per peer count; the report's ``service`` section (or an ``error``)."""
     import tempfile
 
-    out: dict = {"transport": "zenoh tcp/127.0.0.1 (multicast scouting off)", "rate_hz": cfg.rate_hz,
+    pose = (f"reported poses with {cfg.pose_sigma_m:g} m / {cfg.pose_sigma_deg:g} deg noise" if cfg.send_pose
+            else "no reported poses")
+    out: dict = {"transport": "zenoh tcp/127.0.0.1 (multicast scouting off)", "poses": pose, "rate_hz": cfg.rate_hz,
                  "seconds": cfg.seconds, "warmup_s": cfg.warmup_s, "workers": cfg.workers,
                  "config": json.loads(cfg.model_dump_json()), "runs": {}}
     try:
