@@ -93,3 +93,12 @@ def test_mim_rotation_by_15k_degrees_shifts_values_by_k(k):
 def test_mim_of_empty_image_is_zero():
     mim, amp = maximum_index_map(np.zeros((50, 70), np.uint8))
     assert mim.shape == (50, 70) and mim.max() == 0 and np.all(amp == 0)
+
+
+def test_threaded_mim_equals_sequential():
+    img = _segments_image(seed=11)
+    m1, a1 = maximum_index_map(img, MimConfig(threads=1))
+    for threads in (2, 5):
+        m2, a2 = maximum_index_map(img, MimConfig(threads=threads))
+        np.testing.assert_array_equal(m1, m2)
+        np.testing.assert_array_equal(a1, a2)

@@ -43,6 +43,7 @@ class MimConfig(_Frozen):
     lowpass_order: int = Field(15, ge=1)
     min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
     fft_margin_px: int = Field(24, ge=0, description="zero margin around the image before the FFT (no wrap-around)")
+    threads: int = Field(1, ge=1, le=12, description="orientation groups computed in parallel (same result)")
 
 
 class FeatureConfig(_Frozen):
@@ -53,6 +54,7 @@ class FeatureConfig(_Frozen):
     patch_px: int = Field(96, ge=24, description="descriptor window J")
     grid: int = Field(6, ge=2, description="cells per side l")
     merge_bins: bool = Field(True, description="True: 216-D (bins merged in pairs); False: 432-D")
+    window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
     orientation_stride: int = Field(
         2, ge=1, le=4, description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
         "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)")

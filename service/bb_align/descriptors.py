@@ -33,19 +33,21 @@ def _orientation_window(radius: int, width: int, stride: int = 1) -> tuple[np.nd
 
 
 @lru_cache(maxsize=4)
-def _rotated_grids(patch: int, grid: int, n_orient: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """(No, J*J) flat offsets of the J x J window rotated by 180/No deg * (m - 1) counter-clockwise on screen
-    (symmetric about the keypoint, nearest pixel), and the (J*J,) cell index of each sample."""
-    q = np.arange(patch) - (patch - 1) / 2.0
+def _rotated_grids(patch: int, grid: int, n_orient: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """(No, S) flat offsets of the J x J window (every ``stride``-th sample each way, S = (J/stride)^2) rotated by
+    180/No deg * (m - 1) counter-clockwise on screen (symmetric about the keypoint, nearest pixel), and the (S,)
+    cell index of each sample."""
+    idx = np.arange(stride // 2, patch, stride)
+    q = idx - (patch - 1) / 2.0
     dr, dc = (a.ravel() for a in np.meshgrid(q, q, indexing="ij"))
-    offsets = np.empty((n_orient, patch * patch), dtype=np.int64)
+    offsets = np.empty((n_orient, len(idx) ** 2), dtype=np.int64)
     for m0 in range(n_orient):
         a = m0 * np.pi / n_orient
         rr = np.floor(dr * np.cos(a) - dc * np.sin(a) + 0.5).astype(np.int64)
         cc = np.floor(dc * np.cos(a) + dr * np.sin(a) + 0.5).astype(np.int64)
         offsets[m0] = rr * width + cc
     cell_px = patch // grid
-    ci = np.minimum(np.arange(patch) // cell_px, grid - 1)
+    ci = np.minimum(idx // cell_px, grid - 1)
     cell = (ci[:, None] * grid + ci[None, :]).ravel().astype(np.int64)
     return offsets, cell
 
@@ -108,7 +110,7 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
     m = dominant_orientation(mim, amp, rc, radius, n_orient, cfg.orientation_stride)
 
     width = mim.shape[1] + 2 * radius
-    offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width)
+    offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width, cfg.window_stride)
     lut = _shift_table(n_orient, cfg.merge_bins)
     mim_p = np.pad(mim, radius).ravel()
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius

@@ -8,6 +8,7 @@ strongest amplitude is negligible). The 1/(H W) of the inverse transform is fold
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 
 import cv2
@@ -77,18 +78,33 @@ def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
     return tuple(cv2.getOptimalDFTSize(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
 
 
-def orientation_amplitudes(image: np.ndarray, cfg: MimConfig):
-    """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
-    The yielded array is reused: consume it before advancing."""
+@lru_cache(maxsize=1)
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """Shared worker threads for the orientation groups (OpenCV releases the GIL in its transforms)."""
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bb-align-mim")
+
+
+def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int, int]]:
     h, w = image.shape
     m = cfg.fft_margin_px
     shape = fft_shape((h, w), m)
     padded = np.zeros(shape, dtype=np.float32)
     padded[m : m + h, m : m + w] = image
-    spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)  # (H, W, 2)
+    return cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT), shape  # (H, W, 2)
+
+
+def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None, spectrum=None):
+    """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
+    The yielded array is reused: consume it before advancing."""
+    h, w = image.shape
+    m = cfg.fft_margin_px
+    if spectrum is None:
+        spectrum, shape = _spectrum(image, cfg)
+    else:
+        shape = spectrum.shape[:2]
     bank = _bank_two_channel(shape, cfg)
     acc = np.empty(shape, dtype=np.float32)
-    for o in range(cfg.n_orient):
+    for o in range(cfg.n_orient) if orientations is None else orientations:
         acc.fill(0.0)
         for s in range(cfg.n_scales):
             eo = cv2.idft(cv2.multiply(spectrum, bank[o, s]), flags=cv2.DFT_COMPLEX_OUTPUT)
@@ -96,16 +112,34 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig):
         yield o, acc[m : m + h, m : m + w]
 
 
+def _running_max(pairs, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Arg-max (1-based index) and max over a sequence of (index, map); the earliest index wins ties."""
+    max_amp = np.full(shape, -1.0, dtype=np.float32)
+    idx = np.zeros(shape, dtype=np.uint8)
+    for o, amp in pairs:
+        better = cv2.compare(amp, max_amp, cv2.CMP_GT)
+        idx[better > 0] = o + 1
+        cv2.max(max_amp, amp, dst=max_amp)
+    return idx, max_amp
+
+
 def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
     """BV image (uint8 or float, 0..255) -> (MIM uint8 in 0..No, max amplitude float32), both image-sized.
-    The arg-max over orientations is kept incrementally (the first orientation wins ties)."""
+    The arg-max over orientations is kept incrementally (the first orientation wins ties); with cfg.threads > 1
+    contiguous groups of orientations run in parallel and are merged in order (the same result)."""
     cfg = cfg or MimConfig()
     image = np.asarray(image, dtype=np.float32)
-    max_amp = np.zeros(image.shape, dtype=np.float32)
-    mim = np.zeros(image.shape, dtype=np.uint8)
-    for o, amp in orientation_amplitudes(image, cfg):
-        better = cv2.compare(amp, max_amp, cv2.CMP_GT) if o else np.full(image.shape, 255, np.uint8)
-        mim[better > 0] = o + 1
-        cv2.max(max_amp, amp, dst=max_amp)
+    spectrum, _ = _spectrum(image, cfg)
+    groups = [g for g in np.array_split(np.arange(cfg.n_orient), cfg.threads) if len(g)]
+
+    def run(group):
+        return _running_max(orientation_amplitudes(image, cfg, group, spectrum), image.shape)
+
+    parts = list(_pool(len(groups)).map(run, groups)) if len(groups) > 1 else [run(groups[0])]
+    mim, max_amp = parts[0]
+    for part_mim, part_max in parts[1:]:
+        better = cv2.compare(part_max, max_amp, cv2.CMP_GT)
+        mim[better > 0] = part_mim[better > 0]
+        cv2.max(max_amp, part_max, dst=max_amp)
     mim[max_amp <= cfg.min_amplitude] = 0
     return mim, max_amp
