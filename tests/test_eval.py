@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bb_align.cli import app
 from bb_align.evaluation.ap import ApAccumulator, bev_iou, match_frame, nms_bev, voc_ap
 from bb_align.evaluation.baseline import graph_match
 from bb_align.evaluation.summary import accuracy
@@ -76,6 +75,8 @@ def test_accuracy_counts_failures_as_failures():
 
 
 def test_simulated_end_to_end_through_the_cli(tmp_path):
+    from bb_align.cli import app
+
     runner = CliRunner()
     data = tmp_path / "sim"
     out = runner.invoke(app, ["sim", str(data), "--scenarios", "3", "--seed", "5", "--min-distance", "5",
@@ -99,3 +100,21 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
     assert len(list(plots.glob("*.png"))) >= 10
     bad = runner.invoke(app, ["eval", str(data), "--pose-noise", "2"])
     assert bad.exit_code != 0 and "pose-noise" in bad.output
+
+
+def test_eval_simulates_detections_when_the_dataset_has_none(tmp_path):
+    """An OPV2V-style dataset without 'detections': boxes come from the detector model on the labels."""
+    from bb_align.dataset import write_agent_frame
+    from bb_align.evaluation import EvalConfig, evaluate_dataset
+    from bb_align.sim import Scenario
+
+    sc = Scenario(11, n_agents=2, distance_m=12.0)
+    frame = sc.frame(0)
+    for aid, agent in frame.agents.items():
+        vehicles = {v.vid: v.box(frame.stamp) for v in sc.world.vehicles if v.vid != agent.vehicle_id}
+        write_agent_frame(tmp_path, "opv2v_like", aid, "000000", agent.points, agent.T_world_sensor, vehicles)
+    (rec,) = evaluate_dataset(tmp_path, EvalConfig(), workers=1, progress=False)
+    assert rec.ego_boxes > 0 and rec.peer_boxes > 0 and rec.common_cars > 0
+    assert rec.distance_m == pytest.approx(12.0, abs=2.0)
+    assert set(rec.ap) == {"noisy", "recovered", "true"}
+    assert rec.ap["true"]["all"]["n_gt"] > 0

@@ -62,10 +62,11 @@ def _arrays(records: list[PairRecord], which: str):
 
 
 def _by(records, key, buckets, which="bbalign") -> dict:
+    """Accuracy per bucket. Float buckets (distances) are [lo, hi); integer buckets (counts) are [lo, hi]."""
     out = {}
     for name, (lo, hi) in buckets.items():
-        sel = [x for x in records if lo <= key(x) <= hi] if isinstance(lo, int) else \
-              [x for x in records if lo <= key(x) < hi]
+        inclusive = isinstance(lo, int) and isinstance(hi, int)
+        sel = [x for x in records if (lo <= key(x) <= hi if inclusive else lo <= key(x) < hi)]
         out[name] = accuracy(*_arrays(sel, which))
     return out
 

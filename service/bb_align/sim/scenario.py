@@ -35,6 +35,8 @@ class SimConfig(BaseModel):
     traffic: float | None = Field(None, ge=0, le=1, description="0 light .. 1 busy; None: drawn per scenario")
     tilt_sigma_deg: float = Field(0.3, ge=0, description="residual sensor roll/pitch (mounting + body), 1 sigma")
     stopped_prob: float = Field(0.15, ge=0, le=1, description="probability that an agent is standing still")
+    phase_jitter_s: float = Field(0.05, ge=0, le=0.5, description="peers' sweeps are centred up to this far "
+                                  "from the ego's (unsynchronised LiDARs; uniform, fixed per agent)")
     same_road_prob: float = Field(0.7, ge=0, le=1, description="probability that a peer drives on the ego's road")
     vehicle_range_m: float = Field(120.0, gt=0, description="vehicles listed as ground truth within this range")
     detection: DetectionModel = DetectionModel()
@@ -46,9 +48,10 @@ class SimAgent:
 
     points: np.ndarray  # (N, 4) float32 x, y, z, intensity; sensor frame, distorted as measured
     boxes: np.ndarray  # (K, 7) detections [x, y, z, l, w, h, yaw], sensor frame
-    T_world_sensor: np.ndarray  # 4x4 true pose at the frame's stamp (mid-sweep)
+    T_world_sensor: np.ndarray  # 4x4 true pose at mid-sweep (time_s)
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) detection confidences
     sensor: str = ""
+    time_s: float = 0.0  # mid-sweep time: the frame's stamp plus this LiDAR's phase offset
     vehicle_id: int = -1  # this car's id among the frame's vehicles
     points_on: dict[int, int] = field(default_factory=dict)  # vehicle id -> LiDAR points on it
     seen_boxes: dict[int, np.ndarray] = field(default_factory=dict)  # vehicle id -> box where the (distorted)
@@ -68,6 +71,7 @@ class _AgentSpec:
     sensor: SensorModel
     mount: Mount
     beam_error_deg: np.ndarray
+    phase_s: float = 0.0
 
 
 def _lane_speed(world: World, lane: Path, rng) -> float:
@@ -152,7 +156,8 @@ class Scenario:
             mount = Mount(height_m=float(rng.uniform(1.65, 2.15)), x_offset_m=float(rng.uniform(-0.5, 0.8)),
                           roll=float(rng.normal(0, tilt)), pitch=float(rng.normal(0, tilt)))
             err = rng.normal(0, sensor.elevation_jitter_deg, sensor.beams)
-            self.agents.append(_AgentSpec(vid, sensor, mount, err))
+            phase = float(rng.uniform(-cfg.phase_jitter_s, cfg.phase_jitter_s)) if self.agents else 0.0
+            self.agents.append(_AgentSpec(vid, sensor, mount, err, phase))
 
     @property
     def agent_ids(self) -> list[str]:
@@ -165,7 +170,8 @@ class Scenario:
         agents: dict[str, SimAgent] = {}
         for a_idx, spec in enumerate(self.agents):
             rng = np.random.default_rng([self.seed, 2, index, a_idx])
-            sweep = cast_sweep(w, spec.vehicle, spec.sensor, spec.mount, stamp, rng, spec.beam_error_deg,
+            t_mid = stamp + spec.phase_s
+            sweep = cast_sweep(w, spec.vehicle, spec.sensor, spec.mount, t_mid, rng, spec.beam_error_deg,
                                distortion=cfg.distortion)
             hit = sweep.owner >= 0
             ids, counts = np.unique(sweep.owner[hit], return_counts=True)
@@ -181,7 +187,7 @@ class Scenario:
             dets = detect(true_boxes, counts, sweep.points, rng, cfg.detection)
             agents[str(a_idx)] = SimAgent(
                 points=sweep.points, boxes=dets.boxes, scores=dets.scores, T_world_sensor=sweep.T_world_sensor,
-                sensor=spec.sensor.name, vehicle_id=spec.vehicle,
+                sensor=spec.sensor.name, time_s=t_mid, vehicle_id=spec.vehicle,
                 points_on={int(i): int(c) for i, c in zip(ids, counts)},
                 seen_boxes={int(i): true_boxes[j] for j, i in enumerate(ids)})
         ego_xy = agents["0"].T_world_sensor[:2, 3]

@@ -45,7 +45,7 @@ def write_scenario(root: str | Path, seed: int, index: int, n_scenarios: int, fr
             for v in sc.world.vehicles:
                 if v.vid == agent.vehicle_id:
                     continue
-                box = v.box(frame.stamp)
+                box = v.box(agent.time_s)
                 if np.hypot(*(box[:2] - T[:2, 3])) > cfg.vehicle_range_m:
                     continue
                 seen = agent.seen_boxes.get(v.vid)
@@ -54,7 +54,7 @@ def write_scenario(root: str | Path, seed: int, index: int, n_scenarios: int, fr
                     box[:3] = T[:3, :3] @ seen[:3] + T[:3, 3]
                     box[6] = seen[6] + np.arctan2(T[1, 0], T[0, 0])
                 vehicles[v.vid] = box
-            extra = {"sensor": agent.sensor, "timestamp_s": round(frame.stamp, 6), "sim_seed": sc.seed,
+            extra = {"sensor": agent.sensor, "timestamp_s": round(agent.time_s, 6), "sim_seed": sc.seed,
                      "vehicle_points": {int(k): int(n) for k, n in agent.points_on.items() if k in vehicles}}
             write_agent_frame(root, name, agent_id, f"{f:06d}", agent.points, agent.T_world_sensor, vehicles,
                               detections=agent.boxes, detection_scores=agent.scores, extra=extra)
