@@ -63,8 +63,10 @@ def _summary(report: dict) -> str:
                          f"{100 * r['success_fraction']:.0f}% aligned, service CPU {r['service_cpu_cores'] or 0:.2f} "
                          f"cores, RSS peak {r['service_memory']['rss_peak_mb'] or 0:.0f} MB, sustained: "
                          f"{r['sustained']}")
-    elif service and service.get("error"):
-        lines.append(f"service: not measured ({service['error']})")
+    if service and (service.get("error") or service.get("errors")):
+        problems = [service["error"]] if service.get("error") else [
+            f"{n} peer(s): {e.splitlines()[-1] if e.strip() else e}" for n, e in service["errors"].items()]
+        lines.append("service: not measured: " + "; ".join(problems))
     load = report["load_avg"]
     lines.append(f"load average start {load['start'][0]:.2f}, end {load['end'][0]:.2f} on "
                  f"{report['machine']['cpus_usable']} CPUs; commit {(report['git'].get('commit') or '?')[:12]}"

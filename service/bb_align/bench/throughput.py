@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import socket
 import subprocess
 import sys
@@ -28,14 +29,25 @@ from ..geometry import pose_error, se2, se3_from_se2
 
 EGO_ID = "ego"
 PREFIX = "bbalign-bench"
-# The service child: explicit settings only (no BBALIGN_* environment), uvicorn on loopback.
+# The service child: explicit settings only (no BBALIGN_* environment), uvicorn on loopback. A fresh fleet key
+# for this run comes on stdin (never on the command line) when the service authenticates frames.
 _CHILD = """
-import sys, uvicorn
+import json, sys, uvicorn
 from bb_align.service import create_app
 from bb_align.settings import Settings
-settings = Settings.model_validate_json(sys.argv[1])
+values = json.loads(sys.argv[1])
+key = sys.stdin.readline().strip()
+if key:
+    values["auth"] = {"mode": "hmac", "fleet_key": key}
+settings = Settings.model_validate(values)
 uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
 """
+
+
+def _service_authenticates() -> bool:
+    from ..settings import Settings
+
+    return "auth" in Settings.model_fields
 
 
 class ServiceBenchConfig(BaseModel):
@@ -109,6 +121,7 @@ class ServiceProcess:
     rest: str
     zenoh_endpoint: str
     log_path: Path
+    key: str | None  # the fleet key frames are signed with (None: the service does not authenticate)
 
     def cpu_seconds(self) -> float | None:
         """utime + stime of the service process (Linux /proc), seconds."""
@@ -153,11 +166,17 @@ def start_service(cfg: ServiceBenchConfig, config: AlignConfig, log_dir: Path) -
     settings = Settings(ego_id=EGO_ID, host="127.0.0.1", port=port, workers=cfg.workers, align=config,
                         zenoh={"enabled": True, "mode": "peer", "listen": [endpoint], "connect": [],
                                "multicast_scouting": False, "prefix": PREFIX})
+    key = secrets.token_hex(32) if _service_authenticates() else None
     log_path = log_dir / f"service-{port}.log"
     with open(log_path, "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-c", _CHILD, settings.model_dump_json()], stdout=log,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-    svc = ServiceProcess(proc, f"http://127.0.0.1:{port}", endpoint, log_path)
+        proc = subprocess.Popen([sys.executable, "-c", _CHILD, settings.model_dump_json(exclude={"auth"})],
+                                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.PIPE)
+    try:
+        proc.stdin.write(((key or "") + "\n").encode())
+        proc.stdin.close()
+    except OSError:
+        pass  # the child died early; reported below with its log
+    svc = ServiceProcess(proc, f"http://127.0.0.1:{port}", endpoint, log_path, key)
     import httpx
 
     deadline = time.monotonic() + cfg.startup_timeout_s
@@ -221,7 +240,9 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
     senders = []
     try:
         sub = listener.declare_subscriber(poses_key(PREFIX, EGO_ID, "*"), received)
-        senders = [ZenohPeer(c.vehicle_id, connect=[svc.zenoh_endpoint], prefix=PREFIX).open() for c in streams]
+        signing = {"key": svc.key} if svc.key else {}
+        senders = [ZenohPeer(c.vehicle_id, connect=[svc.zenoh_endpoint], prefix=PREFIX, **signing).open()
+                   for c in streams]
         time.sleep(0.5)  # sessions connected before the first frame
         t_base = time.time()
         t0 = time.perf_counter()
