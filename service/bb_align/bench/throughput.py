@@ -287,7 +287,10 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         items = list(received.items)
     results = []
     for t_recv, data in items:
-        r = load_result(data)
+        try:
+            r = load_result(data)
+        except ValueError:
+            continue
         if r.peer_seq < n_warm or (r.peer_id, r.peer_seq) not in sent:
             continue
         t_sent, idx = sent[(r.peer_id, r.peer_seq)]
@@ -339,15 +342,15 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
 
 
 def _keys(items):
-    """(peer id, seq) of received results."""
-    import msgpack
+    """(peer id, seq) of received results; unreadable publications are not counted."""
+    from ..wire import load_result
 
     for _, data in items:
         try:
-            obj = msgpack.unpackb(data, raw=False)
-            yield obj.get("peer_id"), obj.get("peer_seq")
-        except Exception:  # a malformed publication is simply not counted
+            r = load_result(data)
+        except ValueError:
             continue
+        yield r.peer_id, r.peer_seq
 
 
 def measure_service(cfg: ServiceBenchConfig, config: AlignConfig,
