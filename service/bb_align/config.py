@@ -54,6 +54,10 @@ class FeatureConfig(_Frozen):
     patch_px: int = Field(96, ge=24, description="descriptor window J")
     grid: int = Field(6, ge=2, description="cells per side l")
     merge_bins: bool = Field(True, description="True: 216-D (bins merged in pairs); False: 432-D")
+    reference_orientation_offsets: tuple[int, ...] = Field(
+        (0, -1, 1), description="the matched-against (ego) side also describes each keypoint as if its dominant "
+        "orientation were these neighbouring bins: a peer whose orientation estimate is one bin off still finds "
+        "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)")
     window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
     orientation_stride: int = Field(
         2, ge=1, le=4, description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
@@ -86,10 +90,10 @@ class RefineConfig(_Frozen):
     """Dense point-to-line ICP on the lit BV pixels after stage 1 (not in the paper; see bb_align.refine)."""
 
     enabled: bool = True
-    gates_m: tuple[float, ...] = Field((1.5, 0.7, 0.4), description="correspondence gates, coarse to fine")
+    gates_m: tuple[float, ...] = Field((2.0, 1.0, 0.5, 0.4), description="correspondence gates, coarse to fine")
     iters_per_gate: int = Field(6, ge=1, le=50)
     min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
-    max_peer_points: int = Field(1500, ge=100, description="seeded random subset of the peer's lit pixels")
+    max_peer_points: int = Field(2000, ge=100, description="seeded random subset of the peer's lit pixels")
     max_correction_m: float = Field(2.0, gt=0)
     max_correction_deg: float = Field(3.0, gt=0)
 

@@ -95,7 +95,7 @@ def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radiu
 
 
 def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
-                     n_orient: int = 12) -> np.ndarray:
+                     n_orient: int = 12, orientation_offset: int = 0) -> np.ndarray:
     """MIM (uint8, 0..No), max amplitude, (K, 2) keypoints (row, col) -> (K, D) float32 descriptors, unit norm
     (all-zero for an empty patch). D = l*l*No/2 when cfg.merge_bins (216 by default), else l*l*No."""
     cfg = cfg or FeatureConfig()
@@ -108,6 +108,8 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
 
     radius = int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))  # 69 px for J = 96; also covers the rotated window
     m = dominant_orientation(mim, amp, rc, radius, n_orient, cfg.orientation_stride)
+    if orientation_offset:  # describe as if the dominant orientation were a neighbouring bin
+        m = np.where(m > 0, (m - 1 + orientation_offset) % n_orient + 1, 0)
 
     width = mim.shape[1] + 2 * radius
     offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width, cfg.window_stride)

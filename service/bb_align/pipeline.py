@@ -19,7 +19,7 @@ import numpy as np
 
 from .bev import BevImage, make_bev
 from .boxes import align_boxes, as_boxes
-from .config import AlignConfig
+from .config import AlignConfig, FeatureConfig
 from .descriptors import bvft_descriptors, flip_180
 from .geometry import se2, se2_params, se3_from_se2
 from .keypoints import detect_keypoints
@@ -43,7 +43,22 @@ class PreparedFrame:
     mim: np.ndarray | None = None  # kept for plots when keep_maps=True
     num_points: int | None = None  # raw cloud size when known
     timings_ms: dict[str, float] = field(default_factory=dict)
+    _maps: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # (MIM, max amplitude)
     _cloud: BevCloud | None = field(default=None, repr=False)
+    _reference: np.ndarray | None = field(default=None, repr=False)
+
+    def reference_descriptors(self, features: FeatureConfig, n_orient: int) -> np.ndarray:
+        """What this frame offers when it is the side matched against (the ego frame): for each orientation
+        offset in ``features.reference_orientation_offsets`` the descriptors and their 180-degree copies,
+        (2 x offsets x K, D); row i describes keypoint i % K. Built on first use (an ego frame pays it once)."""
+        if self._reference is None:
+            sets = []
+            for offset in features.reference_orientation_offsets:
+                d = self.descriptors if offset == 0 else bvft_descriptors(
+                    *self._maps, self.keypoints_rc, features, n_orient, orientation_offset=offset)
+                sets += [d, self.descriptors_flipped if offset == 0 else flip_180(d, features)]
+            self._reference = np.concatenate(sets)
+        return self._reference
 
     def cloud(self, min_value: int = 1) -> BevCloud:
         """Lit pixels with normals and a KD-tree (built on first use: an ego frame pays it once)."""
@@ -98,6 +113,7 @@ class Aligner:
             mim=mim if keep_maps else None,
             num_points=num_points,
             timings_ms=timings,
+            _maps=(mim, amp),
         )
 
     def _at_resolution(self, bev: BevImage) -> BevImage:
@@ -145,18 +161,19 @@ class Aligner:
 
         # Lines 9-10: match peer descriptors against the ego's (and their 180-degree copies).
         with _timed(timings, "matching"):
-            desc_ego = np.concatenate([ego.descriptors, ego.descriptors_flipped])
+            desc_ego = ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
+            n_ego = len(ego.descriptors)
             if T_prior is None:
                 i_peer, i_ego = match_descriptors(peer.descriptors, desc_ego, mutual=cfg.match.mutual,
                                                   ratio=cfg.match.ratio)
             else:
                 yaw, tx, ty = se2_params(T_prior)
                 i_peer, i_ego = match_with_prior(
-                    peer.descriptors, desc_ego, peer.keypoints_xy, np.concatenate([ego.keypoints_xy] * 2),
+                    peer.descriptors, desc_ego, peer.keypoints_xy, np.tile(ego.keypoints_xy, (len(desc_ego) // n_ego, 1)),
                     se2(yaw, tx, ty), max_translation=cfg.prior.max_translation_m,
                     max_yaw_rad=np.radians(cfg.prior.max_yaw_deg), top_k=cfg.prior.top_k)
                 result.notes.append("matches gated by the prior pose")
-            i_ego = i_ego % len(ego.descriptors)
+            i_ego = i_ego % n_ego
             pts_peer = peer.keypoints_xy[i_peer]
             pts_ego = ego.keypoints_xy[i_ego]
         result.matches_bv = int(len(i_peer))

@@ -56,7 +56,7 @@ class Refinement:
     accepted: bool
 
 
-def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(1.5, 0.7, 0.4),
+def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(2.0, 1.0, 0.5, 0.4),
                iters_per_gate: int = 6, point_weight: float = 0.1, max_correction_m: float = 2.0,
                max_correction_deg: float = 3.0) -> Refinement:
     """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer)."""
