@@ -59,7 +59,8 @@ def graph_match(boxes_ego, boxes_peer, config: GraphMatchConfig | None = None) -
     rel_e = e[ii, 6][:, None] - e[ii, 6][None, :]
     rel_p = p[aa, 6][:, None] - p[aa, 6][None, :]
     dh = np.abs(wrap_angle(2 * (rel_e - rel_p))) / 2  # modulo 180 degrees
-    M = np.exp(-edge ** 2 / (2 * cfg.edge_sigma_m ** 2)) * np.exp(-dh ** 2 / (2 * np.radians(cfg.heading_sigma_deg) ** 2))
+    sigma_h = np.radians(cfg.heading_sigma_deg)
+    M = np.exp(-edge ** 2 / (2 * cfg.edge_sigma_m ** 2)) * np.exp(-dh ** 2 / (2 * sigma_h ** 2))
     M[np.abs(edge) > 3 * cfg.edge_sigma_m] = 0.0
     M[(ii[:, None] == ii[None, :]) | (aa[:, None] == aa[None, :])] = 0.0  # one-to-one
     np.fill_diagonal(M, node[ii, aa])

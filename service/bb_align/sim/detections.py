@@ -105,6 +105,7 @@ def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float
         q = pts[near] - (x, y, z)
         c, s = np.cos(yaw), np.sin(yaw)
         u, v = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1]
-        inside = (np.abs(u) <= l / 2 + margin_m) & (np.abs(v) <= w / 2 + margin_m) & (np.abs(q[:, 2]) <= h / 2 + margin_m)
+        inside = (np.abs(u) <= l / 2 + margin_m) & (np.abs(v) <= w / 2 + margin_m)
+        inside &= np.abs(q[:, 2]) <= h / 2 + margin_m
         out[i] = int(inside.sum())
     return out

@@ -247,9 +247,10 @@ class _Side:
                     if r.random() > 0.2 and self.free(x, y, kerb=True):
                         self.tree(x, y, scale=r.uniform(0.7, 1.1))
             if style != "open" and r.random() < 0.5:  # low wall, hedge or fence along the property line
-                kind = r.integers(3)
-                self.wall(s, end, self.edge + 0.3, (r.uniform(0.6, 1.2), r.uniform(0.8, 2.0), r.uniform(1.0, 2.2))[kind],
-                          thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind], porosity=(0.0, 0.3, 0.5)[kind], gap_prob=0.25)
+                kind = r.integers(3)  # wall, hedge, fence
+                height = (r.uniform(0.6, 1.2), r.uniform(0.8, 2.0), r.uniform(1.0, 2.2))[kind]
+                self.wall(s, end, self.edge + 0.3, height, thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind],
+                          porosity=(0.0, 0.3, 0.5)[kind], gap_prob=0.25)
             for _ in range(int(r.poisson((end - s) / {"city": 12, "suburb": 60}.get(style, 120)))):  # people
                 x, y, _ = self.at(r.uniform(s, end), self.edge - r.uniform(0.3, self.road.sidewalk - 0.2))
                 if self.free(x, y, kerb=True):

@@ -5,8 +5,8 @@ Everything standing is an extruded footprint (the LiDAR ray caster's two primiti
   walls, guard rails, car bodies and cabins, signs);
 - cylinders: circles (centre, radius) between zb and zt (poles, trunks, tree crowns, bushes).
 A ``porosity`` in [0, 1) lets a fraction of rays pass (vegetation); ``relief`` (metres) scatters the hit depth
-behind the footprint's face (facade detail: recessed windows, balconies, pillars). The ground is a height field (flat roads,
-raised sidewalks, gently rolling verges) with a grass layer that catches grazing rays.
+behind the footprint's face (facade detail: recessed windows, balconies, pillars). The ground is a height field
+(flat roads, raised sidewalks, gently rolling verges) with a grass layer that catches grazing rays.
 
 The generator lives in ``streets``; this module holds the data types.
 """
