@@ -17,8 +17,9 @@ venv: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+# The embedded demo profile: authentication OFF, loopback only (the banner says so). Secure: docs/security.md.
 run: $(STAMP)
-	$(VENV)/bin/bb-align serve
+	$(VENV)/bin/bb-align serve --demo
 
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.egg-info

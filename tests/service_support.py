@@ -28,11 +28,27 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+FLEET_KEY = "test-fleet-key-0123456789abcdef"  # tests only
+
+
 def service_settings(zenoh: bool = True, **overrides) -> Settings:
-    """Loopback-only settings with a small BV range; Zenoh on a free port with multicast scouting off."""
+    """Loopback-only settings with a small BV range; Zenoh on a free port with multicast scouting off.
+
+    The embedded demo profile (no authentication) and no receiver-clock stamp window by default: the synthetic
+    scenes are stamped from 0 s. Security tests pass ``secure_settings`` instead."""
     z = {"enabled": zenoh, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False}
-    base = dict(port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)))
+    limits = {"check_stamp_clock": False, **overrides.pop("limits", {})}
+    base = dict(profile="demo", port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)),
+                limits=limits)
     return Settings(**{**base, **overrides})
+
+
+def secure_settings(zenoh: bool = True, **overrides) -> Settings:
+    """The vehicle profile: frames signed with FLEET_KEY, stamps checked against the clock (stamp frames with
+    time.time())."""
+    limits = {"check_stamp_clock": True, **overrides.pop("limits", {})}
+    auth = {"fleet_key": FLEET_KEY, **overrides.pop("auth", {})}
+    return service_settings(zenoh, profile="vehicle", auth=auth, limits=limits, **overrides)
 
 
 @contextmanager
@@ -90,3 +106,11 @@ def true_T_ego_peer(ego: CarFrame, peer: CarFrame) -> np.ndarray:
 
 def service_threads() -> list[str]:
     return [t.name for t in threading.enumerate() if t.name.startswith(("bbalign-", "uvicorn-test"))]
+
+
+def wait_for(cond, timeout: float = 20.0, what: str = "condition", step: float = 0.02) -> None:
+    """Poll ``cond`` until true; fails the test after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(step)

@@ -40,6 +40,10 @@ def test_defaults_bind_loopback_only(monkeypatch):
     assert s.host == "127.0.0.1" and s.port == 8000
     assert s.zenoh.listen == ["tcp/127.0.0.1:7447"] and s.zenoh.connect == [] and not s.zenoh.multicast_scouting
     assert s.zenoh.mode == "peer" and s.zenoh.prefix == "bbalign"
+    assert s.profile == "vehicle" and s.auth.mode == "hmac"  # secure unless the demo profile is asked for
+    assert s.startup_problem() is not None and "BBALIGN_AUTH__FLEET_KEY" in s.startup_problem()
+    demo = Settings(profile="demo")
+    assert demo.auth.mode == "off" and demo.startup_problem() is None
 
 
 def test_environment_configures_nested_fields(monkeypatch):
@@ -57,10 +61,31 @@ def test_environment_configures_nested_fields(monkeypatch):
         Settings()
 
 
+def test_serve_without_a_key_refuses_to_start_and_says_how_to_fix_it(monkeypatch):
+    _clear_env(monkeypatch)
+    out = subprocess.run([str(BIN), "serve", "--port", str(free_port()), "--zenoh-listen",
+                          f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60,
+                         env={k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")})
+    assert out.returncode == 2
+    assert "BBALIGN_AUTH__FLEET_KEY" in out.stderr and "--demo" in out.stderr
+
+
+def test_banner_says_loudly_what_is_not_secured():
+    from bb_align.service.commands import banner
+
+    demo = banner(Settings(profile="demo"))
+    assert "!!! AUTHENTICATION IS OFF (demo profile)" in demo
+    secure = banner(Settings(auth={"fleet_key": "k" * 32, "rest_token": "t" * 32}))
+    assert "frames must be signed" in secure and "bearer token required" in secure and "!!!" not in secure
+    assert "k" * 32 not in secure  # secrets never print
+    open_net = banner(Settings(profile="demo", host="0.0.0.0", zenoh={"listen": ["tcp/0.0.0.0:7447"]}))
+    assert "NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION" in open_net and "not encrypted" in open_net
+
+
 def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
     _clear_env(monkeypatch)
     port, zport = free_port(), free_port()
-    env = {**os.environ, "BBALIGN_ALIGN__BEV__RANGE_M": "40"}
+    env = {**os.environ, "BBALIGN_ALIGN__BEV__RANGE_M": "40", "BBALIGN_AUTH__FLEET_KEY": "f" * 32}
     proc = subprocess.Popen([str(BIN), "serve", "--port", str(port), "--ego-id", "car0", "--zenoh-listen",
                              f"tcp/127.0.0.1:{zport}", "--log-level", "warning"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -82,6 +107,7 @@ def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
     assert proc.returncode == 0, out
     assert f"http://127.0.0.1:{port}" in out and f"tcp/127.0.0.1:{zport}" in out and "ego id 'car0'" in out
     assert "bbalign/align/car0" in out
+    assert "frames must be signed" in out and "f" * 32 not in out
 
 
 def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):

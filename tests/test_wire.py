@@ -150,12 +150,14 @@ def test_png_header_is_checked_before_any_pixel_is_decoded(png, words):
     assert (e.status, e.field) == (422, "png") and words in e.detail
 
 
-def test_corrupt_pixels_behind_a_valid_header_fail_cleanly_at_decode():
+def test_corrupt_pixels_behind_a_valid_header_are_refused_before_any_decoder_sees_them():
     png = _png(_image())
     broken = png[:40] + bytes(len(png) - 52) + png[-12:]
-    frame = load_frame(pack(_frame(png=broken)), LIMITS)  # the header is fine
+    e = _refused(pack(_frame(png=broken)))  # every chunk's checksum is checked, not only IHDR's
+    assert (e.status, e.field) == (422, "png") and "checksum" in e.detail
+    unchecked = _frame().model_copy(update={"png": broken})  # a Frame built without load_frame
     with pytest.raises(WireError) as e:
-        frame.bev_image()
+        unchecked.bev_image()
     assert (e.value.status, e.value.field) == (422, "png")
 
 

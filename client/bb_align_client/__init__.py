@@ -1,19 +1,19 @@
 """Sender-side encoding, REST and Zenoh clients for bb-align.
 
     from bb_align_client import encode_frame, AlignClient, ZenohPeer
-    frame = encode_frame(points, boxes, vehicle_id="car1", stamp=t, seq=i, pose=T_world_sensor)
-    with ZenohPeer("car1", connect=["tcp/127.0.0.1:7447"]) as peer:
+    frame = encode_frame(points, boxes, vehicle_id="car1", stamp=t, seq=i, pose=T_world_sensor, key=fleet_key)
+    with ZenohPeer("car1", connect=["tcp/127.0.0.1:7447"]) as peer:     # or ZenohPeer(..., key=fleet_key)
         peer.publish(frame)                               # the service publishes T_ego_peer on poses/<ego>/car1
         result = peer.request_align(frame, ego_id="ego")  # or ask and wait for the answer
-    AlignClient("http://127.0.0.1:8000").align(frame).T_ego_peer
+    AlignClient("http://127.0.0.1:8000", token=rest_token).align(frame).T_ego_peer
 """
 
 from bb_align.wire import Result
 
-from .encode import decode_result, encode_frame
+from .encode import decode_result, encode_frame, sign_frame
 from .errors import ServiceError
 from .rest import AlignClient, AsyncAlignClient
 from .zenoh_peer import PoseStream, ZenohPeer
 
 __all__ = ["AlignClient", "AsyncAlignClient", "PoseStream", "Result", "ServiceError", "ZenohPeer", "decode_result",
-           "encode_frame"]
+           "encode_frame", "sign_frame"]

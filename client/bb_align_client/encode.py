@@ -9,7 +9,8 @@ import numpy as np
 from bb_align.bev import BevImage, make_bev
 from bb_align.boxes import as_boxes
 from bb_align.config import BevConfig
-from bb_align.wire import JSON, MSGPACK, BevMeta, Frame, Pose, Result, load_result, pack, to_json
+from bb_align.settings import FLEET_KEY_ID
+from bb_align.wire import JSON, MSGPACK, BevMeta, Frame, Pose, Result, is_signed, load_result, pack, sign, to_json
 
 
 def as_pose(pose: Any) -> Pose | None:
@@ -42,15 +43,25 @@ def make_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 
 
 
 def encode_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 0, pose: Any = None,
-                 encoding: str = MSGPACK, **bev_options) -> bytes:
+                 encoding: str = MSGPACK, key: bytes | str | None = None, key_id: str = FLEET_KEY_ID,
+                 **bev_options) -> bytes:
     """The bytes a car sends for one sweep: msgpack (default) or JSON (``encoding="application/json"``).
-    ``bev_options`` are BevConfig fields (range_m, resolution_m, ...) plus ``scores`` and ``png_compression``."""
+    ``key``: sign the frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``) or the car's own key
+    (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields (range_m, resolution_m, ...) plus ``scores`` and
+    ``png_compression``."""
     frame = make_frame(points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, **bev_options)
     if encoding == JSON:
-        return to_json(frame)
-    if encoding != MSGPACK:
+        data = to_json(frame)
+    elif encoding == MSGPACK:
+        data = pack(frame)
+    else:
         raise ValueError(f"encoding must be {MSGPACK!r} or {JSON!r}")
-    return pack(frame)
+    return data if key is None else sign(data, key, key_id, encoding)
+
+
+def sign_frame(data: bytes, key: bytes | str, key_id: str = FLEET_KEY_ID) -> bytes:
+    """Sign already encoded frame bytes (msgpack or JSON); bytes already signed are returned unchanged."""
+    return data if is_signed(data) else sign(data, key, key_id)
 
 
 def decode_result(data: bytes) -> Result:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import httpx
 
+from bb_align.settings import FLEET_KEY_ID
 from bb_align.wire import JSON, MSGPACK, ErrorBody, Result, json_align_request, load_result, pack_align_request
 
+from .encode import sign_frame
 from .errors import ServiceError
 
 
@@ -32,20 +34,38 @@ def _check(r: httpx.Response) -> httpx.Response:
     return r
 
 
-class AlignClient:
-    """``AlignClient("http://127.0.0.1:8000")``; usable as a context manager."""
+class _Signer:
+    def __init__(self, key: bytes | str | None, key_id: str):
+        self._key, self._key_id = key, key_id
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0):
-        self._http = httpx.Client(base_url=base_url, timeout=timeout)
+    def __call__(self, frame: bytes | None) -> bytes | None:
+        """Sign an unsigned frame when the client has a key (frames signed by the caller stay as they are)."""
+        return frame if frame is None or self._key is None else sign_frame(frame, self._key, self._key_id)
+
+
+def _headers(token: str | None) -> dict:
+    return {} if token is None else {"authorization": f"Bearer {token}"}
+
+
+class AlignClient:
+    """``AlignClient("http://127.0.0.1:8000", token=..., key=...)``; usable as a context manager.
+
+    ``token``: the service's REST bearer token; ``key``/``key_id``: sign unsigned frames (fleet key by default)."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0, token: str | None = None,
+                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID):
+        self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=_headers(token))
+        self._sign = _Signer(key, key_id)
 
     def align(self, peer: bytes, ego: bytes | None = None) -> Result:
         """Align an encoded peer frame against ``ego`` (or the service's cached ego frame nearest in time)."""
-        body, media = _align_body(peer, ego)
+        body, media = _align_body(self._sign(peer), self._sign(ego))
         r = self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
         return load_result(_check(r).content)
 
     def post_frame(self, frame: bytes) -> dict:
         """Hand in an encoded ego or peer frame (202 Accepted; its result is published like a Zenoh frame's)."""
+        frame = self._sign(frame)
         return _check(self._http.post("/v1/frames", content=frame,
                                       headers={"content-type": _frame_type(frame)})).json()
 
@@ -68,15 +88,18 @@ class AlignClient:
 class AsyncAlignClient:
     """The asyncio twin of AlignClient: ``async with AsyncAlignClient(url) as c: await c.align(frame)``."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0):
-        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout)
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0, token: str | None = None,
+                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID):
+        self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, headers=_headers(token))
+        self._sign = _Signer(key, key_id)
 
     async def align(self, peer: bytes, ego: bytes | None = None) -> Result:
-        body, media = _align_body(peer, ego)
+        body, media = _align_body(self._sign(peer), self._sign(ego))
         r = await self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
         return load_result(_check(r).content)
 
     async def post_frame(self, frame: bytes) -> dict:
+        frame = self._sign(frame)
         r = await self._http.post("/v1/frames", content=frame, headers={"content-type": _frame_type(frame)})
         return _check(r).json()
 

@@ -8,9 +8,10 @@ from typing import Sequence
 
 import zenoh
 
-from bb_align.settings import ZenohSettings
+from bb_align.settings import FLEET_KEY_ID, ZenohSettings, ZenohTls
 from bb_align.wire import ErrorBody, Result, align_key, frames_key, load_result, poses_key
 
+from .encode import sign_frame
 from .errors import ServiceError
 
 
@@ -44,16 +45,23 @@ class ZenohPeer:
 
     By default the session listens nowhere and connects to the given endpoints, multicast scouting off. Frames
     are dropped when the link is congested (a newer sweep follows anyway); ``block_when_congested=True`` makes
-    ``publish`` wait instead (every frame reaches the service; for tests and recordings)."""
+    ``publish`` wait instead (every frame reaches the service; for tests and recordings).
+
+    ``key``: sign every unsigned frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``, the default) or this
+    car's own key (``key_id=vehicle_id``). ``tls``: certificates for ``tls/`` endpoints (bb_align.settings.ZenohTls
+    or a dict of its fields)."""
 
     def __init__(self, vehicle_id: str, connect: Sequence[str] = ("tcp/127.0.0.1:7447",), *,
                  listen: Sequence[str] = (), prefix: str = "bbalign", mode: str = "peer",
-                 multicast_scouting: bool = False, block_when_congested: bool = False):
+                 multicast_scouting: bool = False, block_when_congested: bool = False,
+                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID, tls: ZenohTls | dict | None = None):
         self.vehicle_id = vehicle_id
         self.block_when_congested = block_when_congested
         self.prefix = prefix
+        self._key, self._key_id = key, key_id
         self._config = ZenohSettings(mode=mode, listen=list(listen), connect=list(connect),
-                                     multicast_scouting=multicast_scouting, prefix=prefix)
+                                     multicast_scouting=multicast_scouting, prefix=prefix,
+                                     tls=tls if tls is not None else ZenohTls())
         self.session: zenoh.Session | None = None
         self._publisher = None
         self._streams: list[PoseStream] = []
@@ -66,8 +74,11 @@ class ZenohPeer:
         return self
 
     def publish(self, frame: bytes) -> None:
-        """Send an encoded frame on ``<prefix>/frames/<vehicle_id>``."""
-        self._publisher.put(frame)
+        """Send an encoded frame on ``<prefix>/frames/<vehicle_id>`` (signed first when this car has a key)."""
+        self._publisher.put(self._signed(frame))
+
+    def _signed(self, frame: bytes) -> bytes:
+        return frame if self._key is None else sign_frame(frame, self._key, self._key_id)
 
     def wait_for_subscriber(self, timeout: float = 5.0) -> bool:
         """Wait (bounded) until some subscriber, e.g. the ego service, matches this car's frame key."""
@@ -82,7 +93,7 @@ class ZenohPeer:
         """Query ``<prefix>/align/<ego_id>`` with a frame and wait for its Result (ServiceError if refused,
         TimeoutError if nobody answered)."""
         key = align_key(self.prefix, ego_id)
-        for reply in self.session.get(key, payload=frame, timeout=timeout):
+        for reply in self.session.get(key, payload=self._signed(frame), timeout=timeout):
             if reply.ok is not None:
                 return load_result(reply.ok.payload.to_bytes())
             raise ServiceError(None, _error_body(reply.err.payload.to_bytes()))

@@ -21,6 +21,7 @@ from pydantic import BaseModel, Field
 from .wire import MSGPACK, Frame
 
 RAW_POINT_BYTES = 16
+_BUCKET_S = 0.1  # the sliding window counts bytes in buckets this long
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,11 @@ class _Tally:
     def add_message(self, nbytes: int, now: float) -> None:
         self.messages += 1
         self.bytes += nbytes
-        self.window.append((now, nbytes))
+        bucket = math.floor(now / _BUCKET_S) * _BUCKET_S  # bounded memory under any message rate
+        if self.window and self.window[-1][0] == bucket:
+            self.window[-1] = (bucket, self.window[-1][1] + nbytes)
+        else:
+            self.window.append((bucket, nbytes))
 
     def add_frame(self, fb: FrameBytes) -> None:
         self.frames += 1
@@ -95,7 +100,7 @@ class _Tally:
             self.bytes_with_points += fb.total
 
     def report(self, now: float, window_s: float) -> PeerBandwidth:
-        while self.window and self.window[0][0] < now - window_s:
+        while self.window and self.window[0][0] + _BUCKET_S <= now - window_s:
             self.window.popleft()
         in_window = sum(n for _, n in self.window)
         return PeerBandwidth(
@@ -132,6 +137,11 @@ class BandwidthMeter:
         with self._lock:
             self._peers.setdefault(peer_id, _Tally()).add_frame(fb)
             self._total.add_frame(fb)
+
+    def forget(self, peer_id: str) -> None:
+        """Drop a peer's tally (an evicted peer); the total keeps its bytes."""
+        with self._lock:
+            self._peers.pop(peer_id, None)
 
     def peer(self, peer_id: str) -> PeerBandwidth | None:
         now = self._clock()

@@ -1,46 +1,54 @@
-"""The ego-side service without its doors: admission, queues, the worker pool running the engine, results.
+"""The ego-side service without its doors: the gate, admission, queues, the worker pool running the engine.
 
-The doors (Zenoh link, REST app) only hand messages over: ``submit_message`` (raw stream bytes, from a Zenoh
-callback), ``submit_frame`` (a decoded stream frame, REST) and ``submit_request`` (a frame to answer, REST or a
-Zenoh query). Workers decode and validate; ego frames enter the cache (their features computed once, see
-cache.py); peer frames are aligned against the cached ego frame nearest in time, and each result goes to the
-publishers (the Zenoh link) or to the request's reply.
+The doors (Zenoh link, REST app) only hand messages over:
+
+- ``submit_message`` (raw stream bytes, from a Zenoh callback) and ``submit_query`` (a raw query payload) go to
+  the bounded intake; the **gate** thread authenticates and validates them (bb_align.wire.load_frame), so no
+  unauthenticated or invalid message ever creates peer state or reaches a worker;
+- ``submit_frame`` (REST /v1/frames) and ``submit_request`` (REST /v1/align) carry frames the REST door already
+  loaded through the same validator, in a thread of its own.
+
+Checked frames are admitted by the peer table (replays refused, at most ``max_peers`` senders, idle ones
+evicted). Ego frames go into the cache at once (a PNG decode; their engine features are computed once, by a
+worker, see cache.py); peer frames wait in per-sender latest-only queues, requests in one bounded FIFO. Workers
+(at most ``settings.workers``, the only threads that run the engine) align peer frames against the cached ego
+frame nearest in time; each result (success or not, never a pose from a stale ego frame) goes to the publishers
+(the Zenoh link) or to the request's reply.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 import threading
 import time
 from typing import Callable
 
 import numpy as np
-from pydantic import BaseModel
 
-from ..bandwidth import BandwidthMeter, FrameBytes, PeerBandwidth
+from ..auth import Keyring
+from ..bandwidth import BandwidthMeter, FrameBytes
 from ..pipeline import Aligner, PreparedFrame
 from ..result import AlignResult, FailureReason
-from ..settings import VEHICLE_ID_PATTERN, Settings
+from ..settings import Settings
 from ..wire import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, to_json
 from .cache import EgoCache
 from .metrics import Metrics
-from .scheduler import Job, Scheduler
+from .peers import PeerStatus, PeerTable
+from .scheduler import Intake, Job, Scheduler
 
 log = logging.getLogger("bb_align.service")
 _EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
-_VEHICLE_ID = re.compile(VEHICLE_ID_PATTERN)
+UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
+STREAM, REQUEST = "stream", "request"  # replay channels
 
 
 class Unavailable(RuntimeError):
     """The service is shutting down or overloaded; the request was not run."""
 
 
-class PeerStatus(BaseModel):
-    last_result: Result | None = None
-    frames_dropped: int = 0
-    bandwidth: PeerBandwidth | None = None
+class ConfigurationError(RuntimeError):
+    """The settings are not safe to start with (e.g. authentication on without a key)."""
 
 
 def reported_relative_pose(ego: Frame, peer: Frame) -> np.ndarray | None:
@@ -59,109 +67,252 @@ def relative_prior(ego: Frame, peer: Frame) -> tuple[float, float, float] | None
     return rel.z, rel.roll, rel.pitch
 
 
+class _RateLimitedLog:
+    """One log line per (door, error) per ``period_s``, saying how many were not logged in between."""
+
+    def __init__(self, period_s: float = 10.0):
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._last: dict[tuple[str, str], tuple[float, int]] = {}
+
+    def __call__(self, door: str, error: str, msg: str, *args) -> None:
+        now = time.monotonic()
+        with self._lock:
+            t, suppressed = self._last.get((door, error), (-1e18, 0))
+            if now - t < self.period_s:
+                self._last[(door, error)] = (t, suppressed + 1)
+                return
+            self._last[(door, error)] = (now, 0)
+        log.warning(msg + (f" (+{suppressed} more like it)" if suppressed else ""), *args)
+
+
 class AlignService:
     def __init__(self, settings: Settings):
+        problem = settings.startup_problem()
+        if problem is not None:
+            raise ConfigurationError(problem)
         self.settings = settings
+        limits = settings.limits
         self.aligner = Aligner(settings.align)
         self.cache = EgoCache(settings.ego_cache_size)
+        self.keyring = Keyring(settings.auth)
         # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
         self.scheduler = Scheduler(settings.peer_queue_depth, settings.max_pending_requests,
                                    priority=frozenset({settings.ego_id}))
+        self.intake = Intake(limits.intake_queue, limits.intake_bytes)
         self.meter = BandwidthMeter(settings.bandwidth_window_s)
-        self.metrics = Metrics(self.meter.report, lambda: len(self.cache), self.scheduler.pending)
+        self.peer_table = PeerTable(limits.max_peers, limits.peer_idle_s, reserved=settings.ego_id,
+                                    refuse_replays=self.keyring.required, on_evict=self._forget)
+        self.metrics = Metrics(self.meter.report, lambda: len(self.cache), self.scheduler.pending,
+                               lambda: len(self.peer_table), lambda: len(self.intake))
         self.publishers: list[Callable[[Result], None]] = []
-        self._lock = threading.Lock()
-        self._peers: dict[str, PeerStatus] = {}
         self._threads: list[threading.Thread] = []
+        self._log_refusal = _RateLimitedLog()
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> None:
+        gate = threading.Thread(target=self._gate, name="bbalign-gate", daemon=True)
+        gate.start()
+        self._threads.append(gate)
         for i in range(self.settings.workers):
             t = threading.Thread(target=self._work, name=f"bbalign-worker-{i}", daemon=True)
             t.start()
             self._threads.append(t)
 
-    def stop(self, timeout: float = 30.0) -> None:
-        """Refuse new work, answer waiting requests with Unavailable, and join the workers."""
-        for job in self.scheduler.close():
-            if job.reply is not None:
-                job.reply(Unavailable("the service is shutting down"))
+    def stop(self, timeout: float | None = None) -> None:
+        """Graceful drain: refuse new messages, let the gate and the workers finish what was already accepted
+        (results still go out) for up to ``timeout`` s, then answer what is left (requests: Unavailable; stream
+        frames: counted as dropped) and join every thread."""
+        timeout = self.settings.shutdown_timeout_s if timeout is None else timeout
         deadline = time.monotonic() + timeout
-        for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
+        for job in self.intake.close():
+            self._never_ran(job)
+        self._join(self._threads[:1], deadline)  # the gate: everything it passes on is queued
+        self.scheduler.close(drain=True)
+        self._join(self._threads[1:], deadline)
+        for job in self.scheduler.close():
+            self._never_ran(job)
+        self._join(self._threads, time.monotonic() + 5.0)
         self._threads = [t for t in self._threads if t.is_alive()]
         if self._threads:
-            log.warning("%d worker(s) still busy after %.0f s", len(self._threads), timeout)
+            log.warning("%d thread(s) still busy after %.0f s", len(self._threads), timeout)
+
+    @staticmethod
+    def _join(threads: list[threading.Thread], deadline: float) -> None:
+        for t in threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    def _never_ran(self, job: Job) -> None:
+        if job.reply is not None:
+            job.reply(Unavailable("the service is shutting down"))
+        elif job.task == "frame":
+            self._count_drop(job.sender if job.frame is not None else UNVERIFIED)
 
     @property
     def running(self) -> bool:
         return bool(self._threads) and all(t.is_alive() for t in self._threads)
 
     # ---- doors -------------------------------------------------------------------------------------------------
-    def admit(self, sender: str) -> WireError | None:
-        """A sender id must be well formed, and at most limits.max_peers distinct senders are tracked."""
-        if not _VEHICLE_ID.match(sender):
-            return WireError(422, "invalid", f"vehicle id must match {VEHICLE_ID_PATTERN}", "vehicle_id")
-        with self._lock:
-            if sender in self._peers:
-                return None
-            if len(self._peers) >= self.settings.limits.max_peers:
-                return WireError(503, "overloaded", "too many distinct peers", "vehicle_id",
-                                 self.settings.limits.max_peers)
-            self._peers[sender] = PeerStatus()
-        return None
-
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
-        """A raw stream message (msgpack Frame) from ``sender``; cheap enough for a Zenoh callback."""
-        refused = self.admit(sender)
-        if refused is not None:
-            self.metrics.rejected.labels(door, refused.error).inc()
-            return False
-        self.meter.record_message(sender, len(data))
-        self._queue_frame(Job(sender, time.perf_counter(), door, data=data, nbytes=len(data)))
-        return True
+        """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
+        trusted); cheap enough for a Zenoh callback. False when the intake is closed."""
+        return self._to_intake(Job(sender, time.perf_counter(), door, data=data, nbytes=len(data)))
+
+    def submit_query(self, reply: Callable[[object], None], data: bytes, door: str = "zenoh",
+                     refused: WireError | None = None) -> bool:
+        """A raw query payload to align and answer through ``reply`` (called once, with a Result or an
+        exception); ``refused``: the door already knows the answer is this error."""
+        job = Job("", time.perf_counter(), door, data=data, nbytes=len(data), reply=reply,
+                  meta={"refused": refused} if refused is not None else {})
+        return self._to_intake(job)
 
     def submit_frame(self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest",
                      received: float | None = None) -> bool:
-        """A decoded stream frame (REST /v1/frames). Raises WireError when the sender is refused."""
-        refused = self.admit(frame.vehicle_id)
-        if refused is not None:
-            self.metrics.rejected.labels(door, refused.error).inc()
-            raise refused
-        self.meter.record_message(frame.vehicle_id, nbytes)
+        """A checked stream frame (REST /v1/frames). Raises WireError when its sender is refused."""
         job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, encoding=encoding,
                   nbytes=nbytes)
-        return self._queue_frame(job)
+        try:
+            self._admit(job, STREAM)
+        except WireError as e:
+            self._refused(job, e)
+            raise
+        return self._accept_stream(job)
 
-    def submit_request(self, reply: Callable[[object], None], *, data: bytes | None = None,
-                       frame: Frame | None = None, ego: Frame | None = None, nbytes: int = 0,
-                       encoding: str = MSGPACK, door: str = "rest", received: float | None = None,
-                       refused: WireError | None = None) -> bool:
-        """A frame to align and answer through ``reply`` (called once, from a worker, with a Result or an
-        exception; ``refused``: the door already knows the answer is this error). False when the request queue
-        is full: the caller answers 'overloaded' itself."""
-        job = Job(frame.vehicle_id if frame is not None else "", received or time.perf_counter(), door,
-                  data=data, frame=frame, ego=ego, nbytes=nbytes or len(data or b""), encoding=encoding,
-                  reply=reply, meta={"refused": refused} if refused is not None else {})
-        if not self.scheduler.put_request(job):
-            self.metrics.rejected.labels(door, "overloaded").inc()
+    def submit_request(self, reply: Callable[[object], None], *, frame: Frame, ego: Frame | None = None,
+                       nbytes: int = 0, encoding: str = MSGPACK, door: str = "rest",
+                       received: float | None = None) -> bool:
+        """A checked frame (REST /v1/align) to align and answer through ``reply``. Raises WireError when its
+        sender is refused; False when the request queue is full (the caller answers 'overloaded')."""
+        job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, ego=ego,
+                  encoding=encoding, reply=reply)
+        job.nbytes = len(_encode(frame, encoding))  # the peer frame alone, as it would go on the air
+        try:
+            self._admit(job, REQUEST)
+        except WireError as e:
+            self._refused(job, e)
+            raise
+        return self._queue_request(job)
+
+    def _to_intake(self, job: Job) -> bool:
+        pushed_out = self.intake.put(job)
+        for old in pushed_out:
+            if old is job and self.intake.closed:
+                if job.reply is not None:
+                    job.reply(Unavailable("the service is shutting down"))
+                return False
+            if old.reply is not None:
+                old.reply(WireError(503, "overloaded", "the intake queue is full, retry later", "intake",
+                                    self.settings.limits.intake_queue))
+                self.metrics.rejected.labels(old.door, "overloaded").inc()
+            elif old.sender in self.peer_table:
+                self._count_drop(old.sender, "intake_dropped")
+            else:
+                self._count_drop(UNVERIFIED)
+        return True
+
+    # ---- the gate (one thread): authenticate, validate, admit, queue -----------------------------------------
+    def _gate(self) -> None:
+        limits, last_sweep = self.settings.limits, time.monotonic()
+        while True:
+            job = self.intake.get(timeout=1.0)
+            if time.monotonic() - last_sweep > 1.0:
+                self.peer_table.sweep()
+                last_sweep = time.monotonic()
+            if job is None:
+                if self.intake.closed:
+                    return
+                continue
+            try:
+                if "refused" in job.meta:
+                    raise job.meta["refused"]
+                job.frame = load_frame(job.data, limits, job.encoding, keyring=self.keyring, now=time.time())
+                job.data = None
+                if job.reply is None:
+                    if job.frame.vehicle_id != job.sender:
+                        raise WireError(422, "invalid", f"vehicle_id {job.frame.vehicle_id!r} differs from the "
+                                        f"key's {job.sender!r}", "vehicle_id")
+                    self._admit(job, STREAM)
+                    self._accept_stream(job)
+                else:
+                    job.sender = job.frame.vehicle_id
+                    self._admit(job, REQUEST)
+                    if not self._queue_request(job):
+                        job.reply(WireError(503, "overloaded", "the request queue is full, retry later",
+                                            "requests", self.settings.max_pending_requests))
+            except WireError as e:
+                self._refused(job, e)
+                if job.reply is not None:
+                    job.reply(e)
+            except Exception as e:  # a bug must not stop the gate; the message is refused and logged
+                log.exception("the gate failed on a message from %s", job.sender or "?")
+                self.metrics.rejected.labels(job.door, "internal").inc()
+                if job.reply is not None:
+                    job.reply(e)
+
+    def _admit(self, job: Job, channel: str) -> None:
+        """Track the sender (replays and a full table refused) and account the message's bytes."""
+        self.peer_table.admit(job.frame, channel)
+        self.meter.record_message(job.frame.vehicle_id, job.nbytes)
+
+    def _refused(self, job: Job, e: WireError) -> None:
+        e.counted = True  # the REST door counts the refusals it raises itself, not these again
+        self.metrics.rejected.labels(job.door, e.error).inc()
+        self._log_refusal(job.door, e.error, "refused a message from %s on %s: %s", job.sender or "?", job.door, e)
+
+    def _accept_stream(self, job: Job) -> bool:
+        """An admitted stream frame: the ego's goes into the cache at once (a PNG decode, on the caller's thread,
+        so the cache stays current however busy the workers are); a peer's waits in its latest-only queue."""
+        if job.frame.vehicle_id != self.settings.ego_id:
+            return self._queue_frame(job)
+        if self.intake.closed and job.door == "rest":
             return False
+        frame = job.frame
+        self.metrics.frames.labels(job.door, "ego").inc()
+        self.meter.record_frame(frame.vehicle_id, FrameBytes.of(frame, job.nbytes, job.encoding))
+        try:
+            entry = self.cache.add(frame, frame.bev_image(self.settings.limits))  # corrupt images never enter
+        except WireError:
+            self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "failed", e.status.failed + 1))
+            raise
+        self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "frames_accepted",
+                                                                    e.status.frames_accepted + 1))
+        # Features of the newest ego frame, computed when a worker is free (or by the first peer needing them).
+        self.scheduler.put_frame(Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features",
+                                     meta={"entry": entry}), depth=1)
         return True
 
     def _queue_frame(self, job: Job) -> bool:
         dropped = self.scheduler.put_frame(job)
         if dropped is job:  # closed
+            self._count_drop(job.sender)
             return False
+        self.peer_table.update(job.sender, lambda e: setattr(e.status, "frames_accepted",
+                                                              e.status.frames_accepted + 1))
         if dropped is not None:
-            self.metrics.dropped.labels(job.sender).inc()
-            with self._lock:
-                self._peers[job.sender].frames_dropped += 1
+            self._count_drop(dropped.sender)
         return True
+
+    def _queue_request(self, job: Job) -> bool:
+        if not self.scheduler.put_request(job):
+            self.metrics.rejected.labels(job.door, "overloaded").inc()
+            return False
+        return True
+
+    def _count_drop(self, sender: str, counter: str = "frames_dropped") -> None:
+        self.metrics.dropped.labels(sender).inc()
+        self.peer_table.update(sender, lambda e: setattr(e.status, counter, getattr(e.status, counter) + 1))
+
+    def _forget(self, vehicle_id: str, entry) -> None:
+        """An evicted sender: its queue, bandwidth tally and metric labels go too."""
+        for _ in self.scheduler.forget(vehicle_id):
+            self.metrics.dropped.labels(UNVERIFIED).inc()  # its own label is about to go
+        self.meter.forget(vehicle_id)
+        self.metrics.forget_peer(vehicle_id, entry.outcomes)
+        log.info("forgot peer %s (idle for more than %.0f s)", vehicle_id, self.settings.limits.peer_idle_s)
 
     # ---- queries -----------------------------------------------------------------------------------------------
     def peers(self) -> dict[str, PeerStatus]:
-        with self._lock:
-            status = {p: s.model_copy() for p, s in self._peers.items() if p != self.settings.ego_id}
+        status = {p: s for p, s in self.peer_table.statuses().items() if p != self.settings.ego_id}
         for p, s in status.items():
             s.bandwidth = self.meter.peer(p)
         return dict(sorted(status.items()))
@@ -175,14 +326,17 @@ class AlignService:
             try:
                 outcome = self._run(job)
             except WireError as e:
-                self.metrics.rejected.labels(job.door, e.error).inc()
-                log.info("refused a frame from %s: %s", job.sender or "?", e)
+                self._refused(job, e)
                 outcome = e
             except Exception as e:  # a bug must not kill the worker; the request still gets an answer
                 log.exception("job from %s failed", job.sender or "?")
                 outcome = e
             finally:
                 self.scheduler.done(job)
+            if isinstance(outcome, Exception) and job.task == "frame":
+                self.peer_table.update(job.sender, lambda e: setattr(e.status, "failed", e.status.failed + 1))
+                if job.reply is None:  # a stream frame still gets a result, saying that it failed
+                    outcome = self._failed(job, outcome)
             if job.reply is not None:
                 job.reply(outcome)
             elif isinstance(outcome, Result):
@@ -196,37 +350,23 @@ class AlignService:
         if job.task == "ego_features":
             job.meta["entry"].features(self._prepare_entry)
             return None
-        if "refused" in job.meta:
-            raise job.meta["refused"]
-        frame = job.frame
-        if frame is None:
-            frame = load_frame(job.data, self.settings.limits, job.encoding)
-            if job.reply is None and frame.vehicle_id != job.sender:
-                raise WireError(422, "invalid", f"vehicle_id {frame.vehicle_id!r} differs from the key's "
-                                                f"{job.sender!r}", "vehicle_id")
-        if job.reply is not None:  # requests are accounted here (stream frames were at arrival)
-            refused = self.admit(frame.vehicle_id)
-            if refused is not None:
-                raise refused
-            job.nbytes = len(_encode(frame, job.encoding))  # the peer frame alone, as it would go on the air
-            self.meter.record_message(frame.vehicle_id, job.nbytes)
-        kind = "ego" if job.reply is None and frame.vehicle_id == self.settings.ego_id else "peer"
-        self.metrics.frames.labels(job.door, kind).inc()
-        if kind == "ego":
-            self.meter.record_frame(frame.vehicle_id, FrameBytes.of(frame, job.nbytes, job.encoding))
-            entry = self.cache.add(frame, frame.bev_image())  # a corrupt image never enters the cache
-            # Features of the newest ego frame, computed when a worker is free (or by the first peer needing them).
-            self.scheduler.put_frame(Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features",
-                                         meta={"entry": entry}), depth=1)
-            return None
-        return self._align(frame, job)
+        self.metrics.frames.labels(job.door, "peer").inc()
+        return self._align(job.frame, job)
+
+    def _failed(self, job: Job, error: Exception) -> Result:
+        """The result of a stream frame whose processing raised: success=False, never a pose."""
+        f = job.frame
+        reason = "invalid_frame" if isinstance(error, WireError) else "internal_error"
+        return self._finish(job, Result(ego_id=self.settings.ego_id, peer_id=f.vehicle_id, peer_seq=f.seq,
+                                        peer_stamp=f.stamp, success=False, reason=reason,
+                                        notes=[f"{type(error).__name__}: {error}"[:300]], bytes_received=job.nbytes))
 
     def _prepare_entry(self, entry) -> PreparedFrame:
         return self._prepare(entry.frame, "prepare_ego", entry.bev)
 
     def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:
         t0 = time.perf_counter()
-        bev = bev if bev is not None else frame.bev_image()
+        bev = bev if bev is not None else frame.bev_image(self.settings.limits)
         t_png = (time.perf_counter() - t0) * 1e3
         prepared = self.aligner.prepare(bev, frame.boxes_array())
         prepared = dataclasses.replace(prepared, num_points=frame.num_points,
@@ -290,10 +430,16 @@ class AlignService:
     def _finish(self, job: Job, result: Result) -> Result:
         latency_s = time.perf_counter() - job.received
         result = result.model_copy(update={"latency_ms": latency_s * 1e3})
+        outcome = "success" if result.success else result.reason
         self.metrics.latency.labels(job.door).observe(latency_s)
-        self.metrics.alignments.labels(result.peer_id, "success" if result.success else result.reason).inc()
-        with self._lock:
-            self._peers.setdefault(result.peer_id, PeerStatus()).last_result = result
+
+        def record(entry) -> None:
+            entry.status.last_result = result
+            entry.status.results += 1
+            entry.outcomes.add(outcome)
+
+        if self.peer_table.update(result.peer_id, record):  # an evicted peer leaves no labels behind
+            self.metrics.alignments.labels(result.peer_id, outcome).inc()
         return result
 
 

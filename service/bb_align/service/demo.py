@@ -144,9 +144,10 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, encode_f
 def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_frames: int = 10, seed: int = 0,
              distance_m: float | None = 30.0, rate_hz: float = 0.0, timeout_s: float = 30.0,
              prefix: str = "bbalign", range_m: float | None = None, json_out: Path | None = None,
-             plot: Path | None = None, console: Console | None = None) -> dict:
+             plot: Path | None = None, console: Console | None = None, key: str | None = None) -> dict:
     """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
-    service's results against the truth. Every wait is bounded by timeout_s."""
+    service's results against the truth. Every wait is bounded by timeout_s. ``key``: the fleet key, when the
+    service requires signed frames."""
     from bb_align_client import ZenohPeer, encode_frame
 
     from ..sim import Scenario
@@ -159,7 +160,7 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
     n_sent = 0
-    cars = {aid: ZenohPeer(name, connect=connect, prefix=prefix) for aid, name in names.items()}
+    cars = {aid: ZenohPeer(name, connect=connect, prefix=prefix, key=key) for aid, name in names.items()}
     title = f"bb-align demo: {n_agents} cars, seed {seed}, via {', '.join(connect)}"
 
     def collect(deadline: float, expected: set, live) -> None:

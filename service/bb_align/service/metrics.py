@@ -41,12 +41,16 @@ class _BandwidthCollector:
 
 class Metrics:
     def __init__(self, bandwidth: Callable[[], BandwidthReport], ego_frames: Callable[[], int],
-                 queued: Callable[[], int]):
+                 queued: Callable[[], int], peers: Callable[[], int] = lambda: 0,
+                 intake: Callable[[], int] = lambda: 0):
         self.registry = r = CollectorRegistry(auto_describe=True)
         self.frames = Counter("bbalign_frames_received", "Frames received", ["door", "kind"], registry=r)
-        self.dropped = Counter("bbalign_frames_dropped", "Peer frames replaced by a newer one before a worker "
-                               "took them (latest-only queues)", ["peer"], registry=r)
-        self.rejected = Counter("bbalign_frames_rejected", "Messages refused", ["door", "error"], registry=r)
+        self.dropped = Counter("bbalign_frames_dropped", "Frames never run: replaced by a newer one (latest-only "
+                               "queues), pushed out of the full intake, or queued at shutdown; peer "
+                               "'(unverified)': before the gate checked them", ["peer"], registry=r)
+        self.rejected = Counter("bbalign_frames_rejected", "Messages refused, by error (too_large, undecodable, "
+                                "invalid, unauthenticated, forbidden, replayed, overloaded, ...)",
+                                ["door", "error"], registry=r)
         self.alignments = Counter("bbalign_alignments", "Alignments run, by outcome (success or reason)",
                                   ["peer", "outcome"], registry=r)
         self.latency = Histogram("bbalign_result_latency_seconds", "Message received -> result ready",
@@ -55,7 +59,19 @@ class Metrics:
                                 buckets=_LATENCY_BUCKETS, registry=r)
         Gauge("bbalign_ego_cache_frames", "Ego frames in the cache", registry=r).set_function(ego_frames)
         Gauge("bbalign_queued_jobs", "Frames and requests waiting for a worker", registry=r).set_function(queued)
+        Gauge("bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)",
+              registry=r).set_function(peers)
+        Gauge("bbalign_intake_messages", "Raw messages waiting for the gate", registry=r).set_function(intake)
         r.register(_BandwidthCollector(bandwidth))
+
+    def forget_peer(self, peer: str, outcomes: set[str]) -> None:
+        """Drop an evicted peer's labels (label sets stay bounded by the peers tracked)."""
+        for counter, labels in ((self.dropped, [(peer,)]), (self.alignments, [(peer, o) for o in outcomes])):
+            for values in labels:
+                try:
+                    counter.remove(*values)
+                except KeyError:
+                    pass
 
     def exposition(self) -> bytes:
         return generate_latest(self.registry)

@@ -71,7 +71,7 @@ class Scheduler:
     def get(self, timeout: float | None = None) -> Job | None:
         """The next job in round-robin order; None on timeout or once closed."""
         with self._cv:
-            if not self._cv.wait_for(lambda: self._ready or self._closed, timeout) or self._closed:
+            if not self._cv.wait_for(lambda: self._ready or self._closed, timeout) or not self._ready:
                 return None
             key = next((k for k in self._ready if k in self.priority), None)
             if key is None:
@@ -88,26 +88,105 @@ class Scheduler:
             return self._streams[key].popleft()
 
     def done(self, job: Job) -> None:
-        """A worker finished a job; its sender may be scheduled again."""
+        """A worker finished a job; its sender may be scheduled again (an empty queue is let go)."""
         if job.reply is not None:
             return
         with self._cv:
             self._busy.discard(job.sender)
-            if self._streams.get(job.sender) and job.sender not in self._ready:
-                self._ready.append(job.sender)
-                self._cv.notify()
+            if self._streams.get(job.sender):
+                if job.sender not in self._ready:
+                    self._ready.append(job.sender)
+                    self._cv.notify()
+            else:
+                self._streams.pop(job.sender, None)
+
+    def forget(self, sender: str) -> list[Job]:
+        """Drop a sender's queue (an evicted peer); returns the frames that never ran."""
+        with self._cv:
+            left = list(self._streams.get(sender, ()))
+            if sender not in self._busy:
+                self._streams.pop(sender, None)
+            elif sender in self._streams:
+                self._streams[sender].clear()
+            if sender in self._ready:
+                self._ready.remove(sender)
+            return left
+
+    def senders(self) -> int:
+        """Senders with a queue (waiting or being served)."""
+        with self._cv:
+            return len(self._streams)
 
     def pending(self) -> int:
         with self._cv:
             return len(self._requests) + sum(len(q) for q in self._streams.values())
 
-    def close(self) -> list[Job]:
-        """Stop handing out work; returns the jobs that never ran (requests among them must be answered)."""
+    def close(self, drain: bool = False) -> list[Job]:
+        """Refuse new work. ``drain``: workers still get what is queued (then None); otherwise the queues are
+        emptied and their jobs returned, never to run (requests among them must be answered)."""
         with self._cv:
             self._closed = True
+            if drain:
+                self._cv.notify_all()
+                return []
             left = list(self._requests) + [j for q in self._streams.values() for j in q]
             self._requests.clear()
             self._streams.clear()
             self._ready.clear()
+            self._cv.notify_all()
+            return left
+
+
+class Intake:
+    """Raw messages from the Zenoh door waiting for the gate (authentication and validation), bounded by count
+    and bytes: when full, the oldest waiting message is pushed out and returned (the caller counts it)."""
+
+    def __init__(self, max_jobs: int, max_bytes: int):
+        self.max_jobs, self.max_bytes = max_jobs, max_bytes
+        self._cv = threading.Condition()
+        self._jobs: deque[Job] = deque()
+        self._bytes = 0
+        self._closed = False
+
+    def put(self, job: Job) -> list[Job]:
+        """Queue a message; returns the messages pushed out to make room (``[job]`` itself once closed)."""
+        with self._cv:
+            if self._closed:
+                return [job]
+            self._jobs.append(job)
+            self._bytes += job.nbytes
+            out = []
+            while len(self._jobs) > self.max_jobs or (self._bytes > self.max_bytes and len(self._jobs) > 1):
+                old = self._jobs.popleft()
+                self._bytes -= old.nbytes
+                out.append(old)
+            self._cv.notify()
+            return out
+
+    def get(self, timeout: float | None = None) -> Job | None:
+        """The oldest message; None on timeout or once closed and empty."""
+        with self._cv:
+            if not self._cv.wait_for(lambda: self._jobs or self._closed, timeout) or not self._jobs:
+                return None
+            job = self._jobs.popleft()
+            self._bytes -= job.nbytes
+            return job
+
+    def __len__(self) -> int:
+        with self._cv:
+            return len(self._jobs)
+
+    @property
+    def closed(self) -> bool:
+        with self._cv:
+            return self._closed
+
+    def close(self) -> list[Job]:
+        """Refuse new messages; returns those still waiting."""
+        with self._cv:
+            self._closed = True
+            left = list(self._jobs)
+            self._jobs.clear()
+            self._bytes = 0
             self._cv.notify_all()
             return left

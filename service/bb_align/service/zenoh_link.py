@@ -6,7 +6,9 @@
 - queryable ``<prefix>/align/<ego_id>``: a query carrying a peer frame is answered with a Result (or an error
   reply holding an ErrorBody).
 
-Callbacks only hand bytes to the service's queues; replies and publications happen on worker threads.
+Callbacks only hand bytes to the service's intake; the gate thread authenticates and validates them; replies
+and publications happen on the gate and worker threads. Connecting never gives up (a router restart is
+survived); Zenoh itself drops messages larger than the message limit while reassembling them.
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ class ZenohLink:
         self.session: zenoh.Session | None = None
         self._subscriber = None
         self._queryable = None
-        self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
 
     @property
@@ -60,12 +61,9 @@ class ZenohLink:
         if self.publish in self.service.publishers:
             self.service.publishers.remove(self.publish)
         with self._lock:
-            for pub in self._publishers.values():
-                pub.undeclare()
-            self._publishers.clear()
-        if self.session is not None:
-            self.session.close()
-            self.session = None
+            session, self.session = self.session, None
+        if session is not None:
+            session.close()
 
     # ---- callbacks (Zenoh threads: enqueue only) -----------------------------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:
@@ -79,13 +77,10 @@ class ZenohLink:
         payload = query.payload
         size, limit = (len(payload) if payload is not None else 0), self.settings.limits.max_message_bytes
         refused = WireError(413, "too_large", f"{size} bytes exceed the limit of {limit} bytes", "message",
-                            limit) if size > limit else None  # answered by a worker, never copied
+                            limit) if size > limit else None  # answered by the gate, never copied
         data = payload.to_bytes() if payload is not None and refused is None else b""
-        accepted = self.service.submit_request(lambda outcome: self._reply(query, outcome), data=data,
-                                               door="zenoh", refused=refused)
-        if not accepted:
-            log.warning("request queue full: a query on %s is left without a reply", self.align_key)
-        # Not accepted: the query object is released here, which finalizes it with no reply.
+        self.service.submit_query(lambda outcome: self._reply(query, outcome), data, door="zenoh",
+                                  refused=refused)
 
     # ---- worker side -----------------------------------------------------------------------------------------
     def _reply(self, query: zenoh.Query, outcome: object) -> None:
@@ -99,14 +94,11 @@ class ZenohLink:
             log.exception("replying to a query failed")
 
     def publish(self, result: Result) -> None:
-        key = poses_key(self.prefix, result.ego_id, result.peer_id)
+        """Put a result on ``<prefix>/poses/<ego_id>/<peer_id>`` (no per-peer publisher state to leak)."""
         with self._lock:
-            if self.session is None:
-                return
-            pub = self._publishers.get(key)
-            if pub is None:
-                pub = self._publishers[key] = self.session.declare_publisher(key)
-        pub.put(pack(result))
+            session = self.session
+        if session is not None:
+            session.put(poses_key(self.prefix, result.ego_id, result.peer_id), pack(result))
 
 
 def _error_body(outcome: object) -> ErrorBody:
