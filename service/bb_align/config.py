@@ -101,11 +101,13 @@ class RefineConfig(_Frozen):
 class BoxConfig(_Frozen):
     """Stage 2: box-corner alignment."""
 
-    apply: Literal["always", "unrefined"] = Field(
-        "unrefined",
-        description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 still estimates T_box and counts "
-        "Inliers_box for the success rule, but its correction is applied only when the dense BV refinement did not "
-        "run or was rejected (measured: detector noise makes box corners less precise than the refined images)",
+    apply: Literal["always", "unrefined", "auto"] = Field(
+        "auto",
+        description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 estimates T_box and counts "
+        "Inliers_box for the success rule, but applies its correction only when the dense BV refinement did not "
+        "run or was rejected (box corners from a noisy detector are less precise than the refined images). auto: "
+        "as unrefined, but a box correction over 0.2 m / 0.2 deg is refined again on the BV images and kept when "
+        "the images agree with it better (a refinement stuck in a local optimum); docs/engine.md",
     )
     pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
     inlier_threshold_m: float = Field(0.8, gt=0)
@@ -119,6 +121,10 @@ class SuccessRule(_Frozen):
 
     min_inliers_bv: int = Field(25, ge=0, description="success needs inliers_bv > this")
     min_inliers_box: int = Field(6, ge=0, description="success needs inliers_box > this (when boxes are given)")
+    strong_inliers_bv: int | None = Field(
+        None, ge=0, description="if set, a pair whose stage 2 cannot verify it (no box overlap, too few box "
+        "inliers) still succeeds when inliers_bv exceeds this (the paper's Fig. 9: > 100 puts > 90% of pairs "
+        "under 1 m / 1 deg); None keeps the paper's rule")
     require_boxes: bool = Field(
         False, description="True: a pair without boxes fails; False: stage 1 alone decides (said in the reason)"
     )

@@ -26,7 +26,7 @@ from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
 from .matching import match_descriptors, match_with_prior
 from .ransac import rigid_ransac
-from .refine import BevCloud, bev_cloud, bev_points, refine_icp
+from .refine import BevCloud, Refinement, bev_cloud, bev_points, refine_icp
 from .result import AlignResult, FailureReason
 
 
@@ -201,17 +201,12 @@ class Aligner:
         refined = False
         if cfg.refine.enabled:
             with _timed(timings, "refine"):
-                rf = cfg.refine
-                pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=m.seed)
-                ref = refine_icp(ego.cloud(rf.min_pixel_value), pts, result.T_bv, gates=rf.gates_m,
-                                 iters_per_gate=rf.iters_per_gate, max_correction_m=rf.max_correction_m,
-                                 max_correction_deg=rf.max_correction_deg)
-            result.T_bv = ref.T
-            result.refine_fitness = ref.fitness
-            refined = ref.accepted
+                peer_pts = bev_points(peer.bev, cfg.refine.min_pixel_value, cfg.refine.max_peer_points, seed=m.seed)
+                ref = self._refine(ego, peer_pts, result.T_bv)
+            result.T_bv, result.refine_fitness, refined = ref.T, ref.fitness, ref.accepted
             if not ref.accepted:
                 result.notes.append("BV refinement rejected (correction beyond bounds); stage-1 pose kept")
-            elif ref.fitness < cfg.success.min_refine_fitness:
+            if ref.fitness < cfg.success.min_refine_fitness:
                 return finish(FailureReason.inconsistent_overlap)
 
         # Lines 12-15: box alignment on top of T_bv.
@@ -225,19 +220,48 @@ class Aligner:
             boxes = align_boxes(ego.boxes, peer.boxes, result.T_bv, cfg.box, seed=m.seed)
         result.box_pairs = boxes.pairs
         result.inliers_box = boxes.inliers
-        if boxes.pairs == 0:
-            return finish(FailureReason.no_box_overlap)
-        if boxes.inliers <= cfg.success.min_inliers_box:
-            return finish(FailureReason.too_few_inliers_box)
+        stage2_failure = (FailureReason.no_box_overlap if boxes.pairs == 0 else
+                          FailureReason.too_few_inliers_box if boxes.inliers <= cfg.success.min_inliers_box else None)
+        if stage2_failure is not None:
+            strong = cfg.success.strong_inliers_bv
+            if strong is not None and result.inliers_bv > strong:
+                result.notes.append(f"stage 2 could not verify ({stage2_failure.value}); accepted on stage-1 "
+                                    f"evidence (inliers_bv > {strong})")
+                return finish(None)
+            return finish(stage2_failure)
         yaw, tx, ty = se2_params(boxes.T_box)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish(FailureReason.box_correction_too_large)
-        if cfg.box.apply == "always" or not refined:
-            result.T_box = boxes.T_box
-            result.stage2_applied = True
-        else:
-            result.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
+        self._apply_box_correction(result, boxes.T_box, ego, peer_pts if refined else None, refined)
         return finish(None)
+
+    def _refine(self, ego: PreparedFrame, peer_pts: np.ndarray, T_init: np.ndarray) -> Refinement:
+        rf = self.config.refine
+        return refine_icp(ego.cloud(rf.min_pixel_value), peer_pts, T_init, gates=rf.gates_m,
+                          iters_per_gate=rf.iters_per_gate, max_correction_m=rf.max_correction_m,
+                          max_correction_deg=rf.max_correction_deg)
+
+    def _apply_box_correction(self, result: AlignResult, T_box: np.ndarray, ego: PreparedFrame,
+                              peer_pts: np.ndarray | None, refined: bool) -> None:
+        """Stage 2's T_box on top of the (refined) stage-1 pose, per config.box.apply (see BoxConfig)."""
+        mode = self.config.box.apply
+        if mode == "always" or not refined:
+            result.T_box, result.stage2_applied = T_box, True
+            return
+        yaw, tx, ty = se2_params(T_box)
+        if mode == "unrefined" or (np.hypot(tx, ty) < 0.2 and abs(np.degrees(yaw)) < 0.2):
+            result.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
+            return
+        # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
+        # Refine again from the box-corrected pose and keep whichever pose the BV images agree with more.
+        alt = self._refine(ego, peer_pts, T_box @ result.T_bv)
+        if alt.accepted and alt.fitness > result.refine_fitness + 0.01:
+            result.notes.append(f"stage 2 moved the pose to a better BV overlap ({result.refine_fitness:.2f} -> "
+                                f"{alt.fitness:.2f}), refined again")
+            result.T_box = alt.T @ np.linalg.inv(result.T_bv)
+            result.refine_fitness, result.stage2_applied = alt.fitness, True
+        else:
+            result.notes.append("stage 2's correction did not improve the BV overlap; refined stage-1 pose kept")
 
     def _confidence(self, r: AlignResult, ambiguity: float) -> float:
         """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9: > 100 bv or > 20 box

@@ -51,7 +51,7 @@ def bev_cloud(bev: BevImage, k: int = 8, min_value: int = 1) -> BevCloud:
 @dataclass
 class Refinement:
     T: np.ndarray  # 3x3 refined T_ego_peer
-    fitness: float  # fraction of peer points with an ego point within the final gate
+    fitness: float  # fraction of peer points with an ego point within the final gate, at the returned T
     rmse_m: float
     accepted: bool
 
@@ -62,14 +62,15 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
     """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer)."""
     T = np.array(T_init, dtype=float)
     if len(ego.xy) < 10 or len(pts_peer) < 10:
-        return Refinement(T, 0.0, float("inf"), False)
+        return Refinement(T, *overlap_fitness(ego, pts_peer, T, gates[-1]), False)
     for gate in gates:
         for _ in range(iters_per_gate):
             p = pts_peer @ T[:2, :2].T + T[:2, 2]
             d, j = ego.tree.query(p, distance_upper_bound=gate)
             ok = np.isfinite(d)
             if ok.sum() < 10:
-                return Refinement(np.array(T_init, dtype=float), 0.0, float("inf"), False)
+                T0 = np.array(T_init, dtype=float)
+                return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
             p, q, n = p[ok], ego.xy[j[ok]], ego.normals[j[ok]]
             diff = p - q
             # Rows: point-to-line residual n.(p - q), plus weak point-to-point terms that pin the line direction.
@@ -85,12 +86,18 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
             T = se2(delta[0], delta[1], delta[2]) @ T
             if np.abs(delta).max() < 1e-4:
                 break
-    p = pts_peer @ T[:2, :2].T + T[:2, 2]
-    d, _ = ego.tree.query(p, distance_upper_bound=gates[-1])
-    ok = np.isfinite(d)
-    fitness = float(ok.mean())
-    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf")
-    corr = T @ np.linalg.inv(T_init)
-    yaw, tx, ty = se2_params(corr)
+    yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= max_correction_m and abs(np.degrees(yaw)) <= max_correction_deg)
-    return Refinement(T if accepted else np.array(T_init, dtype=float), fitness, rmse, accepted)
+    T_out = T if accepted else np.array(T_init, dtype=float)
+    fitness, rmse = overlap_fitness(ego, pts_peer, T_out, gates[-1])
+    return Refinement(T_out, fitness, rmse, accepted)
+
+
+def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: float) -> tuple[float, float]:
+    """(fraction of peer points within ``gate`` of an ego lit pixel under T, RMS distance of those)."""
+    if len(ego.xy) == 0 or len(pts_peer) == 0:
+        return 0.0, float("inf")
+    p = pts_peer @ T[:2, :2].T + T[:2, 2]
+    d, _ = ego.tree.query(p, distance_upper_bound=gate)
+    ok = np.isfinite(d)
+    return float(ok.mean()), (float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf"))
