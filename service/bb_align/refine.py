@@ -84,7 +84,7 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
             g = (jac_line.T * w_line) @ r_line + pw2 * (jac_x.T @ diff[:, 0] + jac_y.T @ diff[:, 1])
             delta = np.linalg.solve(H, -g)
             T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta).max() < 1e-4:
+            if np.abs(delta[0]) < 2e-5 and np.abs(delta[1:]).max() < 2e-3:  # 0.001 deg, 2 mm: converged
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= max_correction_m and abs(np.degrees(yaw)) <= max_correction_deg)
