@@ -45,7 +45,8 @@ def test_descriptors_equal_the_engine_for_the_same_keypoints(small_scene):
     img, mim, amp = small_scene
     rc = np.argwhere(img > 0)
     rc = rc[np.random.default_rng(1).choice(len(rc), 80, replace=False)]
-    d_engine = bvft_descriptors(mim, amp, rc, CFG.features, CFG.mim.n_orient)
+    exact = CFG.features.model_copy(update={"orientation_stride": 1, "window_stride": 1})  # no engine shortcuts
+    d_engine = bvft_descriptors(mim, amp, rc, exact, CFG.mim.n_orient)
     d_base = bl.bvft_descriptors(mim, amp, rc, CFG.features, CFG.mim.n_orient)
     assert d_base.shape == d_engine.shape == (80, 216)
     m = dominant_orientation(mim, amp, rc, bl.descriptor_radius(CFG.features), CFG.mim.n_orient)
@@ -62,7 +63,7 @@ def test_descriptors_equal_the_engine_for_the_same_keypoints(small_scene):
 
 def test_432_bin_descriptors_also_agree(small_scene):
     img, mim, amp = small_scene
-    cfg = FeatureConfig(merge_bins=False)
+    cfg = FeatureConfig(merge_bins=False, orientation_stride=1, window_stride=1)
     rc = np.argwhere(img > 0)[::97][:30]
     m = dominant_orientation(mim, amp, rc, bl.descriptor_radius(cfg), 12)
     keep = m != 7

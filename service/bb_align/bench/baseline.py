@@ -17,7 +17,10 @@ speed-ups never change it:
 - the dense BV refinement and the box stage, same algorithms, nothing cached, fixed iteration counts.
 
 Every parameter is read from :class:`bb_align.config.AlignConfig`, so baseline and engine agree on what they
-compute and differ only in how.
+compute and differ only in how. Not followed: the engine's own shortcuts and additions beyond the reference
+(sub-sampled orientation disc or window, extra ego-side orientation offsets, prior-pose gating, the RANSAC
+ambiguity test): the baseline computes what the reference computes, and the benchmark reports where the
+answers differ.
 """
 
 from __future__ import annotations
@@ -38,6 +41,9 @@ from ..loggabor import fft_shape
 
 RANSAC_ITERATIONS = 10_000  # the reference's fixed count
 BOX_MIN_SAMPLE_DIST_M = 1.0  # two corners closer than this do not define a rotation
+# box.apply = "auto": a box correction this large is checked by refining again from it, and kept when the lit
+# pixels then overlap better by this much (the engine's rule, docs/engine.md).
+BOX_VERIFY_M, BOX_VERIFY_DEG, BOX_BETTER_FITNESS = 0.2, 0.2, 0.01
 # An even J puts every sample of the unrotated window (and of the quarter turn) exactly half-way between two
 # pixels. OpenCV's nearest-neighbour warp rounds such ties to even; a tiny bias sends them to the higher pixel
 # (round half up, floor(x + 0.5)), so the window stays symmetric about the keypoint.
@@ -234,18 +240,32 @@ def lit_pixels_m(bev: BevImage, min_value: int) -> np.ndarray:
     return bev.pixel_to_metre(np.argwhere(bev.image >= min_value))
 
 
+@dataclass
+class Refined:
+    T: np.ndarray  # 3x3: the refined pose, or T_init when the refinement was rejected
+    accepted: bool
+    fitness: float  # fraction of the peer points within the finest gate of an ego lit pixel, under T
+
+
 def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineConfig, seed: int = 0,
-                k: int = 8, point_weight: float = 0.1) -> tuple[np.ndarray, bool]:
+                k: int = 8, point_weight: float = 0.1) -> Refined:
     """Point-to-line ICP of the peer's lit pixels onto the ego's, from T_init; the ego's KD-tree and normals
-    are rebuilt on every call. Returns (T 3x3, accepted)."""
+    are rebuilt on every call."""
     T_init = np.array(T_init, dtype=float)
     xy_ego = lit_pixels_m(ego, cfg.min_pixel_value)
     pts = lit_pixels_m(peer, cfg.min_pixel_value)
     if len(pts) > cfg.max_peer_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), cfg.max_peer_points, replace=False)]
-    if len(xy_ego) < 10 or len(pts) < 10:
-        return T_init, False
+    if len(xy_ego) == 0 or len(pts) == 0:
+        return Refined(T_init, False, 0.0)
     tree = cKDTree(xy_ego)
+
+    def fitness(T: np.ndarray) -> float:
+        d, _ = tree.query(pts @ T[:2, :2].T + T[:2, 2], distance_upper_bound=cfg.gates_m[-1])
+        return float(np.isfinite(d).mean())
+
+    if len(xy_ego) < 10 or len(pts) < 10:
+        return Refined(T_init, False, fitness(T_init))
     _, nn = tree.query(xy_ego, k=min(k, len(xy_ego)))
     nb = xy_ego[nn] - xy_ego[nn].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
@@ -257,7 +277,7 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
             d, j = tree.query(p, distance_upper_bound=gate)
             ok = np.isfinite(d)
             if ok.sum() < 10:
-                return T_init, False
+                return Refined(T_init, False, fitness(T_init))
             p, q, nrm = p[ok], xy_ego[j[ok]], normals[j[ok]]
             r_line = ((p - q) * nrm).sum(1)
             w = 1.0 / np.maximum(1.0, np.abs(r_line) / (0.25 * gate))  # Huber
@@ -270,11 +290,12 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
                 J_x.T @ (p[:, 0] - q[:, 0]) + J_y.T @ (p[:, 1] - q[:, 1]))
             delta = np.linalg.solve(H, -g)
             T = se2(*delta) @ T
-            if np.abs(delta).max() < 1e-4:
+            if abs(delta[0]) < 2e-5 and np.abs(delta[1:]).max() < 2e-3:  # 0.001 deg and 2 mm: converged
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
-    return (T if accepted else T_init), accepted
+    T_out = T if accepted else T_init
+    return Refined(T_out, accepted, fitness(T_out))
 
 
 # ---- box stage -------------------------------------------------------------------------------------------------
@@ -394,21 +415,31 @@ class BaselineAligner:
         res.inliers_bv = int(inliers.sum())
         if res.inliers_bv <= rule.min_inliers_bv:
             return finish("too_few_inliers_bv")
-        refined = False
+        ref = None
         if cfg.refine.enabled:
             with _timed(timings, "refine"):
-                T_bv, refined = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=m.seed)
+                ref = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=m.seed)
+            T_bv = ref.T
+            if ref.fitness < rule.min_refine_fitness:
+                return finish("inconsistent_overlap")
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:
             return finish("no_boxes" if rule.require_boxes else None)
         with _timed(timings, "boxes"):
             T_fit, res.inliers_box, pairs = box_stage(ego.boxes, peer.boxes, T_bv, cfg.box, seed=m.seed)
-        if pairs == 0:
-            return finish("no_box_overlap")
-        if res.inliers_box <= rule.min_inliers_box:
-            return finish("too_few_inliers_box")
+        failure = "no_box_overlap" if pairs == 0 else (
+            "too_few_inliers_box" if res.inliers_box <= rule.min_inliers_box else None)
+        if failure is not None:
+            strong = rule.strong_inliers_bv
+            return finish(None if strong is not None and res.inliers_bv > strong else failure)
         yaw, tx, ty = se2_params(T_fit)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish("box_correction_too_large")
-        if cfg.box.apply == "always" or not refined:  # else stage 2 only verifies the refined pose
+        refined = ref is not None and ref.accepted
+        if cfg.box.apply == "always" or not refined:
             T_box = T_fit
+        elif cfg.box.apply == "auto" and (np.hypot(tx, ty) >= BOX_VERIFY_M or abs(np.degrees(yaw)) >= BOX_VERIFY_DEG):
+            # A large box correction: refine again from the box-corrected pose, keep it if the images agree more.
+            alt = refine_pose(ego.bev, peer.bev, T_fit @ T_bv, cfg.refine, seed=m.seed)
+            if alt.accepted and alt.fitness > ref.fitness + BOX_BETTER_FITNESS:
+                T_box = alt.T @ np.linalg.inv(T_bv)
         return finish(None)

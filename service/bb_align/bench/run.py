@@ -90,12 +90,15 @@ class EngineRunner:
 
     def __init__(self, config: AlignConfig):
         self.aligner = Aligner(config)
-        self.refine_min_value = config.refine.min_pixel_value
+        self.config = config
 
     def prepare_ego(self, pair: BenchPair):
-        """Everything the service caches per ego frame (features and the BV cloud the refinement uses)."""
+        """Everything the service caches per ego frame: features, the descriptors matched against (all
+        orientation offsets) and the BV cloud the refinement uses."""
+        cfg = self.config
         ego = self.aligner.prepare(BevImage.from_png(pair.ego_png, **pair.bev_meta), pair.boxes_ego, keep_maps=True)
-        ego.cloud(self.refine_min_value)
+        ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
+        ego.cloud(cfg.refine.min_pixel_value)
         return ego
 
     def hot(self, pair: BenchPair, ego) -> tuple[Sample, Outcome]:
