@@ -101,6 +101,7 @@ def register(app: typer.Typer) -> None:
         plots: Optional[Path] = typer.Option(None, "--plots", file_okay=False, help="write PNG figures here"),
         records_out: Optional[Path] = typer.Option(None, "--records", help="write every pair's record (JSON lines)"),
         pose_noise: str = typer.Option("2,2", "--pose-noise", help="sigma_t (m), sigma_theta (deg) for the AP test"),
+        prior: bool = typer.Option(False, "--prior", help="also give the engine that noisy pose as a GNSS prior"),
         limit: Optional[int] = typer.Option(None, "--limit", min=1, help="evaluate at most this many pairs"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
         seed: int = typer.Option(0, "--seed", help="seed of the pose noise and of simulated detections"),
@@ -111,14 +112,14 @@ def register(app: typer.Typer) -> None:
         from .summary import summarize
 
         sigma_t, sigma_deg = _parse_noise(pose_noise)
-        cfg = EvalConfig(pose_noise_t_m=sigma_t, pose_noise_deg=sigma_deg, seed=seed)
+        cfg = EvalConfig(pose_noise_t_m=sigma_t, pose_noise_deg=sigma_deg, seed=seed, use_prior=prior)
         commit = _git_commit()  # the engine version measured (taken before the run: others may commit meanwhile)
         try:
             records = evaluate_dataset(root, cfg, limit=limit, workers=workers)
         except (ValueError, FileNotFoundError) as exc:
             raise typer.BadParameter(str(exc)) from exc
         summary = summarize(records)
-        summary["meta"] = {"root": str(root), "commit": commit, "pose_noise": [sigma_t, sigma_deg],
+        summary["meta"] = {"root": str(root), "commit": commit, "pose_noise": [sigma_t, sigma_deg], "prior": prior,
                            "seed": seed, "align_config": cfg.align.model_dump()}
         _print_summary(summary)
         if json_out is not None:
