@@ -32,3 +32,5 @@ bench-accuracy: $(STAMP)
 	$(VENV)/bin/bb-align sim $(BENCH_ACC_DIR) --scenarios 200 --seed 2024 --workers 2
 	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --json docs/accuracy/summary.json \
 		--records docs/accuracy/pairs.jsonl --plots docs/accuracy
+	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --prior \
+		--json docs/accuracy_prior/summary.json --records docs/accuracy_prior/pairs.jsonl
