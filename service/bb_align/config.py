@@ -43,7 +43,7 @@ class MimConfig(_Frozen):
     lowpass_order: int = Field(15, ge=1)
     min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
     fft_margin_px: int = Field(24, ge=0, description="zero margin around the image before the FFT (no wrap-around)")
-    threads: int = Field(1, ge=1, le=12, description="orientation groups computed in parallel (same result)")
+    threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
 
 
 class FeatureConfig(_Frozen):
