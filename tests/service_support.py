@@ -31,12 +31,13 @@ def free_port() -> int:
 FLEET_KEY = "test-fleet-key-0123456789abcdef"  # tests only
 
 
-def service_settings(zenoh: bool = True, **overrides) -> Settings:
+def service_settings(zenoh: bool = True, zenoh_config: dict | None = None, **overrides) -> Settings:
     """Loopback-only settings with a small BV range; Zenoh on a free port with multicast scouting off.
 
     The embedded demo profile (no authentication) and no receiver-clock stamp window by default: the synthetic
     scenes are stamped from 0 s. Security tests pass ``secure_settings`` instead."""
-    z = {"enabled": zenoh, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False}
+    z = {"enabled": zenoh, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False,
+         **(zenoh_config or {})}
     limits = {"check_stamp_clock": False, **overrides.pop("limits", {})}
     base = dict(profile="demo", port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)),
                 limits=limits)

@@ -26,8 +26,8 @@ from bb_align.settings import AuthSettings, Limits
 from bb_align.wire import (JSON, MSGPACK, BevMeta, Frame, WireError, check_png, load_align_request, load_frame,
                            pack, pack_align_request, sign, to_json)
 from bb_align_client import AlignClient, ServiceError, ZenohPeer, encode_frame, sign_frame
-from service_support import (FLEET_KEY, RANGE_M, moving_pair, running_service, secure_settings, service_settings,
-                             wait_for)
+from service_support import (FLEET_KEY, RANGE_M, free_port, moving_pair, running_service, secure_settings,
+                             service_settings, wait_for)
 
 LIMITS = Limits()
 KEYRING = Keyring(AuthSettings(fleet_key=FLEET_KEY, peer_keys={"car1": "car1-own-key-0123456789"}))
@@ -432,3 +432,54 @@ def test_openapi_fuzzing_finds_no_5xx_and_no_undocumented_response():
         assert httpx.get(f"{url}/readyz").status_code == 200  # still serving
     assert {"POST /v1/align", "POST /v1/frames", "GET /v1/peers", "GET /metrics"} <= set(seen)
     assert seen["POST /v1/frames"] & {400, 422} and not any(c >= 500 for cs in seen.values() for c in cs), seen
+
+
+# ---- Zenoh over mutual TLS --------------------------------------------------------------------------------------
+def _openssl(*args: str, cwd) -> None:
+    import subprocess
+
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
+
+
+@pytest.fixture(scope="module")
+def certificates(tmp_path_factory):
+    """A throw-away CA, a service certificate for localhost and a car's client certificate (openssl CLI)."""
+    import shutil
+
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command is not installed (needed to make test certificates)")
+    d = tmp_path_factory.mktemp("pki")
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+             "-subj", "/CN=bb-align test CA", cwd=d)
+    (d / "san.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    for name in ("service", "car1"):
+        _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj",
+                 f"/CN={name}", cwd=d)
+        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+                 "-out", f"{name}.pem", "-days", "2", "-extfile", "san.cnf", cwd=d)
+    return d
+
+
+def test_zenoh_mutual_tls_admits_a_car_with_a_certificate_and_no_other(pair, certificates):
+    d = certificates
+    ep = f"tls/localhost:{free_port()}"
+    tls = {"root_ca_certificate": str(d / "ca.pem"), "mtls": True}
+    settings = secure_settings(zenoh_config={"listen": [ep], "tls": {
+        **tls, "certificate": str(d / "service.pem"), "private_key": str(d / "service.key")}})
+    assert not settings.security_warnings()  # signed frames, loopback, TLS: nothing to shout about
+    _, ego, peer = pair[0]
+    with running_service(settings) as (app, url):
+        car_tls = {**tls, "certificate": str(d / "car1.pem"), "private_key": str(d / "car1.key")}
+        with ZenohPeer("car1", connect=[ep], key=FLEET_KEY, tls=car_tls, block_when_congested=True) as car, \
+                ZenohPeer("intruder", connect=[ep], key=FLEET_KEY, tls={"root_ca_certificate": str(d / "ca.pem")},
+                          block_when_congested=True) as intruder:
+            assert car.wait_for_subscriber(10)
+            assert not intruder.wait_for_subscriber(2.0)  # no client certificate: the link is refused
+            t0 = time.time()
+            with AlignClient(url, key=FLEET_KEY) as client:
+                client.post_frame(_enc(ego, "ego", 0, t0))
+            wait_for(lambda: len(app.state.service.cache) == 1, what="the ego frame")
+            res = car.request_align(_enc(peer, "car1", 0, t0), "ego", timeout=30)
+            assert res.success and res.peer_id == "car1"
+            intruder.publish(_enc(peer, "intruder", 0, t0))
+        assert "intruder" not in httpx.get(f"{url}/v1/peers").json()

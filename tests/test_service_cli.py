@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 
 from bb_align.cli import app
 from bb_align.settings import Settings
-from service_support import free_port, running_service, service_settings
+from service_support import FLEET_KEY, free_port, running_service, secure_settings
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent / "bb-align"
@@ -111,11 +111,12 @@ def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
 
 
 def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
-    settings = service_settings(align={})  # default engine configuration, as `bb-align serve`
+    # The secure path: default engine configuration, signed frames stamped on the clock, as `bb-align serve`.
+    settings = secure_settings(align={})
     with running_service(settings):
         out = CliRunner().invoke(app, ["demo", "--connect", settings.zenoh.listen[0], "--frames", "2",
                                        "--distance-m", "20", "--json", str(tmp_path / "demo.json"),
-                                       "--plot", str(tmp_path / "demo.png")])
+                                       "--plot", str(tmp_path / "demo.png"), "--key", FLEET_KEY])
     assert out.exit_code == 0, out.output
     report = json.loads((tmp_path / "demo.json").read_text())
     assert report["summary"]["results"] == 2 and report["summary"]["peer_frames_sent"] == 2
@@ -161,4 +162,6 @@ def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch)
     demo = services["demo"]
     assert demo["entrypoint"] == ["bb-align", "demo"]
     get_command(app).commands["demo"].make_context("demo", list(demo["command"]))  # options exist and parse
+    assert s.auth.mode == "hmac" and s.startup_problem() is None  # the container runs with a fleet key
+    assert "BBALIGN_AUTH__FLEET_KEY" in demo["environment"]
     assert "--no-multicast-scouting" in services["zenohd"]["command"]

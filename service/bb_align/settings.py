@@ -123,8 +123,9 @@ class Limits(BaseModel):
     max_stamp_lead_s: float = Field(2.0, ge=0, description="a frame stamped this much after the receiver's clock "
                                     "is refused (clock offset between cars)")
     max_pose_m: float = Field(1.0e7, gt=0, description="|x|, |y|, |z| of a reported pose")
-    max_peers: int = Field(64, ge=1, description="distinct senders tracked at once (only authenticated, valid "
-                           "frames create one); when full, the longest idle one is evicted if idle, else refused")
+    max_peers: int = Field(64, ge=1, description="distinct senders tracked at once besides the ego (only "
+                           "authenticated, valid frames create one); when full, a new sender is refused (503) until "
+                           "an idle one is forgotten")
     peer_idle_s: float = Field(60.0, gt=0, description="a sender silent this long is forgotten (queues, replay "
                                "state, metrics labels, bandwidth tallies)")
     intake_queue: int = Field(64, ge=1, description="raw Zenoh messages waiting for the gate (oldest dropped)")

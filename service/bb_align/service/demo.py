@@ -122,11 +122,10 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
     }
 
 
-def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, encode_frame):
-    """Simulate and encode every frame up front (so publishing keeps its pace): per frame, (name, bytes) with
-    the ego first; the true and the reported (noisy) poses by (seq, name)."""
+def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_frame):
+    """Simulate and build every frame up front (so publishing keeps its pace): per frame, (name, Frame) with the
+    ego first; the true and the reported (noisy) poses by (seq, name). Stamps are set when a frame is published."""
     frames, truth, reported = [], {}, {}
-    t_base = time.time()  # stamps on the wall clock: a later run never pairs with an earlier run's ego frames
     order = ["0"] + [a for a in scenario.agent_ids if a != "0"]
     for i in tqdm(range(n_frames), desc="simulating and encoding", unit="frame"):
         frame = scenario.frame(i, DT_S)
@@ -135,8 +134,8 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, encode_f
             agent, name = frame.agents[aid], names[aid]
             truth[(i, name)] = agent.T_world_sensor
             reported[(i, name)] = _noisy(agent.T_world_sensor, rng)
-            msgs.append((aid, encode_frame(agent.points, agent.boxes, vehicle_id=name, stamp=t_base + frame.stamp, seq=i,
-                                           pose=reported[(i, name)], scores=np.clip(agent.scores, 0, 1), **bev)))
+            msgs.append((aid, make_frame(agent.points, agent.boxes, vehicle_id=name, stamp=0.0, seq=i,
+                                         pose=reported[(i, name)], scores=np.clip(agent.scores, 0, 1), **bev)))
         frames.append(msgs)
     return frames, truth, reported
 
@@ -148,7 +147,10 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
     """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
     service's results against the truth. Every wait is bounded by timeout_s. ``key``: the fleet key, when the
     service requires signed frames."""
-    from bb_align_client import ZenohPeer, encode_frame
+    from bb_align_client import ZenohPeer
+    from bb_align_client.encode import make_frame
+
+    from ..wire import pack
 
     from ..sim import Scenario
 
@@ -156,7 +158,7 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
     scenario = Scenario(seed, n_agents, distance_m)
     names = {aid: (ego_id if aid == "0" else f"car{aid}") for aid in scenario.agent_ids}
     frames, truth, reported = _encode_scene(scenario, names, n_frames, {} if range_m is None else
-                                            {"range_m": range_m}, np.random.default_rng([seed, 99]), encode_frame)
+                                            {"range_m": range_m}, np.random.default_rng([seed, 99]), make_frame)
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
     n_sent = 0
@@ -190,7 +192,9 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
         with Live(_table(rows, title), console=console, refresh_per_second=4) as live:
             t0 = time.monotonic()
             for i, msgs in enumerate(frames):
-                for aid, data in msgs:
+                stamp = time.time()  # the cars' common clock at capture: checked by the service against its own
+                for aid, frame in msgs:
+                    data = pack(frame.model_copy(update={"stamp": stamp}))
                     sent[(names[aid], i)] = {"t": time.perf_counter(), "reported": reported[(i, names[aid])]}
                     cars[aid].publish(data)
                     if aid != "0":
