@@ -115,3 +115,14 @@ def test_prior_pose_gates_matches(world):
     wrong = se2(yaw + np.pi / 2, tx + 40.0, ty)  # a prior far from the truth leaves no consistent evidence
     res = aligner.align(ego, peer, T_prior=wrong)
     assert not res.success
+
+
+def test_warm_reference_gives_the_same_result(world):
+    pts_ego, boxes_ego, pts_peer, boxes_peer, _ = _pair(world, 70.0, (20.0, 4.0))
+    aligner = Aligner()
+    cold = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, boxes_peer))
+    ego = aligner.warm(aligner.prepare(pts_ego, boxes_ego))
+    assert ego._reference is not None and ego._cloud is not None
+    warm = aligner.align(ego, aligner.prepare(pts_peer, boxes_peer))
+    np.testing.assert_array_equal(cold.T_ego_peer, warm.T_ego_peer)
+    assert warm.timings_ms["matching"] < cold.timings_ms["matching"] + 1000  # sanity: no rebuild error

@@ -43,8 +43,10 @@ def _rotated_grids(patch: int, grid: int, n_orient: int, width: int, stride: int
     offsets = np.empty((n_orient, len(idx) ** 2), dtype=np.int64)
     for m0 in range(n_orient):
         a = m0 * np.pi / n_orient
-        rr = np.floor(dr * np.cos(a) - dc * np.sin(a) + 0.5).astype(np.int64)
-        cc = np.floor(dc * np.cos(a) + dr * np.sin(a) + 0.5).astype(np.int64)
+        # Exact cos/sin at quarter turns (cos(pi/2) = 6e-17 would break the half-pixel ties unevenly).
+        c, sn = np.round(np.cos(a), 12), np.round(np.sin(a), 12)
+        rr = np.floor(dr * c - dc * sn + 0.5).astype(np.int64)
+        cc = np.floor(dc * c + dr * sn + 0.5).astype(np.int64)
         offsets[m0] = rr * width + cc
     cell_px = patch // grid
     ci = np.minimum(idx // cell_px, grid - 1)

@@ -116,6 +116,14 @@ class Aligner:
             _maps=(mim, amp),
         )
 
+    def warm(self, prepared: PreparedFrame) -> PreparedFrame:
+        """Build now what a frame needs as the matched-against (ego) side: the reference descriptors and the
+        lit-pixel cloud of the refinement. Otherwise the first alignment against it pays for them."""
+        prepared.reference_descriptors(self.config.features, self.config.mim.n_orient)
+        if self.config.refine.enabled:
+            prepared.cloud(self.config.refine.min_pixel_value)
+        return prepared
+
     def _at_resolution(self, bev: BevImage) -> BevImage:
         """Descriptors are in pixels: bring a peer image made at another resolution to the configured one."""
         want = self.config.bev.resolution_m
@@ -254,7 +262,8 @@ class Aligner:
             return
         # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
         # Refine again from the box-corrected pose and keep whichever pose the BV images agree with more.
-        alt = self._refine(ego, peer_pts, T_box @ result.T_bv)
+        with _timed(result.timings_ms, "refine"):
+            alt = self._refine(ego, peer_pts, T_box @ result.T_bv)
         if alt.accepted and alt.fitness > result.refine_fitness + 0.01:
             result.notes.append(f"stage 2 moved the pose to a better BV overlap ({result.refine_fitness:.2f} -> "
                                 f"{alt.fitness:.2f}), refined again")

@@ -362,7 +362,7 @@ class AlignService:
                                         notes=[f"{type(error).__name__}: {error}"[:300]], bytes_received=job.nbytes))
 
     def _prepare_entry(self, entry) -> PreparedFrame:
-        return self._prepare(entry.frame, "prepare_ego", entry.bev)
+        return self.aligner.warm(self._prepare(entry.frame, "prepare_ego", entry.bev))
 
     def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:
         t0 = time.perf_counter()
