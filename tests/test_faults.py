@@ -269,3 +269,23 @@ def test_a_peer_frame_from_an_unrelated_place_is_not_a_confident_pose():
             for aid in ("0", "1"):  # both cars of the other scene, against this ego frame
                 res = client.align(enc(scene_b.agents[aid], f"stranger{aid}"), enc(ego, "ego"))
                 assert not res.success or res.confidence < 0.5, json.dumps(res.model_dump(), default=str)[:500]
+
+
+def test_a_request_whose_caller_gave_up_does_not_cost_a_worker(pair):
+    """REST gives up after request_timeout_s (504); the worker that later finishes the job finds nobody to answer
+    and goes on serving."""
+    stamp, ego, peer = pair[0]
+    settings = service_settings(zenoh=False, workers=1, request_timeout_s=0.01)
+    with running_service(settings) as (app, url):
+        service = app.state.service
+        with AlignClient(url) as client:
+            with pytest.raises(ServiceError) as e:
+                client.align(_enc(peer, "car1", 0, 0.0), _enc(ego, "ego", 0, 0.0))
+            assert (e.value.status, e.value.body.error) == (504, "timeout")
+            wait_for(lambda: service.scheduler.pending() == 0 and service.peers()["car1"].results == 1, 60,
+                     "the abandoned job")
+            assert service.running
+            client.post_frame(_enc(ego, "ego", 1, 0.0))
+            client.post_frame(_enc(peer, "car1", 1, 0.0))
+            wait_for(lambda: service.peers()["car1"].results == 2, 60, "a stream frame's result")
+            assert service.peers()["car1"].last_result.success

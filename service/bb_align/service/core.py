@@ -144,7 +144,7 @@ class AlignService:
 
     def _never_ran(self, job: Job) -> None:
         if job.reply is not None:
-            job.reply(Unavailable("the service is shutting down"))
+            _answer(job, Unavailable("the service is shutting down"))
         elif job.task == "frame":
             self._count_drop(job.sender if job.frame is not None else UNVERIFIED)
 
@@ -198,11 +198,11 @@ class AlignService:
         for old in pushed_out:
             if old is job and self.intake.closed:
                 if job.reply is not None:
-                    job.reply(Unavailable("the service is shutting down"))
+                    _answer(job, Unavailable("the service is shutting down"))
                 return False
             if old.reply is not None:
-                old.reply(WireError(503, "overloaded", "the intake queue is full, retry later", "intake",
-                                    self.settings.limits.intake_queue))
+                _answer(old, WireError(503, "overloaded", "the intake queue is full, retry later", "intake",
+                                       self.settings.limits.intake_queue))
                 self.metrics.rejected.labels(old.door, "overloaded").inc()
             elif old.sender in self.peer_table:
                 self._count_drop(old.sender, "intake_dropped")
@@ -237,17 +237,17 @@ class AlignService:
                     job.sender = job.frame.vehicle_id
                     self._admit(job, REQUEST)
                     if not self._queue_request(job):
-                        job.reply(WireError(503, "overloaded", "the request queue is full, retry later",
-                                            "requests", self.settings.max_pending_requests))
+                        _answer(job, WireError(503, "overloaded", "the request queue is full, retry later",
+                                               "requests", self.settings.max_pending_requests))
             except WireError as e:
                 self._refused(job, e)
                 if job.reply is not None:
-                    job.reply(e)
+                    _answer(job, e)
             except Exception as e:  # a bug must not stop the gate; the message is refused and logged
                 log.exception("the gate failed on a message from %s", job.sender or "?")
                 self.metrics.rejected.labels(job.door, "internal").inc()
                 if job.reply is not None:
-                    job.reply(e)
+                    _answer(job, e)
 
     def _admit(self, job: Job, channel: str) -> None:
         """Track the sender (replays and a full table refused) and account the message's bytes."""
@@ -338,7 +338,7 @@ class AlignService:
                 if job.reply is None:  # a stream frame still gets a result, saying that it failed
                     outcome = self._failed(job, outcome)
             if job.reply is not None:
-                job.reply(outcome)
+                _answer(job, outcome)
             elif isinstance(outcome, Result):
                 for publish in self.publishers:
                     try:
@@ -441,6 +441,14 @@ class AlignService:
         if self.peer_table.update(result.peer_id, record):  # an evicted peer leaves no labels behind
             self.metrics.alignments.labels(result.peer_id, outcome).inc()
         return result
+
+
+def _answer(job: Job, outcome: object) -> None:
+    """Hand a request its answer; a caller that is gone (e.g. a REST request that timed out) is not an error."""
+    try:
+        job.reply(outcome)
+    except Exception as e:
+        log.info("a request from %s could not be answered (%s: %s)", job.sender or "?", type(e).__name__, e)
 
 
 def _encode(frame: Frame, encoding: str) -> bytes:
