@@ -131,3 +131,16 @@ def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
                               _ego(0, 0).model_copy(update={"pose": peer_pose}))
     np.testing.assert_allclose([tz, r, p], [T_rel[2, 3], roll, pitch], atol=1e-12)
     assert relative_prior(_ego(0, 0), _ego(0, 0)) is None
+
+
+def test_nearest_ready_entry_within_the_skew():
+    from bb_align.service.cache import EgoCache
+
+    cache = EgoCache(5)
+    entries = [cache.add(_ego(0.1 * i, i), None) for i in range(4)]
+    assert cache.nearest_ready(0.31, 0.15) is None  # nothing prepared yet
+    entries[1].features(lambda e: "features-1")
+    entries[2].features(lambda e: "features-2")
+    assert cache.nearest_ready(0.31, 0.15) is entries[2]
+    assert cache.nearest_ready(0.05, 0.15) is entries[1]
+    assert cache.nearest_ready(0.9, 0.15) is None  # the prepared ones are too far in time

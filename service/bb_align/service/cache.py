@@ -61,6 +61,12 @@ class EgoCache:
                 best = e
         return best
 
+    def nearest_ready(self, stamp: float, max_skew: float) -> EgoEntry | None:
+        """The entry nearest in time to ``stamp`` among those whose features are computed, within ``max_skew``."""
+        with self._lock:
+            entries = [e for e in self._entries if e.ready and abs(e.stamp - stamp) <= max_skew]
+        return min(reversed(entries), key=lambda e: abs(e.stamp - stamp), default=None)
+
     def __len__(self) -> int:
         with self._lock:
             return len(self._entries)
