@@ -69,7 +69,8 @@ class ZenohSettings(BaseModel):
     prefix: str = Field("bbalign", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$",
                         description="first key-expression chunk(s): <prefix>/frames/<vehicle_id>, ...")
     tls: ZenohTls = Field(default_factory=ZenohTls, description="certificates for tls/ endpoints")
-    max_message_bytes: int | None = Field(None, ge=1024, description="Zenoh drops larger messages while "
+    max_message_bytes: int | None = Field(None, ge=1024, description="backstop: Zenoh drops messages far larger "
+                                          "than this (its reassembly limit is set to this + 64 KiB) while "
                                           "reassembling them (None: Zenoh's default, 1 GiB)")
 
     @field_validator("listen", "connect")
@@ -205,7 +206,7 @@ class Settings(BaseSettings):
     def _demo_profile_turns_auth_off(self) -> "Settings":
         if self.profile == "demo":
             self.auth = self.auth.model_copy(update={"mode": "off"})
-        if self.zenoh.max_message_bytes is None:  # Zenoh itself refuses what the validator would refuse
+        if self.zenoh.max_message_bytes is None:  # Zenoh's own reassembly limit backs up the door's size check
             self.zenoh = self.zenoh.model_copy(update={"max_message_bytes": self.limits.max_message_bytes})
         return self
 

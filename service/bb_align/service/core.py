@@ -257,7 +257,7 @@ class AlignService:
     def _refused(self, job: Job, e: WireError) -> None:
         e.counted = True  # the REST door counts the refusals it raises itself, not these again
         self.metrics.rejected.labels(job.door, e.error).inc()
-        self._log_refusal(job.door, e.error, "refused a message from %s on %s: %s", job.sender or "?", job.door, e)
+        self._log_refusal(job.door, e.error, "refused a message from %r on %s: %s", job.sender or "?", job.door, e)
 
     def _accept_stream(self, job: Job) -> bool:
         """An admitted stream frame: the ego's goes into the cache at once (a PNG decode, on the caller's thread,
