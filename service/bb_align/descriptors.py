@@ -54,18 +54,6 @@ def _rotated_grids(patch: int, grid: int, n_orient: int, width: int, stride: int
     return offsets, cell
 
 
-@lru_cache(maxsize=4)
-def _shift_table(n_orient: int, merge_bins: bool) -> np.ndarray:
-    """lut[m, v] = histogram bin of MIM value v after the shift v' = ((v - m) mod No) + 1; n_bins for v = 0."""
-    n_bins = n_orient // 2 if merge_bins else n_orient
-    lut = np.full((n_orient + 1, n_orient + 1), n_bins, dtype=np.int64)
-    for m in range(n_orient + 1):
-        for v in range(1, n_orient + 1):
-            v_shift = (v - max(m, 1)) % n_orient + 1
-            lut[m, v] = (v_shift - 1) // 2 if merge_bins else v_shift - 1
-    return lut
-
-
 def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int,
                          stride: int = 1) -> np.ndarray:
     """(K,) dominant orientation m in 1..No per keypoint (0 when the disc holds no MIM value).
@@ -115,18 +103,24 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
 
     width = mim.shape[1] + 2 * radius
     offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width, cfg.window_stride)
-    lut = _shift_table(n_orient, cfg.merge_bins)
     mim_p = np.pad(mim, radius).ravel()
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
-    desc = np.empty((k, n_cells * n_bins), dtype=np.float32)
+    # Raw histograms of MIM values (0..No) per keypoint and cell; the same bin layout serves every chunk.
+    slots = n_orient + 1
+    cell_base = (np.arange(_CHUNK)[:, None] * n_cells + cell[None, :]) * slots
+    raw = np.empty((k, n_cells, slots), dtype=np.float32)
     for s in range(0, k, _CHUNK):
         mm = m[s : s + _CHUNK]
         n = len(mm)
-        v = mim_p.take(base[s : s + n, None] + offsets[np.maximum(mm, 1) - 1])  # (n, J*J) rotated window
-        b = lut[mm[:, None], v]  # shifted-value bin, n_bins for empty pixels
-        idx = ((np.arange(n)[:, None] * n_cells + cell[None, :]) * (n_bins + 1) + b).ravel()
-        counts = np.bincount(idx, minlength=n * n_cells * (n_bins + 1)).reshape(n, n_cells, n_bins + 1)
-        desc[s : s + n] = counts[:, :, :n_bins].reshape(n, -1)
+        v = mim_p.take(base[s : s + n, None] + offsets[np.maximum(mm, 1) - 1])  # (n, S) rotated window
+        raw[s : s + n] = np.bincount((cell_base[:n] + v).ravel(), minlength=n * n_cells * slots).reshape(
+            n, n_cells, slots)
+    # The value shift v' = ((v - m) mod No) + 1 only permutes the bins 1..No: apply it to the small histograms.
+    shifted_from = (np.arange(n_orient)[None, :] + np.maximum(m, 1)[:, None] - 1) % n_orient + 1  # (K, No)
+    hist = np.take_along_axis(raw, shifted_from[:, None, :], axis=2)  # (K, cells, No), bin j = value j+1
+    if cfg.merge_bins:
+        hist = hist.reshape(k, n_cells, n_bins, 2).sum(axis=3)
+    desc = np.ascontiguousarray(hist.reshape(k, -1))
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
     return desc / np.maximum(norm, 1e-12)
 
