@@ -42,7 +42,8 @@ class MimConfig(_Frozen):
     lowpass_cutoff: float = Field(0.45, gt=0, le=0.5)
     lowpass_order: int = Field(15, ge=1)
     min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
-    fft_margin_px: int = Field(24, ge=0, description="zero margin around the image before the FFT (no wrap-around)")
+    fft_margin_px: int = Field(16, ge=0, description="zero margin around the image before the FFT (no wrap-around; "
+                               "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)")
     threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
 
 
