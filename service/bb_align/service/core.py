@@ -422,6 +422,10 @@ class AlignService:
                 notes=[f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s"]))
         if not wait:
             return entry.frame, None
+        if not entry.ready and s.prefer_prepared_ego:
+            # An ego frame already prepared and within the skew saves a whole prepare (the result names the
+            # ego frame it used): under load the ego stream is then prepared only as often as peers need it.
+            entry = self.cache.nearest_ready(peer.stamp, s.max_ego_skew_s) or entry
         t0 = time.perf_counter()
         prepared = entry.features(self._prepare_entry)
         timings["ego_features"] = (time.perf_counter() - t0) * 1e3  # waited for, or computed here
