@@ -92,7 +92,9 @@ class RefineConfig(_Frozen):
 
     enabled: bool = True
     gates_m: tuple[float, ...] = Field((2.0, 1.0, 0.5, 0.4), description="correspondence gates, coarse to fine")
-    iters_per_gate: int = Field(6, ge=1, le=50)
+    iters_per_gate: int = Field(3, ge=1, le=50)
+    step_relaxation: float = Field(2.0, ge=1.0, le=3.0,
+                                   description="a Gauss-Newton step continuing the previous one is lengthened so")
     min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
     max_peer_points: int = Field(2000, ge=100, description="seeded random subset of the peer's lit pixels")
     max_correction_m: float = Field(2.0, gt=0)

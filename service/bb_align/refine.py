@@ -57,12 +57,16 @@ class Refinement:
 
 
 def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(2.0, 1.0, 0.5, 0.4),
-               iters_per_gate: int = 6, point_weight: float = 0.1, max_correction_m: float = 2.0,
+               iters_per_gate: int = 3, relax: float = 2.0, point_weight: float = 0.1, max_correction_m: float = 2.0,
                max_correction_deg: float = 3.0) -> Refinement:
-    """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer)."""
+    """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer).
+
+    ICP creeps along shallow valleys in small steps of the same direction; a step that continues the previous
+    one is lengthened by ``relax`` (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24)."""
     T = np.array(T_init, dtype=float)
     if len(ego.xy) < 10 or len(pts_peer) < 10:
         return Refinement(T, *overlap_fitness(ego, pts_peer, T, gates[-1]), False)
+    prev = None
     for gate in gates:
         for _ in range(iters_per_gate):
             p = pts_peer @ T[:2, :2].T + T[:2, 2]
@@ -83,6 +87,9 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
             H = (jac_line.T * w_line) @ jac_line + pw2 * (jac_x.T @ jac_x + jac_y.T @ jac_y)
             g = (jac_line.T * w_line) @ r_line + pw2 * (jac_x.T @ diff[:, 0] + jac_y.T @ diff[:, 1])
             delta = np.linalg.solve(H, -g)
+            if prev is not None and float(delta @ prev) > 0:  # the same way again: ICP creeps along a valley
+                delta = delta * relax
+            prev = delta
             T = se2(delta[0], delta[1], delta[2]) @ T
             if np.abs(delta[0]) < 2e-5 and np.abs(delta[1:]).max() < 2e-3:  # 0.001 deg, 2 mm: converged
                 break
