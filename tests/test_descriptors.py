@@ -56,3 +56,19 @@ def test_half_turn_gives_the_flipped_descriptor(scene):
     flipped = np.median((flip_180(d0) * d1).sum(1))
     assert flipped > 0.97, "the 180-degree copy must match the half-turned scene"
     assert flipped > same + 0.1, "and it must be needed: the plain descriptor matches worse"
+
+
+def test_threaded_prepare_gives_the_same_features():
+    from bb_align import AlignConfig, Aligner
+    from bb_align.config import MimConfig
+
+    img = _segments_image(size=320, seed=3)
+    from bb_align.bev import BevImage
+
+    bev = BevImage(img, resolution_m=0.4, range_m=64.0)
+    one = Aligner(AlignConfig(mim=MimConfig(threads=1), features=FeatureConfig(threads=1))).prepare(bev)
+    two = Aligner(AlignConfig(features=FeatureConfig(threads=3))).prepare(bev)
+    np.testing.assert_array_equal(one.descriptors, two.descriptors)
+    np.testing.assert_array_equal(one.keypoints_rc, two.keypoints_rc)
+    np.testing.assert_array_equal(one.reference_descriptors(one_cfg := FeatureConfig(threads=1), 12),
+                                  two.reference_descriptors(one_cfg, 12))

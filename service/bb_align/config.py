@@ -60,6 +60,7 @@ class FeatureConfig(_Frozen):
         "orientation were these neighbouring bins: a peer whose orientation estimate is one bin off still finds "
         "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)")
     window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
+    threads: int = Field(2, ge=1, le=16, description="keypoint groups described in parallel (same result)")
     orientation_stride: int = Field(
         2, ge=1, le=4, description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
         "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)")

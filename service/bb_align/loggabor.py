@@ -8,7 +8,6 @@ strongest amplitude is negligible). The 1/(H W) of the inverse transform is fold
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 
 import cv2
@@ -16,6 +15,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from .config import MimConfig
+from .parallel import run_parts
 
 
 def frequency_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -78,12 +78,6 @@ def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
     return tuple(cv2.getOptimalDFTSize(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
 
 
-@lru_cache(maxsize=1)
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """Shared worker threads for the orientation groups (OpenCV releases the GIL in its transforms)."""
-    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bb-align-mim")
-
-
 def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int, int]]:
     h, w = image.shape
     m = cfg.fft_margin_px
@@ -135,7 +129,7 @@ def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
     def run(group):
         return _running_max(orientation_amplitudes(image, cfg, group, spectrum), image.shape)
 
-    parts = list(_pool(len(groups)).map(run, groups)) if len(groups) > 1 else [run(groups[0])]
+    parts = run_parts(run, groups)
     mim, max_amp = parts[0]
     for part_mim, part_max in parts[1:]:
         better = cv2.compare(part_max, max_amp, cv2.CMP_GT)

@@ -27,6 +27,7 @@ from .geometry import se2, se2_params, se3_from_se2
 from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
 from .matching import match_descriptors, match_with_prior
+from .parallel import run_parts
 from .ransac import rigid_ransac
 from .refine import BevCloud, Refinement, bev_cloud, bev_points, refine_icp
 from .result import AlignResult, FailureReason
@@ -54,12 +55,13 @@ class PreparedFrame:
         offset in ``features.reference_orientation_offsets`` the descriptors and their 180-degree copies,
         (2 x offsets x K, D); row i describes keypoint i % K. Built on first use (an ego frame pays it once)."""
         if self._reference is None:
-            sets = []
-            for offset in features.reference_orientation_offsets:
-                d = self.descriptors if offset == 0 else bvft_descriptors(
-                    *self._maps, self.keypoints_rc, features, n_orient, orientation_offset=offset)
-                sets += [d, self.descriptors_flipped if offset == 0 else flip_180(d, features)]
-            self._reference = np.concatenate(sets)
+            def describe(offset: int) -> list[np.ndarray]:
+                if offset == 0:
+                    return [self.descriptors, self.descriptors_flipped]
+                d = bvft_descriptors(*self._maps, self.keypoints_rc, features, n_orient, orientation_offset=offset)
+                return [d, flip_180(d, features)]
+
+            self._reference = np.concatenate(sum(run_parts(describe, features.reference_orientation_offsets), []))
         return self._reference
 
     def cloud(self, min_value: int = 1) -> BevCloud:
@@ -118,7 +120,9 @@ class Aligner:
         with _timed(timings, "keypoints"):
             rc = detect_keypoints(bev.image, cfg.features)
         with _timed(timings, "descriptors"):
-            desc = bvft_descriptors(mim, amp, rc, cfg.features, cfg.mim.n_orient)
+            parts = [p for p in np.array_split(rc, cfg.features.threads) if len(p)] or [rc]
+            desc = np.concatenate(run_parts(
+                lambda part: bvft_descriptors(mim, amp, part, cfg.features, cfg.mim.n_orient), parts))
             desc_flip = flip_180(desc, cfg.features)
         return PreparedFrame(
             bev=bev,
