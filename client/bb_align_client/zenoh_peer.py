@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import queue
+import threading
 import time
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import zenoh
@@ -13,6 +15,21 @@ from bb_align.wire import ErrorBody, Result, align_key, frames_key, load_result,
 
 from .encode import sign_frame
 from .errors import ServiceError
+
+
+@dataclass
+class ArrivalLog:
+    """A subscriber callback for harnesses: records (arrival time, payload bytes) of every sample, nothing else
+    (callbacks run on Zenoh's threads). ``items`` is read under ``lock``."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    items: list[tuple[float, bytes]] = field(default_factory=list)
+
+    def __call__(self, sample) -> None:
+        t = time.perf_counter()
+        data = sample.payload.to_bytes()
+        with self.lock:
+            self.items.append((t, data))
 
 
 class PoseStream:

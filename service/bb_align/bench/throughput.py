@@ -14,10 +14,9 @@ import secrets
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -202,18 +201,6 @@ def _tail(path: Path, n: int = 800) -> str:
 
 
 # ---- one load run ---------------------------------------------------------------------------------------------
-@dataclass
-class _Received:
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    items: list[tuple[float, bytes]] = field(default_factory=list)
-
-    def __call__(self, sample) -> None:  # Zenoh thread: record only
-        t = time.perf_counter()
-        data = sample.payload.to_bytes()
-        with self.lock:
-            self.items.append((t, data))
-
-
 def _pct(values, qs=(50, 90, 99)) -> dict[str, float]:
     v = np.asarray(values, dtype=float)
     if len(v) == 0:
@@ -225,6 +212,7 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
     """Publish ego + n_peers frames at cfg.rate_hz for warmup + seconds; return the measured run."""
     import zenoh
     from bb_align_client import ZenohPeer
+    from bb_align_client.zenoh_peer import ArrivalLog
 
     from ..settings import ZenohSettings
     from ..wire import load_result, pack, poses_key
@@ -233,7 +221,7 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
     n_warm = int(round(cfg.warmup_s * cfg.rate_hz))
     n_ticks = n_warm + int(round(cfg.seconds * cfg.rate_hz))
     streams = cars[: 1 + n_peers]
-    received = _Received()
+    received = ArrivalLog()
     sent: dict[tuple[str, int], tuple[float, int]] = {}  # (peer id, seq) -> (publish time, frame index)
     listener = zenoh.open(ZenohSettings(listen=[], connect=[svc.zenoh_endpoint], multicast_scouting=False,
                                         prefix=PREFIX).to_zenoh_config())

@@ -26,11 +26,10 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import zlib
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -203,18 +202,6 @@ class Sender:
 
 
 # ---- the run ---------------------------------------------------------------------------------------------------
-@dataclass
-class _Results:
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    items: list[tuple[float, bytes]] = field(default_factory=list)
-
-    def __call__(self, sample) -> None:  # Zenoh thread: record only
-        t = time.perf_counter()
-        data = sample.payload.to_bytes()
-        with self.lock:
-            self.items.append((t, data))
-
-
 def _metrics(rest: str, token: str | None = None) -> dict[str, float]:
     import httpx
 
@@ -255,6 +242,7 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
     import httpx
     import zenoh
     from bb_align_client import ZenohPeer
+    from bb_align_client.zenoh_peer import ArrivalLog
     from tqdm import tqdm
 
     from ..settings import ZenohSettings
@@ -270,7 +258,7 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
             raise ValueError("targeting a running service needs its REST address and fleet key")
         target = Target(connect, rest, key, pid=pid)
     sender = Sender(target.key, max_message_bytes, rng)
-    results = _Results()
+    results = ArrivalLog()
     sent_at: dict[tuple[str, int], float] = {}
     sent = Counter()  # kind -> messages ("valid", "valid_ego", attack kinds)
     valid_per_peer = Counter()
