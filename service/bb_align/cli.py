@@ -19,9 +19,11 @@ def main() -> None:
 
 @app.command()
 def align(
-    ego_cloud: Path = typer.Argument(..., exists=True, dir_okay=False, help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd"),
+    ego_cloud: Path = typer.Argument(..., exists=True, dir_okay=False,
+                                     help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd"),
     peer_cloud: Path = typer.Argument(..., exists=True, dir_okay=False, help="peer cloud, same formats"),
-    ego_boxes: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="ego boxes: JSON or CSV x,y,z,l,w,h,yaw"),
+    ego_boxes: Optional[Path] = typer.Option(None, exists=True, dir_okay=False,
+                                             help="ego boxes: JSON or CSV x,y,z,l,w,h,yaw"),
     peer_boxes: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="peer boxes: JSON or CSV"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
     plot: Optional[Path] = typer.Option(None, help="write a diagnostic PNG (matches and aligned overlay)"),

@@ -110,9 +110,11 @@ class BoxConfig(_Frozen):
         description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 estimates T_box and counts "
         "Inliers_box for the success rule, but applies its correction only when the dense BV refinement did not "
         "run or was rejected (box corners from a noisy detector are less precise than the refined images). auto: "
-        "as unrefined, but a box correction over 0.2 m / 0.2 deg is refined again on the BV images and kept when "
-        "the images agree with it better (a refinement stuck in a local optimum); docs/engine.md",
+        "as unrefined, but a box correction over recheck_m / recheck_deg is refined again on the BV images and "
+        "kept when the images agree with it better (a refinement stuck in a local optimum); docs/engine.md",
     )
+    recheck_m: float = Field(0.5, ge=0, description="auto: box corrections beyond this are re-refined and compared")
+    recheck_deg: float = Field(0.5, ge=0, description="auto: likewise for the yaw correction")
     pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
     inlier_threshold_m: float = Field(0.8, gt=0)
     max_iterations: int = Field(500, ge=10)

@@ -203,8 +203,9 @@ class Aligner:
                                                   ratio=cfg.match.ratio)
             else:
                 yaw, tx, ty = se2_params(T_prior)
+                xy_ego = np.tile(ego.keypoints_xy, (len(desc_ego) // n_ego, 1))  # row i is keypoint i % K
                 i_peer, i_ego = match_with_prior(
-                    peer.descriptors, desc_ego, peer.keypoints_xy, np.tile(ego.keypoints_xy, (len(desc_ego) // n_ego, 1)),
+                    peer.descriptors, desc_ego, peer.keypoints_xy, xy_ego,
                     se2(yaw, tx, ty), max_translation=cfg.prior.max_translation_m,
                     max_yaw_rad=np.radians(cfg.prior.max_yaw_deg), top_k=cfg.prior.top_k)
                 result.notes.append("matches gated by the prior pose")
@@ -285,7 +286,8 @@ class Aligner:
             result.T_box, result.stage2_applied = T_box, True
             return
         yaw, tx, ty = se2_params(T_box)
-        if mode == "unrefined" or (np.hypot(tx, ty) < 0.2 and abs(np.degrees(yaw)) < 0.2):
+        box = self.config.box
+        if mode == "unrefined" or (np.hypot(tx, ty) <= box.recheck_m and abs(np.degrees(yaw)) <= box.recheck_deg):
             result.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
             return
         # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
