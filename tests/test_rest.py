@@ -185,3 +185,35 @@ def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
     p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
     assert not res.success, "a false reported pose must not produce a confident pose near it"
+
+
+def test_peer_frame_arriving_before_its_ego_frame_still_gets_it(server, pair):
+    """The ego frame of a sweep travels in another Zenoh session and may arrive after the peer's: a peer frame
+    newer than every cached ego frame is prepared first and matched after. The ego frame is made to arrive
+    exactly while the peer frame is being prepared (deterministic stand-in for the race)."""
+    from bb_align.wire import load_frame
+
+    app, http = server
+    service = app.state.service
+    stamp0, ego0, _ = pair[0]
+    stamp1, ego1, peer1 = pair[2]  # 0.2 s after the cached ego frame: beyond the 0.15 s skew
+    assert stamp1 - stamp0 > service.settings.max_ego_skew_s
+    http.post("/v1/frames", content=_enc(ego0, "ego", stamp0, 0), headers=MSGPACK_CT)
+    _wait_ego_frames(http, 1)
+    late_ego = _enc(ego1, "ego", stamp1, 1)
+    original = service._prepare
+
+    def prepare_while_the_ego_frame_lands(frame, step, bev=None):
+        if step == "prepare_peer":
+            service.submit_frame(load_frame(late_ego, service.settings.limits), len(late_ego))
+        return original(frame, step, bev)
+
+    service._prepare = prepare_while_the_ego_frame_lands
+    try:
+        r = http.post("/v1/align", content=pack_align_request(_enc(peer1, "car1", stamp1, 1)), headers=MSGPACK_CT)
+    finally:
+        service._prepare = original
+    res = load_result(r.content)
+    assert res.success and res.ego_seq == 1, (res.reason, res.ego_seq)  # seq 1: the late ego frame
+    t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego1, peer1))
+    assert t_err < 0.3 and r_err < 0.3

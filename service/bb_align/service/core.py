@@ -384,7 +384,11 @@ class AlignService:
                     bytes_received=fb.total, raw_points_bytes=fb.raw_points,
                     ratio_vs_points=fb.total / fb.raw_points if fb.raw_points else None)
 
-        if job.ego is None:  # answer at once when no usable ego frame exists, before any engine work
+        newest_ego = max(self.cache.stamps(), default=None)
+        if job.ego is None and newest_ego is not None and newest_ego >= peer.stamp:
+            # The ego stream is already past this sweep, so no nearer ego frame can come: when none is usable,
+            # answer at once, before any engine work. Otherwise the ego frame of this sweep may still be in
+            # flight (it travels in another Zenoh session): prepare the peer first and decide after.
             picked = self._pick_ego(peer, job, base, timings, wait=False)
             if isinstance(picked, Result):
                 return picked
