@@ -144,3 +144,28 @@ def test_nearest_ready_entry_within_the_skew():
     assert cache.nearest_ready(0.31, 0.15) is entries[2]
     assert cache.nearest_ready(0.05, 0.15) is entries[1]
     assert cache.nearest_ready(0.9, 0.15) is None  # the prepared ones are too far in time
+
+
+def test_wait_until_ready_reports_an_early_exit_and_a_timeout(tmp_path):
+    import subprocess
+    import sys
+
+    import pytest
+
+    from bb_align.service.process import wait_until_ready
+
+    log = tmp_path / "child.log"
+    log.write_text("boom: settings invalid\n")
+    dead = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    dead.wait(10)
+    with pytest.raises(RuntimeError, match=r"exited with code 3: boom"):
+        wait_until_ready(dead, "http://127.0.0.1:9", 5.0, log, stop=lambda: None)
+    mute = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    stopped = []
+    try:
+        with pytest.raises(RuntimeError, match="not ready within 0.5 s"):
+            wait_until_ready(mute, "http://127.0.0.1:9", 0.5, log, stop=lambda: stopped.append(mute.kill()))
+    finally:
+        mute.kill()
+        mute.wait(10)
+    assert stopped, "the timeout stops the child"

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..config import AlignConfig
 from ..geometry import pose_error, se2, se3_from_se2
+from ..service.process import wait_until_ready
 
 EGO_ID = "ego"
 PREFIX = "bbalign-bench"
@@ -176,28 +177,8 @@ def start_service(cfg: ServiceBenchConfig, config: AlignConfig, log_dir: Path) -
     except OSError:
         pass  # the child died early; reported below with its log
     svc = ServiceProcess(proc, f"http://127.0.0.1:{port}", endpoint, log_path, key)
-    import httpx
-
-    deadline = time.monotonic() + cfg.startup_timeout_s
-    while True:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the service exited with code {proc.returncode}: {_tail(log_path)}")
-        try:
-            if httpx.get(svc.rest + "/readyz", timeout=2).status_code == 200:
-                return svc
-        except httpx.HTTPError:
-            pass
-        if time.monotonic() > deadline:
-            svc.stop()
-            raise RuntimeError(f"the service was not ready within {cfg.startup_timeout_s} s: {_tail(log_path)}")
-        time.sleep(0.2)
-
-
-def _tail(path: Path, n: int = 800) -> str:
-    try:
-        return path.read_text(errors="replace")[-n:]
-    except OSError:
-        return "(no log)"
+    wait_until_ready(proc, svc.rest, cfg.startup_timeout_s, log_path, svc.stop)
+    return svc
 
 
 # ---- one load run ---------------------------------------------------------------------------------------------

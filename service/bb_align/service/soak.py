@@ -37,6 +37,8 @@ import msgpack
 import numpy as np
 import typer
 
+from .process import wait_until_ready
+
 EGO_ID = "ego"
 PREFIX = "bbalign-soak"
 ATTACKS = ("garbage", "unsigned", "bad_mac", "replay", "nan_box", "png_bomb", "spoofed_id", "junk_sender",
@@ -77,8 +79,6 @@ class Target:
 
 def start_service(workers: int, log_dir: Path, timeout_s: float = 90.0) -> Target:
     """``bb-align serve`` (vehicle profile, a fresh fleet key) on free loopback ports, ready to take frames."""
-    import httpx
-
     port, zport, key = _free_port(), _free_port(), secrets.token_hex(32)
     env = {k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")}
     env.update(BBALIGN_AUTH__FLEET_KEY=key, BBALIGN_ZENOH__PREFIX=PREFIX)
@@ -89,19 +89,8 @@ def start_service(workers: int, log_dir: Path, timeout_s: float = 90.0) -> Targe
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
     target = Target(f"tcp/127.0.0.1:{zport}", f"http://127.0.0.1:{port}", key, proc, proc.pid, log_path)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the service exited ({proc.returncode}): {log_path.read_text()[-800:]}")
-        try:
-            if httpx.get(target.rest + "/readyz", timeout=2).status_code == 200:
-                return target
-        except httpx.HTTPError:
-            pass
-        if time.monotonic() > deadline:
-            stop_service(target)
-            raise RuntimeError(f"the service was not ready within {timeout_s} s")
-        time.sleep(0.2)
+    wait_until_ready(proc, target.rest, timeout_s, log_path, lambda: stop_service(target))
+    return target
 
 
 def stop_service(target: Target, timeout_s: float = 60.0) -> int | None:
