@@ -4,7 +4,8 @@ import pytest
 import scipy.fft as sfft
 
 from bb_align.config import MimConfig
-from bb_align.loggabor import angular_filters, filter_bank, frequency_grid, maximum_index_map
+from bb_align.loggabor import (_circular_span, angular_filters, filter_bank, fft_shape, frequency_grid,
+                               maximum_index_map, orientation_amplitudes)
 
 
 def _direct(i, j, shape, s, o, cfg):
@@ -102,3 +103,45 @@ def test_threaded_mim_equals_sequential():
         m2, a2 = maximum_index_map(img, MimConfig(threads=threads))
         np.testing.assert_array_equal(m1, m2)
         np.testing.assert_array_equal(a1, a2)
+
+
+def _amplitudes_by_numpy(img, cfg):
+    """A_o = sum_s |IFFT2(F * G_s * S_o)| in complex128 with numpy, the dense bank, no tricks: the reference."""
+    m = cfg.fft_margin_px
+    shape = fft_shape(img.shape, m)
+    padded = np.zeros(shape)
+    padded[m : m + img.shape[0], m : m + img.shape[1]] = img
+    spectrum = np.fft.fft2(padded)
+    bank = filter_bank(shape, cfg).astype(np.float64)
+    out = np.abs(np.fft.ifft2(spectrum[None, None] * bank, axes=(-2, -1))).sum(axis=1)
+    return out[:, m : m + img.shape[0], m : m + img.shape[1]]
+
+
+def test_amplitudes_equal_dense_complex128_transforms():
+    """Full-size path (band_tolerance=0): the boxed, shifted float32 transforms give the dense transforms' amplitude."""
+    img = _segments_image(size=200, seed=3)
+    cfg = MimConfig(band_tolerance=0)
+    reference = _amplitudes_by_numpy(img, cfg)
+    ours = np.stack([a.copy() for _, a in orientation_amplitudes(img.astype(np.float32), cfg)])
+    np.testing.assert_allclose(ours, reference, atol=2e-5 * reference.max())
+
+
+def test_band_limited_coarse_scales_stay_close_to_full_size():
+    """band_tolerance=0.01 puts the two coarse scales on smaller grids: amplitudes within 1.5 % of the peak and
+    the MIM the same on at least 98 % of the lit pixels (measured 98.7-99.0 % on KITTI, AV2 and simulated scans)."""
+    img = _segments_image(seed=5)
+    exact_mim, exact_amp = maximum_index_map(img, MimConfig(band_tolerance=0))
+    mim, amp = maximum_index_map(img, MimConfig(band_tolerance=0.01))
+    assert np.abs(amp - exact_amp).max() < 0.015 * exact_amp.max()
+    lit = img > 0
+    assert np.mean(mim[lit] == exact_mim[lit]) >= 0.98
+
+
+def test_circular_span_hand_worked():
+    mask = np.zeros(10, bool)
+    mask[[0, 1, 8, 9]] = True  # wraps around: rows 8, 9, 0, 1
+    assert _circular_span(mask) == (8, 4)
+    mask = np.zeros(10, bool)
+    mask[3:6] = True
+    assert _circular_span(mask) == (3, 3)
+    assert _circular_span(np.ones(7, bool)) == (0, 7)
