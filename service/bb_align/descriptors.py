@@ -6,8 +6,9 @@ values); the J x J window sampled on a grid rotated by 15 deg * (m - 1) (nearest
 value histograms, L2-normalised. Orientations live in [0, pi), so a scene rotated by 180 deg gives the same m
 and a descriptor whose cells are in reverse order: :func:`flip_180` makes that copy for the matching side.
 
-Keypoints are processed in small chunks so temporaries stay cache-sized (large fresh arrays cost more in page
-faults than the arithmetic); the 12 possible rotated sampling grids and the value-shift table are cached.
+The two histogram passes (orientation disc, rotated window) are small compiled loops (numba, no GIL: the
+engine's threads describe keypoint groups in parallel); the 12 possible rotated sampling grids are cached, and
+the value shift, the bin merge and the normalisation run on the small (K, cells, values) histograms.
 """
 
 from __future__ import annotations
@@ -15,10 +16,9 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
+from numba import njit
 
 from .config import FeatureConfig
-
-_CHUNK = 32  # keypoints per vectorised block
 
 
 @lru_cache(maxsize=4)
@@ -61,23 +61,15 @@ def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radiu
     If the lower cyclic neighbour of the peak bin beats the upper one, the lower bin is taken (the reference's
     rule: the peak's lower edge is the canonical direction).
     """
-    k = len(rc)
     width = mim.shape[1] + 2 * radius
     offsets, w = _orientation_window(radius, width, stride)
     mim_p = np.pad(mim, radius).ravel()
-    amp_p = np.pad(amp.astype(np.float64), radius).ravel()  # float64 weights: numpy's fast bincount path
+    amp_p = np.pad(amp.astype(np.float64), radius).ravel()
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
-    hist = np.empty((k, n_orient + 1))
-    for s in range(0, k, _CHUNK):
-        flat = base[s : s + _CHUNK, None] + offsets[None, :]
-        n = len(flat)
-        idx = mim_p.take(flat) + (np.arange(n) * (n_orient + 1))[:, None]
-        hist[s : s + n] = np.bincount(
-            idx.ravel(), weights=(amp_p.take(flat) * w).ravel(), minlength=n * (n_orient + 1)
-        ).reshape(n, n_orient + 1)
+    hist = _weighted_histograms(mim_p, amp_p, base, offsets, w, n_orient + 1)
     hist = hist[:, 1:]
     m0 = hist.argmax(axis=1)  # 0-based
-    rows = np.arange(k)
+    rows = np.arange(len(rc))
     lower = hist[rows, (m0 - 1) % n_orient]
     upper = hist[rows, (m0 + 1) % n_orient]
     m0 = np.where(lower > upper, (m0 - 1) % n_orient, m0)
@@ -105,16 +97,8 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
     offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width, cfg.window_stride)
     mim_p = np.pad(mim, radius).ravel()
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
-    # Raw histograms of MIM values (0..No) per keypoint and cell; the same bin layout serves every chunk.
-    slots = n_orient + 1
-    cell_base = (np.arange(_CHUNK)[:, None] * n_cells + cell[None, :]) * slots
-    raw = np.empty((k, n_cells, slots), dtype=np.float32)
-    for s in range(0, k, _CHUNK):
-        mm = m[s : s + _CHUNK]
-        n = len(mm)
-        v = mim_p.take(base[s : s + n, None] + offsets[np.maximum(mm, 1) - 1])  # (n, S) rotated window
-        raw[s : s + n] = np.bincount((cell_base[:n] + v).ravel(), minlength=n * n_cells * slots).reshape(
-            n, n_cells, slots)
+    # Raw histograms of MIM values (0..No) per keypoint and cell, each window on the grid rotated by its m.
+    raw = _cell_histograms(mim_p, base, offsets, np.maximum(m, 1) - 1, cell, n_cells, n_orient + 1)
     # The value shift v' = ((v - m) mod No) + 1 only permutes the bins 1..No: apply it to the small histograms.
     shifted_from = (np.arange(n_orient)[None, :] + np.maximum(m, 1)[:, None] - 1) % n_orient + 1  # (K, No)
     hist = np.take_along_axis(raw, shifted_from[:, None, :], axis=2)  # (K, cells, No), bin j = value j+1
@@ -123,6 +107,29 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
     desc = np.ascontiguousarray(hist.reshape(k, -1))
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
     return desc / np.maximum(norm, 1e-12)
+
+
+@njit(cache=True, nogil=True)
+def _weighted_histograms(values, weights_image, base, offsets, weights, n_slots):
+    """(K, n_slots) float64: per keypoint k, sum of weights_image[p] * weights[j] into slot values[p], over the
+    samples p = base[k] + offsets[j] (in order, as a sequential bincount would add them)."""
+    out = np.zeros((len(base), n_slots))
+    for k in range(len(base)):
+        for j in range(len(offsets)):
+            p = base[k] + offsets[j]
+            out[k, values[p]] += weights_image[p] * weights[j]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _cell_histograms(values, base, offsets, grid_index, cell, n_cells, n_slots):
+    """(K, n_cells, n_slots) float32 counts of values[base[k] + offsets[grid_index[k], j]] per cell[j]."""
+    out = np.zeros((len(base), n_cells, n_slots), dtype=np.float32)
+    for k in range(len(base)):
+        row = offsets[grid_index[k]]
+        for j in range(len(cell)):
+            out[k, cell[j], values[base[k] + row[j]]] += 1.0
+    return out
 
 
 def flip_180(desc: np.ndarray, cfg: FeatureConfig | None = None) -> np.ndarray:
