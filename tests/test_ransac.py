@@ -68,6 +68,17 @@ def test_matching_nearest_mutual_ratio():
     assert iq.tolist() == [1]  # t[0] is nearer query 1 (0.07) than query 0 (0.14): only 1 is mutual
 
 
+def test_matching_in_query_blocks_equals_brute_force():
+    """Threaded blocks of query rows give each query's true nearest neighbour (checked one query at a time)."""
+    rng = np.random.default_rng(4)
+    q = rng.random((101, 16)).astype(np.float32)
+    t = rng.random((57, 16)).astype(np.float32)
+    truth = np.array([np.argmin(((t - row) ** 2).sum(1)) for row in q])
+    for threads in (1, 2, 3):
+        iq, it = match_descriptors(q, t, threads=threads)
+        assert iq.tolist() == list(range(101)) and it.tolist() == truth.tolist()
+
+
 def test_prior_gating_keeps_consistent_candidates_only():
     from bb_align.matching import match_with_prior
 

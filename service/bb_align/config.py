@@ -82,6 +82,7 @@ class MatchConfig(_Frozen):
     min_iterations: int = Field(200, ge=1)
     confidence: float = Field(0.9999, gt=0, lt=1)
     seed: int = 0
+    threads: int = Field(2, ge=1, le=16, description="blocks of query descriptors matched in parallel (same result)")
 
 
 class PriorConfig(_Frozen):

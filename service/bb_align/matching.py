@@ -4,24 +4,41 @@ from __future__ import annotations
 
 import numpy as np
 
+from .parallel import run_parts
 
-def _sq_distances(q: np.ndarray, t: np.ndarray) -> np.ndarray:
-    d2 = (q * q).sum(1)[:, None] + (t * t).sum(1)[None, :] - 2.0 * (q @ t.T)
-    return np.maximum(d2, 0.0, out=d2)
+
+def _sq_distances(q: np.ndarray, t: np.ndarray, threads: int = 1) -> np.ndarray:
+    """(Q, T) float32 squared L2 distances, |q|^2 + |t|^2 - 2 q.t, built in place (no large temporaries); with
+    threads > 1 blocks of query rows are multiplied in parallel (the same numbers)."""
+    d2 = np.empty((len(q), len(t)), dtype=np.float32)
+    qq, tt = (q * q).sum(1), (t * t).sum(1)
+
+    def block(rows: slice) -> None:
+        out = d2[rows]
+        np.matmul(q[rows], t.T, out=out)
+        out *= -2.0
+        out += qq[rows, None]
+        out += tt[None, :]
+        np.maximum(out, 0.0, out=out)
+
+    step = -(-len(q) // max(1, threads))
+    run_parts(block, [slice(i, i + step) for i in range(0, len(q), step)])
+    return d2
 
 
 def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual: bool = False,
-                      ratio: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                      ratio: float = 1.0, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i_query, i_train) of each query descriptor's nearest train descriptor.
 
     Empty (all-zero) query descriptors never match. ``ratio`` < 1 keeps a match only when its distance is below
     ratio x the second-best distance; ``mutual`` keeps it only when the query is also the train's nearest.
+    ``threads``: query blocks whose distances are computed in parallel (the same result).
     """
     q = np.asarray(desc_query, dtype=np.float32)
     t = np.asarray(desc_train, dtype=np.float32)
     if len(q) == 0 or len(t) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    d2 = _sq_distances(q, t)
+    d2 = _sq_distances(q, t, threads)
     nn = d2.argmin(axis=1)
     keep = (q * q).sum(1) > 0
     if ratio < 1.0 and t.shape[0] > 1:
@@ -36,7 +53,7 @@ def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual:
 
 def match_with_prior(desc_query: np.ndarray, desc_train: np.ndarray, xy_query: np.ndarray, xy_train: np.ndarray,
                      T_train_query: np.ndarray, *, max_translation: float, max_yaw_rad: float,
-                     top_k: int) -> tuple[np.ndarray, np.ndarray]:
+                     top_k: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """The ``top_k`` nearest train descriptors of each query, kept only where the prior pose T_train_query (3x3)
     puts the two keypoints within ``max_translation`` plus the displacement a ``max_yaw_rad`` rotation error
     causes at the query's range. Returns (i_query, i_train) pairs (a query may keep several)."""
@@ -45,7 +62,7 @@ def match_with_prior(desc_query: np.ndarray, desc_train: np.ndarray, xy_query: n
     if len(q) == 0 or len(t) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     k = min(top_k, len(t))
-    d2 = _sq_distances(q, t)
+    d2 = _sq_distances(q, t, threads)
     cand = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < len(t) else np.tile(np.arange(len(t)), (len(q), 1))
     pred = xy_query @ T_train_query[:2, :2].T + T_train_query[:2, 2]
     gate = max_translation + np.linalg.norm(xy_query, axis=1) * 2.0 * np.sin(max_yaw_rad / 2.0)

@@ -200,14 +200,15 @@ class Aligner:
             n_ego = len(ego.descriptors)
             if T_prior is None:
                 i_peer, i_ego = match_descriptors(peer.descriptors, desc_ego, mutual=cfg.match.mutual,
-                                                  ratio=cfg.match.ratio)
+                                                  ratio=cfg.match.ratio, threads=cfg.match.threads)
             else:
                 yaw, tx, ty = se2_params(T_prior)
                 xy_ego = np.tile(ego.keypoints_xy, (len(desc_ego) // n_ego, 1))  # row i is keypoint i % K
                 i_peer, i_ego = match_with_prior(
                     peer.descriptors, desc_ego, peer.keypoints_xy, xy_ego,
                     se2(yaw, tx, ty), max_translation=cfg.prior.max_translation_m,
-                    max_yaw_rad=np.radians(cfg.prior.max_yaw_deg), top_k=cfg.prior.top_k)
+                    max_yaw_rad=np.radians(cfg.prior.max_yaw_deg), top_k=cfg.prior.top_k,
+                    threads=cfg.match.threads)
                 result.notes.append("matches gated by the prior pose")
             i_ego = i_ego % n_ego
             pts_peer = peer.keypoints_xy[i_peer]
