@@ -65,7 +65,7 @@ class PreparedFrame:
         return self._reference
 
     def cloud(self, min_value: int = 1) -> BevCloud:
-        """Lit pixels with normals and a KD-tree (built on first use: an ego frame pays it once)."""
+        """Lit pixels with normals and their index image (built on first use: an ego frame pays it once)."""
         if self._cloud is None:
             self._cloud = bev_cloud(self.bev, min_value=min_value)
         return self._cloud

@@ -4,6 +4,9 @@ Keypoint RANSAC leaves a residual of a few decimetres and tenths of a degree: co
 from two cars sit a pixel or two apart. Starting from T_bv, a robust 2-D point-to-line ICP between the lit
 pixels of the two images (ego pixels with PCA normals, cached per ego frame) removes most of it. The correction
 is bounded: a refinement that wanders off (degenerate scene) is discarded and stage 1's pose kept.
+
+The ego points are pixel centres, so a peer point's nearest ego point within a gate is found exactly by looking
+at the few pixels around it (a compiled loop over an index image) instead of a KD-tree search.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from .bev import BevImage
@@ -19,11 +23,20 @@ from .geometry import se2, se2_params
 
 @dataclass
 class BevCloud:
-    """The lit pixels of one BV image as 2-D points (metres, sensor frame), with normals and a KD-tree."""
+    """The lit pixels of one BV image as 2-D points (metres, sensor frame), with normals, and the image of their
+    indices (-1 where unlit) for nearest-point look-ups."""
 
     xy: np.ndarray  # (N, 2)
     normals: np.ndarray  # (N, 2) unit
-    tree: cKDTree
+    index: np.ndarray  # (H, W) int32: row of xy at each lit pixel, -1 elsewhere
+    range_m: float
+    resolution_m: float
+
+    def nearest(self, pts: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+        """For each (M, 2) point: (distance, index) of the nearest point of this cloud closer than ``gate``
+        metres; (inf, -1) when there is none (as a KD-tree query with distance_upper_bound)."""
+        pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
+        return _nearest_on_grid(self.index, self.xy, pts, self.range_m, self.resolution_m, float(gate))
 
 
 def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None, seed: int = 0) -> np.ndarray:
@@ -35,17 +48,19 @@ def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None,
 
 
 def bev_cloud(bev: BevImage, k: int = 8, min_value: int = 1) -> BevCloud:
-    xy = bev_points(bev, min_value)
-    tree = cKDTree(xy)
+    rc = np.argwhere(bev.image >= min_value)
+    xy = bev.pixel_to_metre(rc)
+    index = np.full(bev.shape, -1, dtype=np.int32)
+    index[rc[:, 0], rc[:, 1]] = np.arange(len(rc), dtype=np.int32)
     if len(xy) < 3:
-        return BevCloud(xy, np.zeros_like(xy), tree)
-    _, nn = tree.query(xy, k=min(k, len(xy)))
+        return BevCloud(xy, np.zeros_like(xy), index, bev.range_m, bev.resolution_m)
+    _, nn = cKDTree(xy).query(xy, k=min(k, len(xy)))
     nb = xy[nn] - xy[nn].mean(axis=1, keepdims=True)
     sxx, syy, sxy = (nb[..., 0] ** 2).sum(1), (nb[..., 1] ** 2).sum(1), (nb[..., 0] * nb[..., 1]).sum(1)
     # Normal = eigenvector of the smaller eigenvalue of [[sxx, sxy], [sxy, syy]]: the line's perpendicular.
     angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the larger eigenvalue (the line)
     normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
-    return BevCloud(xy, normals, tree)
+    return BevCloud(xy, normals, index, bev.range_m, bev.resolution_m)
 
 
 @dataclass
@@ -70,22 +85,12 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates
     for gate in gates:
         for _ in range(iters_per_gate):
             p = pts_peer @ T[:2, :2].T + T[:2, 2]
-            d, j = ego.tree.query(p, distance_upper_bound=gate)
+            d, j = ego.nearest(p, gate)
             ok = np.isfinite(d)
             if ok.sum() < 10:
                 T0 = np.array(T_init, dtype=float)
                 return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
-            p, q, n = p[ok], ego.xy[j[ok]], ego.normals[j[ok]]
-            diff = p - q
-            # Rows: point-to-line residual n.(p - q), plus weak point-to-point terms that pin the line direction.
-            jac_line = np.stack([n[:, 0] * -p[:, 1] + n[:, 1] * p[:, 0], n[:, 0], n[:, 1]], axis=1)
-            r_line = (n * diff).sum(1)
-            jac_x = np.stack([-p[:, 1], np.ones(len(p)), np.zeros(len(p))], axis=1)
-            jac_y = np.stack([p[:, 0], np.zeros(len(p)), np.ones(len(p))], axis=1)
-            w_line = 1.0 / np.maximum(1.0, np.abs(r_line) / (0.25 * gate))  # Huber
-            pw2 = point_weight**2
-            H = (jac_line.T * w_line) @ jac_line + pw2 * (jac_x.T @ jac_x + jac_y.T @ jac_y)
-            g = (jac_line.T * w_line) @ r_line + pw2 * (jac_x.T @ diff[:, 0] + jac_y.T @ diff[:, 1])
+            H, g = _normal_equations(p, ego.xy, ego.normals, j, gate, point_weight)
             delta = np.linalg.solve(H, -g)
             if prev is not None and float(delta @ prev) > 0:  # the same way again: ICP creeps along a valley
                 delta = delta * relax
@@ -105,6 +110,64 @@ def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: fl
     if len(ego.xy) == 0 or len(pts_peer) == 0:
         return 0.0, float("inf")
     p = pts_peer @ T[:2, :2].T + T[:2, 2]
-    d, _ = ego.tree.query(p, distance_upper_bound=gate)
+    d, _ = ego.nearest(p, gate)
     ok = np.isfinite(d)
     return float(ok.mean()), (float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf"))
+
+
+@njit(cache=True, nogil=True)
+def _nearest_on_grid(index, xy, pts, range_m, resolution_m, gate):
+    """Exact nearest lit pixel centre within ``gate`` (strictly closer) of each point, scanning the pixels whose
+    centres can be that close; (inf, -1) when none is."""
+    n_rows, n_cols = index.shape
+    dist = np.full(len(pts), np.inf)
+    nearest = np.full(len(pts), -1, dtype=np.int64)
+    reach = gate / resolution_m
+    gate2 = gate * gate
+    for i in range(len(pts)):
+        r = (range_m - pts[i, 0]) / resolution_m - 0.5  # continuous pixel coordinates (bev.metre_to_pixel)
+        c = (range_m - pts[i, 1]) / resolution_m - 0.5
+        r0, r1 = max(0, int(np.ceil(r - reach))), min(n_rows - 1, int(np.floor(r + reach)))
+        c0, c1 = max(0, int(np.ceil(c - reach))), min(n_cols - 1, int(np.floor(c + reach)))
+        best = gate2
+        for rr in range(r0, r1 + 1):
+            for cc in range(c0, c1 + 1):
+                j = index[rr, cc]
+                if j >= 0:
+                    dx = xy[j, 0] - pts[i, 0]
+                    dy = xy[j, 1] - pts[i, 1]
+                    d2 = dx * dx + dy * dy
+                    if d2 < best:
+                        best = d2
+                        nearest[i] = j
+        if nearest[i] >= 0:
+            dist[i] = np.sqrt(best)
+    return dist, nearest
+
+
+@njit(cache=True, nogil=True)
+def _normal_equations(p, xy, normals, nearest, gate, point_weight):
+    """Gauss-Newton normal equations (H, g) of the pose increment (yaw, tx, ty) applied on the left, over the
+    points p[i] with a match q = xy[nearest[i]]: rows are the point-to-line residual n.(p - q), Huber-weighted
+    (0.25 gate), plus weak point-to-point terms (weight point_weight^2) that pin the motion along the line."""
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    pw2 = point_weight * point_weight
+    huber = 0.25 * gate
+    for i in range(len(p)):
+        j = nearest[i]
+        if j < 0:
+            continue
+        px, py = p[i, 0], p[i, 1]
+        dx, dy = px - xy[j, 0], py - xy[j, 1]
+        nx, ny = normals[j, 0], normals[j, 1]
+        jac = (nx * -py + ny * px, nx, ny)
+        r = nx * dx + ny * dy
+        w = 1.0 / max(1.0, abs(r) / huber)
+        jac_x = (-py, 1.0, 0.0)  # d(p_x)/d(yaw, tx, ty)
+        jac_y = (px, 0.0, 1.0)
+        for a in range(3):
+            g[a] += w * jac[a] * r + pw2 * (jac_x[a] * dx + jac_y[a] * dy)
+            for b in range(3):
+                H[a, b] += w * jac[a] * jac[b] + pw2 * (jac_x[a] * jac_x[b] + jac_y[a] * jac_y[b])
+    return H, g
