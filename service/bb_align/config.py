@@ -45,11 +45,6 @@ class MimConfig(_Frozen):
     fft_margin_px: int = Field(16, ge=0, description="zero margin around the image before the FFT (no wrap-around; "
                                "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)")
     threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
-    band_tolerance: float = Field(
-        0.01, ge=0, lt=1, description="a scale whose radial filter stays below this fraction of its peak beyond a "
-        "smaller FFT grid's band is transformed on that grid and its amplitude interpolated back (0: every scale "
-        "at full size). 0.01: the two coarse scales on 270 and 180 px grids for 432 px; 98.7-99.0% of lit MIM "
-        "pixels the same, the same poses on the simulated pairs; MIM 31 -> 23 ms (docs/performance.md)")
 
 
 class FeatureConfig(_Frozen):

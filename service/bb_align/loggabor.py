@@ -5,10 +5,9 @@ per (scale, orientation) a complex inverse FFT (OpenCV's, float32: about twice a
 amplitudes are summed over scales and the MIM is 1 + the index of the strongest orientation (0 where the
 strongest amplitude is negligible). The 1/(H W) of the inverse transform is folded into the cached bank.
 
-Coarse scales are band-limited: a filter centred at 1/13 cycle/px is below 1 % of its peak beyond 0.19.
-Such a scale is transformed on a smaller grid (the spectrum cropped to the filter's band: the inverse DFT then
-gives the exact response at every (N/n)-th pixel) and its amplitude is interpolated back bilinearly
-(``MimConfig.band_tolerance``; 0 computes every scale at full size).
+Each oriented filter is non-zero on a 30-degree wedge of the plane only (about 6 % of it), so the product with
+the spectrum is formed on the wedge's bounding box alone, and the amplitude is accumulated by a compiled loop
+(no GIL) straight from the complex response: per filter the inverse DFT is most of the cost.
 """
 
 from __future__ import annotations
@@ -19,6 +18,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 import scipy.fft as sfft
+from numba import njit
 
 from .config import MimConfig
 from .parallel import run_parts
@@ -71,45 +71,15 @@ def filter_bank(shape: tuple[int, int], cfg: MimConfig) -> np.ndarray:
     return bank
 
 
-def band_radius(scale: int, cfg: MimConfig) -> float:
-    """Frequency (cycles/px) beyond which scale ``scale``'s radial filter stays below cfg.band_tolerance of its
-    peak (0.5 = the whole band, also when the tolerance is 0)."""
-    if cfg.band_tolerance <= 0:
-        return 0.5
-    f0 = 1.0 / (cfg.min_wavelength_px * cfg.mult**scale)
-    return min(0.5, f0 * np.exp(abs(np.log(cfg.sigma_on_f)) * np.sqrt(2.0 * np.log(1.0 / cfg.band_tolerance))))
-
-
 @dataclass(frozen=True)
 class _Block:
-    """One oriented filter on its grid: non-zero only on a 30-degree wedge of the plane (about 6 % of it), so
-    only its circular bounding box (rows r0.., cols c0.., wrapping) is multiplied. The box is written at the
-    grid's origin: shifting a spectrum only multiplies the response by a phase ramp, the amplitude is the same."""
+    """One oriented filter: only its circular bounding box (rows r0.., cols c0.., wrapping) is non-zero. The box
+    is written at the grid's origin: shifting a spectrum only multiplies the response by a phase ramp, the
+    amplitude is the same."""
 
     r0: int
     c0: int
     values: np.ndarray  # (bh, bw, 2) float32: the filter over the box, twice (re, im), times 1/(H W)
-
-
-@dataclass(frozen=True)
-class _Band:
-    """Scales transformed on one n x n grid (n <= N): which frequencies of the N x N spectrum it keeps."""
-
-    size: tuple[int, int]
-    scales: tuple[int, ...]
-    rows: np.ndarray  # indices into the full spectrum's rows (all when n = N)
-    cols: np.ndarray
-    blocks: tuple[tuple[_Block, ...], ...]  # [orientation][index in scales]
-
-    @property
-    def max_box(self) -> tuple[int, int]:
-        return (max(b.values.shape[0] for bs in self.blocks for b in bs),
-                max(b.values.shape[1] for bs in self.blocks for b in bs))
-
-
-def _crop_indices(full: int, n: int) -> np.ndarray:
-    """FFT-order indices of the n frequencies nearest DC out of ``full`` (n even or n = full)."""
-    return np.arange(full) if n >= full else np.r_[0 : n // 2, full - n // 2 : full]
 
 
 def _circular_span(occupied: np.ndarray) -> tuple[int, int]:
@@ -141,29 +111,16 @@ def _block(g: np.ndarray) -> _Block:
     return _Block(r0, c0, values)
 
 
-def _even(n: int) -> int:
-    while n % 2:
-        n = cv2.getOptimalDFTSize(n + 1)
-    return n
+def _bank_fields(cfg: MimConfig) -> MimConfig:
+    """cfg with the fields the filter bank does not depend on set to fixed values: one cache entry per bank."""
+    return cfg.model_copy(update={"threads": 1, "min_amplitude": 0.0, "fft_margin_px": 0})
 
 
-@lru_cache(maxsize=2)
-def _bands(shape: tuple[int, int], cfg: MimConfig) -> tuple[_Band, ...]:
-    """The scales grouped by the grid they are transformed on, largest grid first. The filter values carry the
-    1/(H W) of the full-size inverse DFT, so every grid returns the full-size response at its samples."""
-    full_bank = filter_bank(shape, cfg) / np.float32(shape[0] * shape[1])
-    sizes: dict[tuple[int, int], list[int]] = {}
-    for s in range(cfg.n_scales):
-        r = band_radius(s, cfg)
-        size = tuple(min(n, _even(cv2.getOptimalDFTSize(int(np.ceil(2 * r * n))))) for n in shape)
-        sizes.setdefault(size, []).append(s)  # type: ignore[arg-type]
-    bands = []
-    for size, scales in sorted(sizes.items(), key=lambda kv: -kv[0][0] * kv[0][1]):
-        rows, cols = _crop_indices(shape[0], size[0]), _crop_indices(shape[1], size[1])
-        blocks = tuple(tuple(_block(full_bank[o, s][np.ix_(rows, cols)]) for s in scales)
-                       for o in range(cfg.n_orient))
-        bands.append(_Band(size, tuple(scales), rows, cols, blocks))
-    return tuple(bands)
+@lru_cache(maxsize=4)
+def _blocks(shape: tuple[int, int], cfg: MimConfig) -> tuple[tuple[_Block, ...], ...]:
+    """[orientation][scale] boxed filters for an FFT of ``shape``, the 1/(H W) of the inverse DFT folded in."""
+    bank = filter_bank(shape, cfg) / np.float32(shape[0] * shape[1])
+    return tuple(tuple(_block(bank[o, s]) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
 
 
 def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
@@ -195,46 +152,23 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
         spectrum, shape = _spectrum(image, cfg)
     else:
         shape = spectrum.shape[:2]
-    bands = _bands(shape, cfg)
-    # Every buffer is allocated once per call and written in place: fresh 1.5 MB temporaries per transform cost
-    # more in page faults than the transform itself (measured: magnitude 0.45 ms -> 0.13 ms per filter).
-    work = []
-    for band in bands:
-        full = band.size == shape
-        sub = spectrum if full else spectrum[band.rows][:, band.cols]
-        bh, bw = band.max_box
-        wrapped = cv2.copyMakeBorder(sub, 0, bh, 0, bw, cv2.BORDER_WRAP)  # boxes that wrap are plain slices
-        product = np.zeros(band.size + (2,), dtype=np.float32)  # zero outside the current box
-        crop = (h, w) if full else band.size
-        work.append((band, full, wrapped, product, np.empty_like(product),
-                     [np.empty(crop, dtype=np.float32) for _ in range(3)]))
-    coarse = [band for band, full, *_ in work if not full]
-    coarse_acc = [np.empty(b.size, dtype=np.float32) for b in coarse]
-    resampled = np.empty(coarse[0].size if coarse else (1, 1), dtype=np.float32)
-    acc, image_acc = np.empty((h, w), dtype=np.float32), np.empty((h, w), dtype=np.float32)
+    blocks = _blocks(shape, _bank_fields(cfg))
+    bh = max(b.values.shape[0] for bs in blocks for b in bs)
+    bw = max(b.values.shape[1] for bs in blocks for b in bs)
+    wrapped = cv2.copyMakeBorder(spectrum, 0, bh, 0, bw, cv2.BORDER_WRAP)  # boxes that wrap are plain slices
+    # Buffers allocated once per call and written in place: fresh 1.5 MB temporaries per transform cost more in
+    # page faults than the arithmetic.
+    product = np.zeros(shape + (2,), dtype=np.float32)  # zero outside the current box
+    response = np.empty_like(product)
+    acc = np.empty((h, w), dtype=np.float32)
     for o in range(cfg.n_orient) if orientations is None else orientations:
         acc.fill(0.0)
-        for k, (band, full, wrapped, product, response, (re, im, mag)) in enumerate(work):
-            target = acc if full else coarse_acc[k - (len(work) - len(coarse))]
-            target.fill(0.0)
-            for blk in band.blocks[o]:
-                bh, bw = blk.values.shape[:2]
-                box = product[:bh, :bw]
-                cv2.multiply(wrapped[blk.r0 : blk.r0 + bh, blk.c0 : blk.c0 + bw], blk.values, dst=box)
-                cv2.idft(product, dst=response, flags=cv2.DFT_COMPLEX_OUTPUT)
-                box.fill(0.0)
-                cv2.split(response[m : m + h, m : m + w] if full else response, [re, im])  # image, not margin
-                cv2.magnitude(re, im, mag)
-                cv2.add(target, mag, dst=target)
-        if coarse:  # the coarse grids' amplitudes onto the largest coarse grid, then once onto the image
-            first = coarse_acc[0]
-            for band, band_acc in zip(coarse[1:], coarse_acc[1:]):
-                cv2.warpAffine(band_acc, _grid_map(band.size, coarse[0].size), first.shape[::-1], dst=resampled,
-                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_WRAP)
-                cv2.add(first, resampled, dst=first)
-            cv2.warpAffine(first, _grid_map(coarse[0].size, shape, m), (w, h), dst=image_acc,
-                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_WRAP)
-            cv2.add(acc, image_acc, dst=acc)
+        for blk in blocks[o]:
+            box = product[: blk.values.shape[0], : blk.values.shape[1]]
+            cv2.multiply(wrapped[blk.r0 : blk.r0 + box.shape[0], blk.c0 : blk.c0 + box.shape[1]], blk.values, dst=box)
+            cv2.idft(product, dst=response, flags=cv2.DFT_COMPLEX_OUTPUT)
+            box.fill(0.0)
+            _add_amplitude(acc, response, m)  # the image only, not the zero margin
         yield o, acc
 
 
@@ -269,3 +203,13 @@ def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
         cv2.max(max_amp, part_max, dst=max_amp)
     mim[max_amp <= cfg.min_amplitude] = 0
     return mim, max_amp
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _add_amplitude(acc, response, offset):
+    """acc += |response| over acc's extent, response (complex as (..., 2) float32) read from (offset, offset)."""
+    for i in range(acc.shape[0]):
+        for j in range(acc.shape[1]):
+            re = response[offset + i, offset + j, 0]
+            im = response[offset + i, offset + j, 1]
+            acc[i, j] += np.sqrt(re * re + im * im)
