@@ -146,6 +146,21 @@ class Aligner:
                 prepared.cloud(self.config.refine.min_pixel_value)
         return prepared
 
+    def warm_up(self) -> None:
+        """Compile the engine's loops and build its per-image-size caches now, on a synthetic image of the configured
+        size aligned with itself: the first real frame then runs at full speed (the compiled loops are cached on
+        disk after a machine's first run, so this takes well under a second from then on)."""
+        b = self.config.bev
+        n = max(32, int(round(2 * b.range_m / b.resolution_m)))
+        rng = np.random.default_rng(0)
+        image = np.zeros((n, n), np.uint8)
+        for _ in range(60):
+            p0, p1 = rng.integers(0, n, 2), rng.integers(0, n, 2)
+            cv2.line(image, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])), int(rng.integers(60, 255)), 2)
+        frame = self.warm(self.prepare(BevImage(image, b.resolution_m, n * b.resolution_m / 2, b.mode,
+                                                b.ground_clearance_m, b.max_height_m)))
+        self.align(frame, frame)
+
     def _at_resolution(self, bev: BevImage) -> BevImage:
         """Descriptors are in pixels: bring a peer image made at another resolution to the configured one."""
         want = self.config.bev.resolution_m

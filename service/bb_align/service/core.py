@@ -111,6 +111,7 @@ class AlignService:
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> None:
+        self.aligner.warm_up()  # compiled loops and caches ready before the first frame
         gate = threading.Thread(target=self._gate, name="bbalign-gate", daemon=True)
         gate.start()
         self._threads.append(gate)
