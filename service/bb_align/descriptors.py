@@ -76,10 +76,26 @@ def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radiu
     return np.where(hist.max(axis=1) > 0, m0 + 1, 0)
 
 
+def descriptor_radius(cfg: FeatureConfig) -> int:
+    """Radius of the dominant-orientation disc, J / sqrt(2) rounded up (68 px for J = 96): it also holds the
+    J x J window at any rotation."""
+    return int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))
+
+
+def keypoint_orientations(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
+                          n_orient: int = 12) -> np.ndarray:
+    """(K,) dominant orientation m in 1..No of each keypoint (0: empty disc), as the descriptors use it."""
+    cfg = cfg or FeatureConfig()
+    rc = np.asarray(rc, dtype=np.int64).reshape(-1, 2)
+    return dominant_orientation(mim, amp, rc, descriptor_radius(cfg), n_orient, cfg.orientation_stride)
+
+
 def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
-                     n_orient: int = 12, orientation_offset: int = 0) -> np.ndarray:
+                     n_orient: int = 12, orientation_offset: int = 0,
+                     orientations: np.ndarray | None = None) -> np.ndarray:
     """MIM (uint8, 0..No), max amplitude, (K, 2) keypoints (row, col) -> (K, D) float32 descriptors, unit norm
-    (all-zero for an empty patch). D = l*l*No/2 when cfg.merge_bins (216 by default), else l*l*No."""
+    (all-zero for an empty patch). D = l*l*No/2 when cfg.merge_bins (216 by default), else l*l*No.
+    ``orientations``: the keypoints' dominant orientations when already known (:func:`keypoint_orientations`)."""
     cfg = cfg or FeatureConfig()
     rc = np.asarray(rc, dtype=np.int64).reshape(-1, 2)
     k = len(rc)
@@ -88,8 +104,8 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
     if k == 0:
         return np.zeros((0, n_cells * n_bins), dtype=np.float32)
 
-    radius = int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))  # 69 px for J = 96; also covers the rotated window
-    m = dominant_orientation(mim, amp, rc, radius, n_orient, cfg.orientation_stride)
+    radius = descriptor_radius(cfg)
+    m = keypoint_orientations(mim, amp, rc, cfg, n_orient) if orientations is None else np.asarray(orientations)
     if orientation_offset:  # describe as if the dominant orientation were a neighbouring bin
         m = np.where(m > 0, (m - 1 + orientation_offset) % n_orient + 1, 0)
 

@@ -22,7 +22,7 @@ from threadpoolctl import ThreadpoolController
 from .bev import BevImage, make_bev
 from .boxes import align_boxes, as_boxes
 from .config import AlignConfig, FeatureConfig
-from .descriptors import bvft_descriptors, flip_180
+from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .geometry import se2, se2_params, se3_from_se2
 from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
@@ -43,6 +43,7 @@ class PreparedFrame:
     keypoints_xy: np.ndarray  # (K, 2) metres in the sensor frame
     descriptors: np.ndarray  # (K, D)
     descriptors_flipped: np.ndarray  # (K, D) the same patches rotated by 180 deg
+    orientations: np.ndarray | None = None  # (K,) dominant MIM orientation of each keypoint (1..No, 0: none)
     mim: np.ndarray | None = None  # kept for plots when keep_maps=True
     num_points: int | None = None  # raw cloud size when known
     timings_ms: dict[str, float] = field(default_factory=dict)
@@ -58,7 +59,8 @@ class PreparedFrame:
             def describe(offset: int) -> list[np.ndarray]:
                 if offset == 0:
                     return [self.descriptors, self.descriptors_flipped]
-                d = bvft_descriptors(*self._maps, self.keypoints_rc, features, n_orient, orientation_offset=offset)
+                d = bvft_descriptors(*self._maps, self.keypoints_rc, features, n_orient, orientation_offset=offset,
+                                     orientations=self.orientations)
                 return [d, flip_180(d, features)]
 
             self._reference = np.concatenate(sum(run_parts(describe, features.reference_orientation_offsets), []))
@@ -120,9 +122,14 @@ class Aligner:
         with _timed(timings, "keypoints"):
             rc = detect_keypoints(bev.image, cfg.features)
         with _timed(timings, "descriptors"):
+            def describe(part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                m = keypoint_orientations(mim, amp, part, cfg.features, cfg.mim.n_orient)
+                return m, bvft_descriptors(mim, amp, part, cfg.features, cfg.mim.n_orient, orientations=m)
+
             parts = [p for p in np.array_split(rc, cfg.features.threads) if len(p)] or [rc]
-            desc = np.concatenate(run_parts(
-                lambda part: bvft_descriptors(mim, amp, part, cfg.features, cfg.mim.n_orient), parts))
+            described = run_parts(describe, parts)
+            orientations = np.concatenate([m for m, _ in described])
+            desc = np.concatenate([d for _, d in described])
             desc_flip = flip_180(desc, cfg.features)
         return PreparedFrame(
             bev=bev,
@@ -131,6 +138,7 @@ class Aligner:
             keypoints_xy=bev.pixel_to_metre(rc),
             descriptors=desc,
             descriptors_flipped=desc_flip,
+            orientations=orientations,
             mim=mim if keep_maps else None,
             num_points=num_points,
             timings_ms=timings,
