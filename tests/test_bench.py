@@ -133,6 +133,7 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
     md = tmp_path / "bench.md"
     # A 40 m BV range (200 px images) keeps the slow baseline short; everything else is the --quick run.
     res = CliRunner().invoke(app, ["bench", "--quick", "--no-service", "--runs", "1", "--range-m", "40",
+                                   "--engine-threads", "1",
                                    "--json", str(out), "--plot", str(png), "--markdown", str(md)])
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
@@ -156,6 +157,8 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
         assert "t_err_m" in row["engine"] and "t_err_m" in row["baseline"]  # simulated pairs carry the truth
     assert report["service"] is None
     assert report["config"]["bev"]["range_m"] == 40.0 and report["workload"]["image_px"] == [200, 200]
+    assert report["config"]["mim"]["threads"] == report["config"]["features"]["threads"] == 1  # --engine-threads
+    assert report["config"]["match"]["threads"] == 1
     assert png.stat().st_size > 10_000
     assert report["memory"]["process_engine_runs"]["rss_peak_mb"] > 50
     table = md.read_text()

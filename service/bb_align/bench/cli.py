@@ -95,6 +95,9 @@ def bench(
     no_pose: bool = typer.Option(False, "--no-pose", help="service runs: frames carry no reported pose"),
     range_m: Optional[float] = typer.Option(None, help="BV half width R in metres [config default, 80]"),
     resolution_m: Optional[float] = typer.Option(None, help="BV cell size in metres [config default, 0.4]"),
+    engine_threads: Optional[int] = typer.Option(
+        None, min=1, max=16, help="threads inside one engine call (MIM orientations, descriptor keypoints, "
+        "matching queries) [config default, 2]; 1 times the engine on one core"),
 ) -> None:
     """Time the engine per stage against the in-benchmark baseline (same inputs, same run), check they agree,
     and measure the service's sustained throughput with 1, 4 and 8 peers over Zenoh on loopback."""
@@ -109,6 +112,11 @@ def bench(
             config = config.model_copy(update={"bev": type(config.bev)(**{**config.bev.model_dump(), **bev_over})})
         except ValueError as e:
             raise typer.BadParameter(str(e)) from None
+    if engine_threads is not None:
+        config = config.model_copy(update={
+            "mim": config.mim.model_copy(update={"threads": engine_threads}),
+            "features": config.features.model_copy(update={"threads": engine_threads}),
+            "match": config.match.model_copy(update={"threads": engine_threads})})
     runs = runs or (3 if quick else 10)
     if peers is None:
         peer_counts = [1, 4] if quick else [1, 4, 8]
