@@ -117,10 +117,14 @@ def _amplitudes_by_numpy(img, cfg):
     return out[:, m : m + img.shape[0], m : m + img.shape[1]]
 
 
-def test_amplitudes_equal_dense_complex128_transforms():
-    """The boxed, shifted float32 transforms give the dense complex128 transforms' amplitudes."""
-    img = _segments_image(size=200, seed=3)
-    cfg = MimConfig()
+@pytest.mark.parametrize("origin,shape,margin", [((0, 0), (200, 200), 16), ((50, 40), (90, 130), 0),
+                                                 ((45, 95), (7, 5), 3)])
+def test_amplitudes_equal_dense_complex128_transforms(origin, shape, margin):
+    """The boxed, shifted float32 transforms give the dense complex128 transforms' amplitudes (square and
+    rectangular transforms, boxes that wrap around the spectrum's edges, boxes as large as the spectrum)."""
+    img = _segments_image(size=200, seed=3)[origin[0] : origin[0] + shape[0], origin[1] : origin[1] + shape[1]]
+    assert np.count_nonzero(img) >= 15
+    cfg = MimConfig(fft_margin_px=margin)
     reference = _amplitudes_by_numpy(img, cfg)
     ours = np.stack([a.copy() for _, a in orientation_amplitudes(img.astype(np.float32), cfg)])
     np.testing.assert_allclose(ours, reference, atol=2e-5 * reference.max())
