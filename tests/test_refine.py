@@ -32,13 +32,13 @@ def test_grid_nearest_equals_kd_tree(gate):
     np.testing.assert_allclose(np.linalg.norm(cloud.xy[j[found]] - pts[found], axis=1), d_ref[found], rtol=1e-12)
 
 
-def test_grid_nearest_of_non_finite_points_is_none():
+def test_grid_nearest_of_non_finite_and_far_points_is_none():
     bev = make_bev(view_from(synthetic_world(seed=2)[0], np.eye(4)), BevConfig(range_m=30.0))
     cloud = bev_cloud(bev)
-    pts = np.array([[np.nan, 0.0], [0.0, np.inf], [-np.inf, np.nan], cloud.xy[0]])
+    pts = np.array([[np.nan, 0.0], [0.0, np.inf], [-np.inf, np.nan], [1e300, -1e300], cloud.xy[0]])
     d, j = cloud.nearest(pts, 2.0)
-    assert j.tolist()[:3] == [-1, -1, -1] and np.all(np.isinf(d[:3]))
-    assert j[3] == 0 and d[3] == 0.0
+    assert j.tolist()[:4] == [-1, -1, -1, -1] and np.all(np.isinf(d[:4]))
+    assert j[4] == 0 and d[4] == 0.0
 
 
 def test_icp_recovers_a_known_pose_from_a_perturbed_start():

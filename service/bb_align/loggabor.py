@@ -136,13 +136,6 @@ def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int,
     return cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT), shape  # (H, W, 2)
 
 
-def _grid_map(src: tuple[int, int], dst: tuple[int, int], offset: float = 0.0) -> np.ndarray:
-    """Inverse affine map for warpAffine: pixel (r, c) of a grid sampling the full transform at ``dst`` points
-    per side, shifted by ``offset`` full-grid pixels, lies at (r + offset) * ratio on the ``src`` grid."""
-    ky, kx = src[0] / dst[0], src[1] / dst[1]
-    return np.array([[kx, 0.0, offset * kx], [0.0, ky, offset * ky]])
-
-
 def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None, spectrum=None):
     """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
     The yielded array is reused: consume it before advancing."""

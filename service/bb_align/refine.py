@@ -127,8 +127,8 @@ def _nearest_on_grid(index, xy, pts, range_m, resolution_m, gate):
     for i in range(len(pts)):
         r = (range_m - pts[i, 0]) / resolution_m - 0.5  # continuous pixel coordinates (bev.metre_to_pixel)
         c = (range_m - pts[i, 1]) / resolution_m - 0.5
-        if not (np.isfinite(r) and np.isfinite(c)):
-            continue
+        if not (r + reach >= 0 and r - reach <= n_rows - 1 and c + reach >= 0 and c - reach <= n_cols - 1):
+            continue  # off the image by more than the gate (or not a number): no pixel can be that close
         r0, r1 = max(0, int(np.ceil(r - reach))), min(n_rows - 1, int(np.floor(r + reach)))
         c0, c1 = max(0, int(np.ceil(c - reach))), min(n_cols - 1, int(np.floor(c + reach)))
         best = gate2
