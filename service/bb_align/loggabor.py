@@ -128,27 +128,29 @@ def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
 
 
 def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int, int]]:
+    """The zero-padded image's (H, W, 2) spectrum followed by copies of its first rows and columns (as many as
+    the largest filter box), so every box, wrapping or not, is a plain slice; and (H, W). Computed once per image
+    and shared by the orientation groups."""
     h, w = image.shape
     m = cfg.fft_margin_px
     shape = fft_shape((h, w), m)
     padded = np.zeros(shape, dtype=np.float32)
     padded[m : m + h, m : m + w] = image
-    return cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT), shape  # (H, W, 2)
+    blocks = _blocks(shape, _bank_fields(cfg))
+    bh = max(b.values.shape[0] for bs in blocks for b in bs)
+    bw = max(b.values.shape[1] for bs in blocks for b in bs)
+    spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)
+    return cv2.copyMakeBorder(spectrum, 0, bh, 0, bw, cv2.BORDER_WRAP), shape
 
 
 def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None, spectrum=None):
     """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
-    The yielded array is reused: consume it before advancing."""
+    ``spectrum``: what ``_spectrum(image, cfg)`` returns, when already computed. The yielded array is reused:
+    consume it before advancing."""
     h, w = image.shape
     m = cfg.fft_margin_px
-    if spectrum is None:
-        spectrum, shape = _spectrum(image, cfg)
-    else:
-        shape = spectrum.shape[:2]
+    wrapped, shape = _spectrum(image, cfg) if spectrum is None else spectrum
     blocks = _blocks(shape, _bank_fields(cfg))
-    bh = max(b.values.shape[0] for bs in blocks for b in bs)
-    bw = max(b.values.shape[1] for bs in blocks for b in bs)
-    wrapped = cv2.copyMakeBorder(spectrum, 0, bh, 0, bw, cv2.BORDER_WRAP)  # boxes that wrap are plain slices
     # Buffers allocated once per call and written in place: fresh 1.5 MB temporaries per transform cost more in
     # page faults than the arithmetic.
     product = np.zeros(shape + (2,), dtype=np.float32)  # zero outside the current box
@@ -183,7 +185,7 @@ def maximum_index_map(image: np.ndarray, cfg: MimConfig | None = None):
     contiguous groups of orientations run in parallel and are merged in order (the same result)."""
     cfg = cfg or MimConfig()
     image = np.asarray(image, dtype=np.float32)
-    spectrum, _ = _spectrum(image, cfg)
+    spectrum = _spectrum(image, cfg)
     groups = [g for g in np.array_split(np.arange(cfg.n_orient), cfg.threads) if len(g)]
 
     def run(group):
