@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/engine_ablation.py [--data ../shared/data] [--sim-pairs 32]
 
-Real scans come from ../shared/data (skipped if absent); simulated pairs from bb_align.sim (seeded).
+Real scans come from ../shared/data (skipped if absent); simulated pairs from bb_align.lab.sim (seeded).
 Prints one table per experiment; takes a few minutes on 2 cores.
 """
 
@@ -18,8 +18,8 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from bb_align import AlignConfig, Aligner  # noqa: E402
-from bb_align.config import BoxConfig, RefineConfig, SuccessRule  # noqa: E402
-from bb_align.geometry import pose_error, se2, se2_params  # noqa: E402
+from bb_align.engine.config import BoxConfig, RefineConfig, SuccessRule  # noqa: E402
+from bb_align.engine.geometry import pose_error, se2, se2_params  # noqa: E402
 
 VARIANTS = {
     "default": AlignConfig(),
@@ -53,7 +53,7 @@ def real_scans(data: Path, n_copies: int) -> None:
 
 
 def sim_pairs(n: int) -> None:
-    from bb_align.sim import simulate_sequence
+    from bb_align.lab.sim import simulate_sequence
 
     print(f"\n## Simulated pairs ({n}, seeds 100.., 20/40/55/70 m apart, heterogeneous sensors, distortion on)")
     pairs = []

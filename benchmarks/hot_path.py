@@ -15,8 +15,8 @@ import time
 import numpy as np
 
 from bb_align import Aligner, make_bev
-from bb_align.bev import BevImage
-from bb_align.sim import simulate_sequence
+from bb_align.engine.bev import BevImage
+from bb_align.lab.sim import simulate_sequence
 
 
 def main() -> None:

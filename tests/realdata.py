@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bb_align.boxes import transform_boxes
-from bb_align.geometry import se2, se3_from_se2, transform_points_3d
+from bb_align.engine.boxes import transform_boxes
+from bb_align.engine.geometry import se2, se3_from_se2, transform_points_3d
 
 
 def kitti_scan(data: Path, frame: str) -> np.ndarray:

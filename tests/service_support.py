@@ -12,11 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 import uvicorn
 
-from bb_align.boxes import transform_boxes
-from bb_align.config import AlignConfig, BevConfig
-from bb_align.geometry import se2, se3_from_se2
-from bb_align.service import create_app
-from bb_align.settings import Settings
+from bb_align.engine.boxes import transform_boxes
+from bb_align.engine.config import AlignConfig, BevConfig
+from bb_align.engine.geometry import se2, se3_from_se2
+from bb_align.server import create_app
+from bb_align.server.settings import Settings
 from synthetic import synthetic_world, view_from
 
 RANGE_M = 40.0  # small BV images keep the engine quick in tests

@@ -1,11 +1,11 @@
 """A small synthetic street for engine tests that must not depend on ../shared: walls, poles, parked cars and a
-ground plane sampled as surface points (no ray casting; the simulator proper is bb_align.sim)."""
+ground plane sampled as surface points (no ray casting; the simulator proper is bb_align.lab.sim)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from bb_align.geometry import transform_points_3d
+from bb_align.engine.geometry import transform_points_3d
 
 
 def synthetic_world(seed: int = 0, extent: float = 70.0):

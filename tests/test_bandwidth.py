@@ -9,8 +9,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from bb_align.bandwidth import RAW_POINT_BYTES, BandwidthMeter, FrameBytes
-from bb_align.wire import JSON, BevMeta, Frame, pack, to_json
+from bb_align.protocol import JSON, BevMeta, Frame, pack, to_json
+from bb_align.server.bandwidth import RAW_POINT_BYTES, BandwidthMeter, FrameBytes
 
 
 def _frame(n_boxes=3, num_points=100_000) -> Frame:

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bb_align.bench import baseline as bl
 from bb_align.cli import app
-from bb_align.config import AlignConfig, BevConfig, FeatureConfig
-from bb_align.descriptors import bvft_descriptors, dominant_orientation
-from bb_align.geometry import pose_error, se2, transform_points_2d
-from bb_align.keypoints import detect_keypoints
-from bb_align.loggabor import maximum_index_map
-from bb_align.matching import match_descriptors
+from bb_align.engine.config import AlignConfig, BevConfig, FeatureConfig
+from bb_align.engine.descriptors import bvft_descriptors, dominant_orientation
+from bb_align.engine.geometry import pose_error, se2, transform_points_2d
+from bb_align.engine.keypoints import detect_keypoints
+from bb_align.engine.loggabor import maximum_index_map
+from bb_align.engine.matching import match_descriptors
+from bb_align.lab.bench import baseline as bl
 from test_loggabor import _segments_image
 
 CFG = AlignConfig()
@@ -74,8 +74,8 @@ def test_432_bin_descriptors_also_agree(small_scene):
 
 
 def test_fast_keypoints_are_the_engines_without_the_cap():
-    from bb_align.bev import make_bev
-    from bb_align.sim import simulate_sequence
+    from bb_align.engine.bev import make_bev
+    from bb_align.lab.sim import simulate_sequence
 
     agent = simulate_sequence(seed=5, n_frames=1, n_agents=1)[0].agents["0"]
     img = make_bev(agent.points, BevConfig(range_m=40.0)).image
@@ -166,7 +166,7 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
 
 
 def test_service_throughput_over_zenoh_loopback():
-    from bb_align.bench.throughput import ServiceBenchConfig, measure_service
+    from bb_align.lab.bench.throughput import ServiceBenchConfig, measure_service
 
     # A small BV range keeps the engine quick; the measurement path is the one the full benchmark uses.
     config = AlignConfig(bev=BevConfig(range_m=40.0))

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from bb_align.bev import BevImage, decode_png, image_size_px, make_bev
-from bb_align.config import BevConfig
+from bb_align.engine.bev import BevImage, decode_png, image_size_px, make_bev
+from bb_align.engine.config import BevConfig
 
 
 def test_pixel_metre_round_trip():

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from bb_align.boxes import align_boxes, as_boxes, box_corners_bev, match_corners, transform_boxes
-from bb_align.geometry import pose_error, se2
+from bb_align.engine.boxes import align_boxes, as_boxes, box_corners_bev, match_corners, transform_boxes
+from bb_align.engine.geometry import pose_error, se2
 
 
 def test_corner_order_hand_worked():

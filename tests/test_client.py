@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from bb_align import BevConfig, make_bev
-from bb_align.geometry import pose_error
-from bb_align.settings import Limits
-from bb_align.wire import JSON, Pose, Result, load_frame, pack, to_json
+from bb_align.engine.geometry import pose_error
+from bb_align.protocol import JSON, Limits, Pose, Result, load_frame, pack, to_json
 from bb_align_client import AlignClient, AsyncAlignClient, ServiceError, ZenohPeer, decode_result, encode_frame
 from service_support import RANGE_M, free_port, moving_pair, running_service, service_settings, true_T_ego_peer
 

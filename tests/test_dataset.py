@@ -11,8 +11,15 @@ import pytest
 from pypcd4 import PointCloud
 from scipy.spatial.transform import Rotation
 
-from bb_align.dataset import (agent_order, iter_frames, parse_lidar_pose, read_agent_frame, world_to_x_pose,
-                              write_agent_frame, x_to_world)
+from bb_align.io.dataset import (
+    agent_order,
+    iter_frames,
+    parse_lidar_pose,
+    read_agent_frame,
+    world_to_x_pose,
+    write_agent_frame,
+    x_to_world,
+)
 
 
 def test_x_to_world_hand_worked():

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from bb_align.config import FeatureConfig
-from bb_align.descriptors import bvft_descriptors, flip_180
-from bb_align.loggabor import maximum_index_map
+from bb_align.engine.config import FeatureConfig
+from bb_align.engine.descriptors import bvft_descriptors, flip_180
+from bb_align.engine.loggabor import maximum_index_map
 from test_loggabor import _segments_image
 
 
@@ -60,10 +60,10 @@ def test_half_turn_gives_the_flipped_descriptor(scene):
 
 def test_threaded_prepare_gives_the_same_features():
     from bb_align import AlignConfig, Aligner
-    from bb_align.config import MimConfig
+    from bb_align.engine.config import MimConfig
 
     img = _segments_image(size=320, seed=3)
-    from bb_align.bev import BevImage
+    from bb_align.engine.bev import BevImage
 
     bev = BevImage(img, resolution_m=0.4, range_m=64.0)
     one = Aligner(AlignConfig(mim=MimConfig(threads=1), features=FeatureConfig(threads=1))).prepare(bev)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bb_align.evaluation.ap import ApAccumulator, bev_iou, match_frame, nms_bev, voc_ap
-from bb_align.evaluation.baseline import graph_match
-from bb_align.evaluation.summary import accuracy
-from bb_align.geometry import pose_error, se2
-from bb_align.boxes import transform_boxes
+from bb_align.engine.boxes import transform_boxes
+from bb_align.engine.geometry import pose_error, se2
+from bb_align.lab.evaluation.ap import ApAccumulator, bev_iou, match_frame, nms_bev, voc_ap
+from bb_align.lab.evaluation.baseline import graph_match
+from bb_align.lab.evaluation.summary import accuracy
 
 
 def test_bev_iou_hand_checked():
@@ -104,9 +104,9 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
 
 def test_eval_simulates_detections_when_the_dataset_has_none(tmp_path):
     """An OPV2V-style dataset without 'detections': boxes come from the detector model on the labels."""
-    from bb_align.dataset import write_agent_frame
-    from bb_align.evaluation import EvalConfig, evaluate_dataset
-    from bb_align.sim import Scenario
+    from bb_align.io.dataset import write_agent_frame
+    from bb_align.lab.evaluation import EvalConfig, evaluate_dataset
+    from bb_align.lab.sim import Scenario
 
     sc = Scenario(11, n_agents=2, distance_m=12.0)
     frame = sc.frame(0)

@@ -18,12 +18,19 @@ import numpy as np
 import pytest
 import zenoh
 
-from bb_align.geometry import pose_error
-from bb_align.settings import Limits, ZenohSettings
-from bb_align.wire import load_frame
+from bb_align.engine.geometry import pose_error
+from bb_align.protocol import Limits, ZenohSettings, load_frame
 from bb_align_client import AlignClient, ServiceError, ZenohPeer, encode_frame
-from service_support import (RANGE_M, free_port, moving_pair, running_service, service_settings, service_threads,
-                             true_T_ego_peer, wait_for)
+from service_support import (
+    RANGE_M,
+    free_port,
+    moving_pair,
+    running_service,
+    service_settings,
+    service_threads,
+    true_T_ego_peer,
+    wait_for,
+)
 
 BIN = Path(sys.executable).parent / "bb-align"
 
@@ -102,7 +109,7 @@ def _stamp(k: int) -> float:
 
 def _restamp(data: bytes, k: int) -> bytes:
     """The same encoded frame with seq k and stamp k * 0.1 s (a moving stream from a few simulated frames)."""
-    from bb_align.wire import pack
+    from bb_align.protocol import pack
 
     frame = load_frame(data, Limits())
     return pack(frame.model_copy(update={"seq": k, "stamp": _stamp(k)}))
@@ -213,7 +220,7 @@ def _ready(url: str) -> bool:
 
 
 def test_the_engine_never_runs_on_more_than_the_configured_workers(pair):
-    from bb_align.service import AlignService
+    from bb_align.server import AlignService
 
     settings = service_settings(zenoh=False, workers=2)
     service = AlignService(settings)
@@ -254,7 +261,7 @@ def test_the_engine_never_runs_on_more_than_the_configured_workers(pair):
 def test_a_peer_frame_from_an_unrelated_place_is_not_a_confident_pose():
     """Two simulated scenes that share nothing: the service must say it failed, or give low confidence. The
     same service recovers the true pose of a pair from one scene (the control)."""
-    from bb_align.sim import simulate_sequence
+    from bb_align.lab.sim import simulate_sequence
 
     scene_a = simulate_sequence(seed=21, n_frames=1, n_agents=2, distance_m=20.0)[0]
     scene_b = simulate_sequence(seed=22, n_frames=1, n_agents=2, distance_m=20.0)[0]

@@ -1,8 +1,16 @@
 import numpy as np
 import pytest
 
-from bb_align.geometry import (kabsch_2d, pose_error, rotation_rpy, se2, se2_params, se3_from_se2,
-                               transform_points_2d, wrap_angle)
+from bb_align.engine.geometry import (
+    kabsch_2d,
+    pose_error,
+    rotation_rpy,
+    se2,
+    se2_params,
+    se3_from_se2,
+    transform_points_2d,
+    wrap_angle,
+)
 
 
 def test_se2_round_trip_and_composition():

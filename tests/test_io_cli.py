@@ -5,8 +5,8 @@ import pytest
 from typer.testing import CliRunner
 
 from bb_align.cli import app
-from bb_align.geometry import pose_error
-from bb_align.io import load_boxes, load_cloud, save_boxes_json
+from bb_align.engine.geometry import pose_error
+from bb_align.io.clouds import load_boxes, load_cloud, save_boxes_json
 from test_pipeline import _pair, world  # noqa: F401  (fixture)
 
 

@@ -3,9 +3,16 @@ import numpy as np
 import pytest
 import scipy.fft as sfft
 
-from bb_align.config import MimConfig
-from bb_align.loggabor import (_circular_span, angular_filters, filter_bank, fft_shape, frequency_grid,
-                               maximum_index_map, orientation_amplitudes)
+from bb_align.engine.config import MimConfig
+from bb_align.engine.loggabor import (
+    _circular_span,
+    angular_filters,
+    fft_shape,
+    filter_bank,
+    frequency_grid,
+    maximum_index_map,
+    orientation_amplitudes,
+)
 
 
 def _direct(i, j, shape, s, o, cfg):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from bb_align import AlignConfig, Aligner, SuccessRule, make_bev
-from bb_align.boxes import transform_boxes
-from bb_align.geometry import pose_error, se2, se3_from_se2
+from bb_align.engine.boxes import transform_boxes
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
 from synthetic import synthetic_world, view_from
 
 
@@ -91,7 +91,7 @@ def test_unrelated_scenes_are_not_a_confident_pose():
 
 
 def test_paper_mode_applies_the_box_correction(world):
-    from bb_align.config import BoxConfig
+    from bb_align.engine.config import BoxConfig
 
     pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 25.0, (14.0, -6.0))
     aligner = Aligner(AlignConfig(box=BoxConfig(apply="always")))
@@ -102,7 +102,7 @@ def test_paper_mode_applies_the_box_correction(world):
 
 
 def test_prior_pose_gates_matches(world):
-    from bb_align.geometry import se2_params
+    from bb_align.engine.geometry import se2_params
 
     pts_ego, _, pts_peer, _, T_true = _pair(world, 120.0, (30.0, -12.0))
     aligner = Aligner()

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bb_align import Aligner
-from bb_align.geometry import pose_error
+from bb_align.engine.geometry import pose_error
 from realdata import av2_scan, kitti_scan, moved_copy, nuscenes_scan
 
 

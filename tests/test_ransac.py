@@ -1,8 +1,8 @@
 import numpy as np
 
-from bb_align.geometry import pose_error, se2, transform_points_2d
-from bb_align.matching import match_descriptors
-from bb_align.ransac import rigid_ransac
+from bb_align.engine.geometry import pose_error, se2, transform_points_2d
+from bb_align.engine.matching import match_descriptors
+from bb_align.engine.ransac import rigid_ransac
 
 
 def _correspondences(n=300, outlier_frac=0.8, seed=0, yaw_deg=-163.0):
@@ -80,7 +80,7 @@ def test_matching_in_query_blocks_equals_brute_force():
 
 
 def test_prior_gating_keeps_consistent_candidates_only():
-    from bb_align.matching import match_with_prior
+    from bb_align.engine.matching import match_with_prior
 
     xy_q = np.array([[10.0, 0.0], [0.0, 30.0]])
     xy_t = np.array([[10.5, 0.2], [40.0, 40.0], [0.3, 30.2], [-50.0, 0.0]])

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from bb_align.bev import make_bev
-from bb_align.config import BevConfig
-from bb_align.geometry import pose_error, se2, se3_from_se2
-from bb_align.refine import bev_cloud, bev_points, refine_icp
+from bb_align.engine.bev import make_bev
+from bb_align.engine.config import BevConfig
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
+from bb_align.engine.refine import bev_cloud, bev_points, refine_icp
 from synthetic import synthetic_world, view_from
 
 

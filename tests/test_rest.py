@@ -11,8 +11,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from bb_align.geometry import pose_error
-from bb_align.wire import MSGPACK, json_align_request, load_result, pack_align_request
+from bb_align.engine.geometry import pose_error
+from bb_align.protocol import MSGPACK, json_align_request, load_result, pack_align_request
 from bb_align_client import encode_frame
 from service_support import RANGE_M, moving_pair, running_service, service_settings, true_T_ego_peer
 
@@ -170,7 +170,7 @@ def test_full_request_queue_answers_503(pair):
 
 
 def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
-    from bb_align.geometry import se2, se3_from_se2
+    from bb_align.engine.geometry import se2, se3_from_se2
 
     _, http = server
     stamp, ego, peer = pair[1]
@@ -191,7 +191,7 @@ def test_peer_frame_arriving_before_its_ego_frame_still_gets_it(server, pair):
     """The ego frame of a sweep travels in another Zenoh session and may arrive after the peer's: a peer frame
     newer than every cached ego frame is prepared first and matched after. The ego frame is made to arrive
     exactly while the peer frame is being prepared (deterministic stand-in for the race)."""
-    from bb_align.wire import load_frame
+    from bb_align.protocol import load_frame
 
     app, http = server
     service = app.state.service

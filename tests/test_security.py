@@ -19,18 +19,41 @@ import msgpack
 import numpy as np
 import pytest
 import schemathesis  # noqa: E402
-from hypothesis import HealthCheck, given, settings as hsettings, strategies as st
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 
-from bb_align.auth import DOMAIN, Keyring
-from bb_align.settings import AuthSettings, Limits
-from bb_align.wire import (JSON, MSGPACK, BevMeta, Frame, WireError, check_png, load_align_request, load_frame,
-                           pack, pack_align_request, sign, to_json)
+from bb_align.protocol import (
+    JSON,
+    MSGPACK,
+    BevMeta,
+    Frame,
+    Limits,
+    WireError,
+    check_png,
+    load_align_request,
+    load_frame,
+    pack,
+    pack_align_request,
+    sign,
+    to_json,
+)
+from bb_align.protocol.signatures import DOMAIN, Keyring
+from bb_align.server.settings import AuthSettings
 from bb_align_client import AlignClient, ServiceError, ZenohPeer, encode_frame, sign_frame
-from service_support import (FLEET_KEY, RANGE_M, free_port, moving_pair, running_service, secure_settings,
-                             service_settings, wait_for)
+from service_support import (
+    FLEET_KEY,
+    RANGE_M,
+    free_port,
+    moving_pair,
+    running_service,
+    secure_settings,
+    service_settings,
+    wait_for,
+)
 
 LIMITS = Limits()
-KEYRING = Keyring(AuthSettings(fleet_key=FLEET_KEY, peer_keys={"car1": "car1-own-key-0123456789"}))
+KEYRING = AuthSettings(fleet_key=FLEET_KEY, peer_keys={"car1": "car1-own-key-0123456789"}).keyring()
 N = 100  # image side of the hand-made frames (range 20 m, 0.4 m cells)
 
 
@@ -198,7 +221,7 @@ def test_align_request_frames_are_each_verified():
 
 
 def test_demo_keyring_accepts_unsigned_and_unverifiable_frames():
-    demo = Keyring(AuthSettings(mode="off"))
+    demo = AuthSettings(mode="off").keyring()
     assert load_frame(pack(_frame()), LIMITS, keyring=demo) == _frame()
     assert load_frame(sign(pack(_frame()), FLEET_KEY), LIMITS, keyring=demo) == _frame()
 

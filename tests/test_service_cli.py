@@ -21,7 +21,7 @@ from typer.main import get_command
 from typer.testing import CliRunner
 
 from bb_align.cli import app
-from bb_align.settings import Settings
+from bb_align.server.settings import Settings
 from service_support import FLEET_KEY, free_port, running_service, secure_settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -71,7 +71,7 @@ def test_serve_without_a_key_refuses_to_start_and_says_how_to_fix_it(monkeypatch
 
 
 def test_banner_says_loudly_what_is_not_secured():
-    from bb_align.service.commands import banner
+    from bb_align.server.commands import banner
 
     demo = banner(Settings(profile="demo"))
     assert "!!! AUTHENTICATION IS OFF (demo profile)" in demo

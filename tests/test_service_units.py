@@ -7,9 +7,9 @@ import time
 
 import numpy as np
 
-from bb_align.service.cache import EgoCache
-from bb_align.service.scheduler import Job, Scheduler
-from bb_align.wire import BevMeta, Frame
+from bb_align.protocol import BevMeta, Frame
+from bb_align.server.cache import EgoCache
+from bb_align.server.scheduler import Job, Scheduler
 
 
 def _job(sender, n, reply=None):
@@ -113,8 +113,8 @@ def test_priority_sender_goes_first_without_reordering_the_rest():
 def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
     from scipy.spatial.transform import Rotation
 
-    from bb_align.service.core import relative_prior
-    from bb_align.wire import Pose
+    from bb_align.protocol import Pose
+    from bb_align.server.core import relative_prior
 
     ego_pose = Pose(x=10, y=5, z=1.9, roll=0.02, pitch=-0.01, yaw=0.4)
     peer_pose = Pose(x=30, y=9, z=2.3, roll=-0.03, pitch=0.05, yaw=0.9)
@@ -134,7 +134,7 @@ def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
 
 
 def test_nearest_ready_entry_within_the_skew():
-    from bb_align.service.cache import EgoCache
+    from bb_align.server.cache import EgoCache
 
     cache = EgoCache(5)
     entries = [cache.add(_ego(0.1 * i, i), None) for i in range(4)]
@@ -152,7 +152,7 @@ def test_wait_until_ready_reports_an_early_exit_and_a_timeout(tmp_path):
 
     import pytest
 
-    from bb_align.service.process import wait_until_ready
+    from bb_align.lab.harness import wait_until_ready
 
     log = tmp_path / "child.log"
     log.write_text("boom: settings invalid\n")

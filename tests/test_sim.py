@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bb_align.dataset import iter_frames
-from bb_align.sim import DetectionModel, Scenario, SimConfig, detect, simulate_sequence
-from bb_align.sim.paths import straight
-from bb_align.sim.raycast import Mount, cast_sweep
-from bb_align.sim.sensors import SensorModel
-from bb_align.sim.world import Shapes, Terrain, Vehicle, World
-from bb_align.sim.writer import scenario_distance, scenario_seed, write_scenario
+from bb_align.io.dataset import iter_frames
+from bb_align.lab.sim import DetectionModel, Scenario, SimConfig, detect, simulate_sequence
+from bb_align.lab.sim.paths import straight
+from bb_align.lab.sim.raycast import Mount, cast_sweep
+from bb_align.lab.sim.sensors import SensorModel
+from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
+from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
 
 SENSOR = SensorModel(name="ideal", elevations_deg=(-10.0, -5.0, 0.0, 5.0), columns=3600, max_range_m=100,
                      range_noise_m=0.0, dropout=0.0, far_falloff=60.0, elevation_jitter_deg=0.0)

@@ -8,7 +8,7 @@ import json
 from typer.testing import CliRunner
 
 from bb_align.cli import app
-from bb_align.service.soak import ATTACKS, run_soak
+from bb_align.lab.soak import ATTACKS, run_soak
 
 
 def test_short_soak_accounts_for_every_message(tmp_path):

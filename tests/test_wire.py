@@ -1,4 +1,4 @@
-"""Wire models, encodings and the shared validator (bb_align.wire)."""
+"""Wire models, encodings and the shared validator (bb_align.protocol)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,31 @@ import cv2
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings as hsettings, strategies as st
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from bb_align import BevConfig, make_bev
-from bb_align.settings import Limits
-from bb_align.wire import (JSON, MSGPACK, AlignRequest, BevMeta, Frame, Pose, Result, WireError, json_align_request,
-                           json_schemas, load_align_request, load_frame, load_result, pack, pack_align_request,
-                           to_json)
+from bb_align.protocol import (
+    JSON,
+    MSGPACK,
+    AlignRequest,
+    BevMeta,
+    Frame,
+    Limits,
+    Pose,
+    Result,
+    WireError,
+    json_align_request,
+    json_schemas,
+    load_align_request,
+    load_frame,
+    load_result,
+    pack,
+    pack_align_request,
+    to_json,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 LIMITS = Limits()

@@ -10,10 +10,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from bb_align.geometry import pose_error
+from bb_align.engine.geometry import pose_error
 from bb_align_client import ServiceError, ZenohPeer, encode_frame
-from service_support import (RANGE_M, moving_pair, running_service, service_settings, service_threads,
-                             true_T_ego_peer)
+from service_support import RANGE_M, moving_pair, running_service, service_settings, service_threads, true_T_ego_peer
 
 
 @pytest.fixture(scope="module")
@@ -73,9 +72,9 @@ def test_moving_pair_published_over_zenoh_gets_correct_poses(pair):
 
 
 def test_simulated_moving_pair_gets_poses_within_the_paper_criterion():
-    """bb_align.sim: two cars 20 m apart with different LiDARs, motion distortion and detector noise; default
+    """bb_align.lab.sim: two cars 20 m apart with different LiDARs, motion distortion and detector noise; default
     engine settings. Correct means within the paper's 1 m / 1 deg success criterion of the true pose."""
-    from bb_align.sim import simulate_sequence
+    from bb_align.lab.sim import simulate_sequence
 
     sim = simulate_sequence(seed=0, n_frames=3, n_agents=2, distance_m=20.0)
     frames = []

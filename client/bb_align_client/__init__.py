@@ -6,14 +6,24 @@
         peer.publish(frame)                               # the service publishes T_ego_peer on poses/<ego>/car1
         result = peer.request_align(frame, ego_id="ego")  # or ask and wait for the answer
     AlignClient("http://127.0.0.1:8000", token=rest_token).align(frame).T_ego_peer
+
+Needs only ``bb_align.protocol`` and the BV encoder; Zenoh is loaded when ``ZenohPeer`` / ``PoseStream`` is
+first used (a REST-only harness never loads it).
 """
 
-from bb_align.wire import Result
+from bb_align.protocol import Result
 
 from .encode import decode_result, encode_frame, sign_frame
 from .errors import ServiceError
 from .rest import AlignClient, AsyncAlignClient
-from .zenoh_peer import PoseStream, ZenohPeer
 
 __all__ = ["AlignClient", "AsyncAlignClient", "PoseStream", "Result", "ServiceError", "ZenohPeer", "decode_result",
            "encode_frame", "sign_frame"]
+
+
+def __getattr__(name: str):
+    if name in ("ZenohPeer", "PoseStream", "ArrivalLog"):
+        from . import zenoh_peer
+
+        return getattr(zenoh_peer, name)
+    raise AttributeError(f"module 'bb_align_client' has no attribute {name!r}")

@@ -6,11 +6,23 @@ from typing import Any
 
 import numpy as np
 
-from bb_align.bev import BevImage, make_bev
-from bb_align.boxes import as_boxes
-from bb_align.config import BevConfig
-from bb_align.settings import FLEET_KEY_ID
-from bb_align.wire import JSON, MSGPACK, BevMeta, Frame, Pose, Result, is_signed, load_result, pack, sign, to_json
+from bb_align.engine.bev import BevImage, make_bev
+from bb_align.engine.boxes import as_boxes
+from bb_align.engine.config import BevConfig
+from bb_align.protocol import (
+    FLEET_KEY_ID,
+    JSON,
+    MSGPACK,
+    BevMeta,
+    Frame,
+    Pose,
+    Result,
+    is_signed,
+    load_result,
+    pack,
+    sign,
+    to_json,
+)
 
 
 def as_pose(pose: Any) -> Pose | None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from bb_align.wire import ErrorBody
+from bb_align.protocol import ErrorBody
 
 
 class ServiceError(RuntimeError):

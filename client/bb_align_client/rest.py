@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import httpx
 
-from bb_align.settings import FLEET_KEY_ID
-from bb_align.wire import JSON, MSGPACK, ErrorBody, Result, json_align_request, load_result, pack_align_request
+from bb_align.protocol import (
+    FLEET_KEY_ID,
+    JSON,
+    MSGPACK,
+    ErrorBody,
+    Result,
+    json_align_request,
+    load_result,
+    pack_align_request,
+)
 
 from .encode import sign_frame
 from .errors import ServiceError

@@ -10,8 +10,17 @@ from typing import Sequence
 
 import zenoh
 
-from bb_align.settings import FLEET_KEY_ID, ZenohSettings, ZenohTls
-from bb_align.wire import ErrorBody, Result, align_key, frames_key, load_result, poses_key
+from bb_align.protocol import (
+    FLEET_KEY_ID,
+    ErrorBody,
+    Result,
+    ZenohSettings,
+    ZenohTls,
+    align_key,
+    frames_key,
+    load_result,
+    poses_key,
+)
 
 from .encode import sign_frame
 from .errors import ServiceError
@@ -65,7 +74,7 @@ class ZenohPeer:
     ``publish`` wait instead (every frame reaches the service; for tests and recordings).
 
     ``key``: sign every unsigned frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``, the default) or this
-    car's own key (``key_id=vehicle_id``). ``tls``: certificates for ``tls/`` endpoints (bb_align.settings.ZenohTls
+    car's own key (``key_id=vehicle_id``). ``tls``: certificates for ``tls/`` endpoints (bb_align.protocol.ZenohTls
     or a dict of its fields)."""
 
     def __init__(self, vehicle_id: str, connect: Sequence[str] = ("tcp/127.0.0.1:7447",), *,

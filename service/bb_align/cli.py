@@ -31,9 +31,9 @@ def align(
     resolution_m: Optional[float] = typer.Option(None, help="BV cell size in metres (default from config)"),
 ) -> None:
     """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes)."""
-    from .config import AlignConfig
-    from .io import load_boxes, load_cloud
-    from .pipeline import Aligner
+    from bb_align.engine.config import AlignConfig
+    from bb_align.engine.pipeline import Aligner
+    from bb_align.io.clouds import load_boxes, load_cloud
 
     cfg = AlignConfig()
     bev_over = {k: v for k, v in (("range_m", range_m), ("resolution_m", resolution_m)) if v is not None}
@@ -44,7 +44,7 @@ def align(
     peer = aligner.prepare(load_cloud(peer_cloud), load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
     result = aligner.align(ego, peer)
     if plot is not None:
-        from .plot import plot_alignment
+        from bb_align.io.plot import plot_alignment
 
         plot_alignment(plot, ego.bev, peer.bev, result, ego.boxes, peer.boxes,
                        title=f"{ego_cloud.name} <- {peer_cloud.name}")
@@ -65,6 +65,6 @@ def align(
 
 
 # Feature areas register their commands below (one line each).
-from .service.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas
-from .evaluation.cli import register as _register_evaluation; _register_evaluation(app)  # sim, eval
-from .bench.cli import register as _register_bench; _register_bench(app)  # bench
+from bb_align.server.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas
+from bb_align.lab.evaluation.cli import register as _register_evaluation; _register_evaluation(app)  # sim, eval
+from bb_align.lab.bench.cli import register as _register_bench; _register_bench(app)  # bench

@@ -1,0 +1,101 @@
+"""Stage 2: refine the stage-1 pose on the corners of boxes both cars detected (paper Section IV-B).
+
+Boxes are rows ``[x, y, z, l, w, h, yaw]`` in the detecting car's sensor frame (centre, length along the
+heading, width, height, yaw counter-clockwise about +z in radians). BV corners follow OpenCOOD's order:
+front-right, front-left, rear-left, rear-right.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .config import BoxConfig
+from .geometry import se2_params, transform_points_2d, wrap_angle
+from .ransac import rigid_ransac
+
+BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
+
+
+def as_boxes(boxes) -> np.ndarray:
+    """Anything array-like of shape (K, 7) in BOX_FIELDS order -> float64 (K, 7); None -> (0, 7)."""
+    if boxes is None:
+        return np.zeros((0, 7))
+    arr = np.asarray(boxes, dtype=np.float64)
+    if arr.size == 0:
+        return np.zeros((0, 7))
+    if arr.ndim != 2 or arr.shape[1] != 7:
+        raise ValueError(f"boxes must be (K, 7) rows of {list(BOX_FIELDS)}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("boxes must hold finite numbers only")
+    return arr
+
+
+def box_corners_bev(boxes: np.ndarray) -> np.ndarray:
+    """(K, 7) boxes -> (K, 4, 2) BV corners: front-right, front-left, rear-left, rear-right."""
+    boxes = as_boxes(boxes)
+    hl, hw = boxes[:, 3] / 2, boxes[:, 4] / 2
+    local = np.stack(
+        [np.stack([hl, -hw], 1), np.stack([hl, hw], 1), np.stack([-hl, hw], 1), np.stack([-hl, -hw], 1)], axis=1
+    )
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    x = c[:, None] * local[..., 0] - s[:, None] * local[..., 1] + boxes[:, 0:1]
+    y = s[:, None] * local[..., 0] + c[:, None] * local[..., 1] + boxes[:, 1:2]
+    return np.stack([x, y], axis=-1)
+
+
+def transform_boxes(T_a_b: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """Move (K, 7) boxes from frame b to frame a with a 3x3 ground-plane transform (z, sizes unchanged)."""
+    boxes_b = as_boxes(boxes_b)
+    out = boxes_b.copy()
+    out[:, :2] = transform_points_2d(T_a_b, boxes_b[:, :2])
+    out[:, 6] = wrap_angle(boxes_b[:, 6] + se2_params(T_a_b)[0])
+    return out
+
+
+def pair_boxes(centres_a: np.ndarray, centres_b: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one pairing of box centres (Hungarian on distance), pairs farther apart than ``gate`` dropped."""
+    if len(centres_a) == 0 or len(centres_b) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    d = np.linalg.norm(centres_a[:, None, :] - centres_b[None, :, :], axis=2)
+    cost = np.where(d < gate, d, 1e6)
+    ia, ib = linear_sum_assignment(cost)
+    keep = d[ia, ib] < gate
+    return ia[keep], ib[keep]
+
+
+def match_corners(corners_ego: np.ndarray, corners_peer: np.ndarray) -> np.ndarray:
+    """For paired (P, 4, 2) corner sets, reorder each peer box's corners by the cyclic shift that brings them
+    closest to the ego box's: robust to 180 deg (and 90 deg) heading flips of either detector."""
+    shifts = np.stack([np.roll(corners_peer, -k, axis=1) for k in range(4)], axis=1)  # (P, 4, 4, 2)
+    cost = np.linalg.norm(shifts - corners_ego[:, None], axis=3).sum(2)  # (P, 4)
+    best = cost.argmin(axis=1)
+    return shifts[np.arange(len(best)), best]
+
+
+@dataclass
+class BoxAlignment:
+    T_box: np.ndarray  # 3x3 correction in the ego frame
+    inliers: int  # corner inliers
+    pairs: int  # box pairs found
+
+
+def align_boxes(boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray,
+                cfg: BoxConfig | None = None, seed: int = 0) -> BoxAlignment:
+    """Stage 2: T_box with ego corners ~ T_box @ (T_bv @ peer corners); pairs == 0 when nothing overlaps."""
+    cfg = cfg or BoxConfig()
+    boxes_ego, boxes_peer = as_boxes(boxes_ego), as_boxes(boxes_peer)
+    peer_in_ego = transform_boxes(T_bv, boxes_peer)
+    ia, ib = pair_boxes(boxes_ego[:, :2], peer_in_ego[:, :2], cfg.pair_gate_m)
+    if len(ia) == 0:
+        return BoxAlignment(np.eye(3), 0, 0)
+    c_ego = box_corners_bev(boxes_ego[ia])
+    c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
+    src, dst = c_peer.reshape(-1, 2), c_ego.reshape(-1, 2)
+    fit = rigid_ransac(src, dst, threshold=cfg.inlier_threshold_m, min_sample_dist=1.0,
+                       max_iterations=cfg.max_iterations, min_iterations=min(cfg.max_iterations, 256), seed=seed)
+    if fit is None:
+        return BoxAlignment(np.eye(3), 0, len(ia))
+    return BoxAlignment(fit.T_dst_src, fit.num_inliers, len(ia))

@@ -1,0 +1,158 @@
+"""Every tunable number of the engine, in one place (pydantic models).
+
+Defaults follow ../shared/reference/ALGORITHM.md (the numbers the paper leaves out) unless a measurement in
+docs/ says otherwise. The service's own settings (ports, Zenoh, limits) live in ``bb_align.server.settings`` and embed
+an :class:`AlignConfig`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class BevConfig(_Frozen):
+    """Bird's-eye-view height image (paper Eq. 4)."""
+
+    range_m: float = Field(80.0, gt=0, le=250, description="half width R of the square image, metres")
+    resolution_m: float = Field(0.4, gt=0.01, le=5, description="cell size c, metres per pixel")
+    mode: Literal["max_height", "slices"] = Field(
+        "max_height", description="max_height: paper's max z per cell; slices: occupied z-slices (reference)"
+    )
+    ground_clearance_m: float = Field(0.3, ge=0, description="heights below this above the local ground map to 0")
+    max_height_m: float = Field(12.0, gt=0, description="heights above the ground are clipped here")
+    slice_m: float = Field(0.2, gt=0, description="slice thickness for mode='slices'")
+    ground_cell_m: float = Field(2.0, gt=0, description="cell of the coarse ground-height grid")
+    ground_window_cells: int = Field(3, ge=1, description="min-filter window over the coarse ground grid")
+
+
+class MimConfig(_Frozen):
+    """Log-Gabor bank and Maximum Index Map (Eqs. 5-10)."""
+
+    n_scales: int = Field(4, ge=1, le=8)
+    n_orient: int = Field(12, ge=4, le=36)
+    min_wavelength_px: float = Field(3.0, gt=1)
+    mult: float = Field(1.6, gt=1)
+    sigma_on_f: float = Field(0.75, gt=0, lt=1)
+    lowpass_cutoff: float = Field(0.45, gt=0, le=0.5)
+    lowpass_order: int = Field(15, ge=1)
+    min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
+    fft_margin_px: int = Field(16, ge=0, description="zero margin around the image before the FFT (no wrap-around; "
+                               "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)")
+    threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
+
+
+class FeatureConfig(_Frozen):
+    """FAST keypoints and BVFT descriptors."""
+
+    fast_threshold: int = Field(10, ge=1, le=255)
+    max_keypoints: int = Field(400, ge=10, le=5000, description="strongest FAST responses kept")
+    patch_px: int = Field(96, ge=24, description="descriptor window J")
+    grid: int = Field(6, ge=2, description="cells per side l")
+    merge_bins: bool = Field(True, description="True: 216-D (bins merged in pairs); False: 432-D")
+    reference_orientation_offsets: tuple[int, ...] = Field(
+        (0, -1, 1), description="the matched-against (ego) side also describes each keypoint as if its dominant "
+        "orientation were these neighbouring bins: a peer whose orientation estimate is one bin off still finds "
+        "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)")
+    window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
+    threads: int = Field(2, ge=1, le=16, description="keypoint groups described in parallel (same result)")
+    orientation_stride: int = Field(
+        2, ge=1, le=4, description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
+        "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)")
+
+
+class MatchConfig(_Frozen):
+    """Descriptor matching and rigid 2-D RANSAC (stage 1)."""
+
+    mutual: bool = Field(False, description="keep only mutual nearest neighbours")
+    ratio: float = Field(1.0, gt=0, le=1, description="Lowe ratio test; 1.0 disables it")
+    inlier_threshold_m: float = Field(2.0, gt=0)
+    min_sample_dist_m: float = Field(3.0, ge=0)
+    max_iterations: int = Field(5000, ge=10)
+    min_iterations: int = Field(200, ge=1)
+    confidence: float = Field(0.9999, gt=0, lt=1)
+    seed: int = 0
+    threads: int = Field(2, ge=1, le=16, description="blocks of query descriptors matched in parallel (same result)")
+
+
+class PriorConfig(_Frozen):
+    """Optional prior pose (e.g. from the cars' reported GPS poses) used to gate descriptor matches. Without a
+    prior the engine searches every yaw and shift (the paper's setting)."""
+
+    max_translation_m: float = Field(10.0, gt=0, description="how far the true pose may be from the prior")
+    max_yaw_deg: float = Field(10.0, gt=0, le=180)
+    top_k: int = Field(4, ge=1, le=32, description="descriptor candidates per peer keypoint kept for gating")
+
+
+class RefineConfig(_Frozen):
+    """Dense point-to-line ICP on the lit BV pixels after stage 1 (not in the paper; see bb_align.engine.refine)."""
+
+    enabled: bool = True
+    gates_m: tuple[float, ...] = Field((2.0, 1.0, 0.5, 0.4), description="correspondence gates, coarse to fine")
+    iters_per_gate: int = Field(3, ge=1, le=50)
+    step_relaxation: float = Field(2.0, ge=1.0, le=3.0,
+                                   description="a Gauss-Newton step continuing the previous one is lengthened so")
+    min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
+    max_peer_points: int = Field(2000, ge=100, description="seeded random subset of the peer's lit pixels")
+    max_correction_m: float = Field(2.0, gt=0)
+    max_correction_deg: float = Field(3.0, gt=0)
+
+
+class BoxConfig(_Frozen):
+    """Stage 2: box-corner alignment."""
+
+    apply: Literal["always", "unrefined", "auto"] = Field(
+        "auto",
+        description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 estimates T_box and counts "
+        "Inliers_box for the success rule, but applies its correction only when the dense BV refinement did not "
+        "run or was rejected (box corners from a noisy detector are less precise than the refined images). auto: "
+        "as unrefined, but a box correction over recheck_m / recheck_deg is refined again on the BV images and "
+        "kept when the images agree with it better (a refinement stuck in a local optimum); docs/engine.md",
+    )
+    recheck_m: float = Field(0.5, ge=0, description="auto: box corrections beyond this are re-refined and compared")
+    recheck_deg: float = Field(0.5, ge=0, description="auto: likewise for the yaw correction")
+    pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
+    inlier_threshold_m: float = Field(0.8, gt=0)
+    max_iterations: int = Field(500, ge=10)
+    max_correction_m: float = Field(4.0, gt=0, description="stage 2 may move stage 1 by at most this")
+    max_correction_deg: float = Field(6.0, gt=0)
+
+
+class SuccessRule(_Frozen):
+    """Paper rule: Inliers_bv > 25 and Inliers_box > 6."""
+
+    min_inliers_bv: int = Field(25, ge=0, description="success needs inliers_bv > this")
+    min_inliers_box: int = Field(6, ge=0, description="success needs inliers_box > this (when boxes are given)")
+    strong_inliers_bv: int | None = Field(
+        None, ge=0, description="if set, a pair whose stage 2 cannot verify it (no box overlap, too few box "
+        "inliers) still succeeds when inliers_bv exceeds this (the paper's Fig. 9: > 100 puts > 90% of pairs "
+        "under 1 m / 1 deg); None keeps the paper's rule")
+    require_boxes: bool = Field(
+        False, description="True: a pair without boxes fails; False: stage 1 alone decides (said in the reason)"
+    )
+    max_ambiguity: float = Field(
+        0.8, gt=0, le=1, description="fail when a distinct runner-up pose has this fraction of the best inliers"
+    )
+    min_refine_fitness: float = Field(
+        0.2, ge=0, le=1,
+        description="fail when, after the dense refinement, fewer than this fraction of the peer's lit BV pixels lie "
+        "within the finest gate of an ego pixel (catches keypoint aliases along repetitive streets; measured: "
+        "correct sim pairs >= 0.19, wrong ones <= 0.17, real KITTI 16 m pair 0.51)",
+    )
+
+
+class AlignConfig(_Frozen):
+    bev: BevConfig = BevConfig()
+    mim: MimConfig = MimConfig()
+    features: FeatureConfig = FeatureConfig()
+    match: MatchConfig = MatchConfig()
+    prior: PriorConfig = PriorConfig()
+    refine: RefineConfig = RefineConfig()
+    box: BoxConfig = BoxConfig()
+    success: SuccessRule = SuccessRule()
+    min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")

@@ -1,0 +1,352 @@
+"""The service under load: an ego car and N peers publish frames at 10 Hz over Zenoh, the ego-side service
+(a separate process, as deployed) aligns them and publishes poses; measured are the results per second, the
+frames dropped by its latest-only queues, and the latency from publish to pose received.
+
+Everything stays on loopback: the service listens on tcp/127.0.0.1:<free port>, the cars connect there, multicast
+scouting is off. Each peer count runs in a fresh service process, which is always stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from bb_align.engine.config import AlignConfig
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
+
+from ..harness import wait_until_ready
+
+EGO_ID = "ego"
+PREFIX = "bbalign-bench"
+# The service child: explicit settings only (no BBALIGN_* environment), uvicorn on loopback. A fresh fleet key
+# for this run comes on stdin (never on the command line) when the service authenticates frames.
+_CHILD = """
+import json, sys, uvicorn
+from bb_align.server import create_app
+from bb_align.server.settings import Settings
+values = json.loads(sys.argv[1])
+key = sys.stdin.readline().strip()
+if key:
+    values["auth"] = {"mode": "hmac", "fleet_key": key}
+settings = Settings.model_validate(values)
+uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
+"""
+
+
+def _service_authenticates() -> bool:
+    from bb_align.server.settings import Settings
+
+    return "auth" in Settings.model_fields
+
+
+class ServiceBenchConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    peer_counts: list[int] = Field([1, 4, 8], min_length=1)
+    seconds: float = Field(10.0, gt=0, le=600, description="measured window per peer count")
+    warmup_s: float = Field(2.0, ge=0, le=60, description="publishing before the window (caches, connections)")
+    grace_s: float = Field(3.0, ge=0, le=60, description="wait for results after the last frame")
+    rate_hz: float = Field(10.0, gt=0, le=50)
+    workers: int = Field(2, ge=1, le=16)
+    frames: int = Field(6, ge=1, le=100, description="simulated frames per car, replayed in a loop")
+    seed: int = 303
+    send_pose: bool = Field(True, description="frames carry the car's reported pose (the service then gates matches)")
+    pose_sigma_m: float = Field(2.0, ge=0, description="reported-pose noise (GNSS), x and y, 1 sigma")
+    pose_sigma_deg: float = Field(2.0, ge=0, description="reported-pose yaw noise, 1 sigma")
+    min_distance_m: float = Field(10.0, ge=0)
+    max_distance_m: float = Field(40.0, gt=0, description="peers this close mostly align (the full engine runs)")
+    startup_timeout_s: float = Field(90.0, gt=0)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# ---- the cars' frames -----------------------------------------------------------------------------------------
+@dataclass
+class CarStream:
+    vehicle_id: str
+    frames: list  # bb_align.protocol.Frame, stamps and seqs rewritten at publish time
+    T_world_sensor: list[np.ndarray]
+
+
+def simulated_cars(cfg: ServiceBenchConfig, n_peers: int, config: AlignConfig,
+                   progress: Callable[[Iterable, str], Iterable] | None = None) -> list[CarStream]:
+    """Ego first, then ``n_peers`` peers 10-40 m away, ``cfg.frames`` consecutive simulated frames each."""
+    from bb_align_client.encode import make_frame
+
+    from ..sim import SimConfig, simulate_sequence
+
+    sim_cfg = SimConfig(min_distance_m=cfg.min_distance_m, max_distance_m=cfg.max_distance_m)
+    seq = simulate_sequence(cfg.seed, n_frames=cfg.frames, n_agents=1 + n_peers, dt=1.0 / cfg.rate_hz,
+                            config=sim_cfg)
+    ids = [EGO_ID] + [f"car{i}" for i in range(1, n_peers + 1)]
+    cars = []
+    items = list(enumerate(ids))
+    for a, vid in (progress(items, "service frames") if progress else items):
+        agents = [f.agents[str(a)] for f in seq]
+        frames = [make_frame(ag.points, ag.boxes, vehicle_id=vid, stamp=0.0, seq=0,
+                             pose=reported_pose(ag.T_world_sensor, cfg, a, k) if cfg.send_pose else None,
+                             range_m=config.bev.range_m, resolution_m=config.bev.resolution_m)
+                  for k, ag in enumerate(agents)]
+        cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents]))
+    return cars
+
+
+def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int, frame: int) -> np.ndarray:
+    """The true pose with GNSS-like noise (x, y, yaw), seeded per car and frame."""
+    rng = np.random.default_rng([cfg.seed, car, frame, 11])
+    dx, dy = rng.normal(0.0, cfg.pose_sigma_m, 2)
+    noise = se3_from_se2(se2(np.radians(rng.normal(0.0, cfg.pose_sigma_deg)), dx, dy))
+    return noise @ np.asarray(T_world_sensor, dtype=float)
+
+
+# ---- the service process --------------------------------------------------------------------------------------
+@dataclass
+class ServiceProcess:
+    proc: subprocess.Popen
+    rest: str
+    zenoh_endpoint: str
+    log_path: Path
+    key: str | None  # the fleet key frames are signed with (None: the service does not authenticate)
+
+    def cpu_seconds(self) -> float | None:
+        """utime + stime of the service process (Linux /proc), seconds."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError):
+            return None
+
+    def rss_mb(self) -> dict[str, float | None]:
+        """Current and peak resident memory of the service process (Linux /proc VmRSS, VmHWM), MB."""
+        out: dict[str, float | None] = {"rss_mb": None, "rss_peak_mb": None}
+        try:
+            for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+                key = {"VmRSS:": "rss_mb", "VmHWM:": "rss_peak_mb"}.get(line.split(maxsplit=1)[0] if line else "")
+                if key:
+                    out[key] = int(line.split()[1]) / 1024.0
+        except (OSError, ValueError, IndexError):
+            pass
+        return out
+
+    def get(self, path: str) -> dict:
+        import httpx
+
+        return httpx.get(self.rest + path, timeout=10).json()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(45)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+
+
+def start_service(cfg: ServiceBenchConfig, config: AlignConfig, log_dir: Path) -> ServiceProcess:
+    from bb_align.server.settings import Settings
+
+    port, zport = free_port(), free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    settings = Settings(ego_id=EGO_ID, host="127.0.0.1", port=port, workers=cfg.workers, align=config,
+                        zenoh={"enabled": True, "mode": "peer", "listen": [endpoint], "connect": [],
+                               "multicast_scouting": False, "prefix": PREFIX})
+    key = secrets.token_hex(32) if _service_authenticates() else None
+    log_path = log_dir / f"service-{port}.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-c", _CHILD, settings.model_dump_json(exclude={"auth"})],
+                                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.PIPE)
+    try:
+        proc.stdin.write(((key or "") + "\n").encode())
+        proc.stdin.close()
+    except OSError:
+        pass  # the child died early; reported below with its log
+    svc = ServiceProcess(proc, f"http://127.0.0.1:{port}", endpoint, log_path, key)
+    wait_until_ready(proc, svc.rest, cfg.startup_timeout_s, log_path, svc.stop)
+    return svc
+
+
+# ---- one load run ---------------------------------------------------------------------------------------------
+def _pct(values, qs=(50, 90, 99)) -> dict[str, float]:
+    v = np.asarray(values, dtype=float)
+    if len(v) == 0:
+        return {f"p{q}": float("nan") for q in qs}
+    return {f"p{q}": float(np.percentile(v, q)) for q in qs}
+
+
+def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: ServiceBenchConfig) -> dict:
+    """Publish ego + n_peers frames at cfg.rate_hz for warmup + seconds; return the measured run."""
+    import zenoh
+
+    from bb_align.protocol import ZenohSettings, load_result, pack, poses_key
+    from bb_align_client import ZenohPeer
+    from bb_align_client.zenoh_peer import ArrivalLog
+
+    period = 1.0 / cfg.rate_hz
+    n_warm = int(round(cfg.warmup_s * cfg.rate_hz))
+    n_ticks = n_warm + int(round(cfg.seconds * cfg.rate_hz))
+    streams = cars[: 1 + n_peers]
+    received = ArrivalLog()
+    sent: dict[tuple[str, int], tuple[float, int]] = {}  # (peer id, seq) -> (publish time, frame index)
+    listener = zenoh.open(ZenohSettings(listen=[], connect=[svc.zenoh_endpoint], multicast_scouting=False,
+                                        prefix=PREFIX).to_zenoh_config())
+    senders = []
+    try:
+        sub = listener.declare_subscriber(poses_key(PREFIX, EGO_ID, "*"), received)
+        signing = {"key": svc.key} if svc.key else {}
+        senders = [ZenohPeer(c.vehicle_id, connect=[svc.zenoh_endpoint], prefix=PREFIX, **signing).open()
+                   for c in streams]
+        time.sleep(0.5)  # sessions connected before the first frame
+        t_base = time.time()
+        t0 = time.perf_counter()
+        cpu0 = wall0 = None
+        for k in range(n_ticks):
+            delay = t0 + k * period - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            if k == n_warm:
+                cpu0, wall0 = svc.cpu_seconds(), time.perf_counter()
+            stamp = t_base + k * period
+            idx = k % len(streams[0].frames)
+            for car, sender in zip(streams, senders):  # the ego's frame first
+                frame = car.frames[idx].model_copy(update={"stamp": stamp, "seq": k})
+                data = pack(frame)
+                sender.publish(data)
+                if car.vehicle_id != EGO_ID:
+                    sent[(car.vehicle_id, k)] = (time.perf_counter(), idx)
+        wall1, cpu1 = time.perf_counter(), svc.cpu_seconds()
+        # Results for the last frames may still be on their way.
+        deadline = time.perf_counter() + cfg.grace_s
+        expected = {key for key in sent if key[1] >= n_warm}
+        got: set = set()
+        seen = 0
+        while time.perf_counter() < deadline:
+            with received.lock:
+                new = received.items[seen:]
+            seen += len(new)
+            got.update(_keys(new))
+            if expected <= got:
+                break
+            time.sleep(0.05)
+        sub.undeclare()
+        peers_status = svc.get("/v1/peers")
+        memory = svc.rss_mb()
+    finally:
+        for s in senders:
+            s.close()
+        listener.close()
+
+    with received.lock:
+        items = list(received.items)
+    results = []
+    for t_recv, data in items:
+        try:
+            r = load_result(data)
+        except ValueError:
+            continue
+        if r.peer_seq < n_warm or (r.peer_id, r.peer_seq) not in sent:
+            continue
+        t_sent, idx = sent[(r.peer_id, r.peer_seq)]
+        results.append((t_recv - t_sent, r, idx))
+    in_window = [key for key in sent if key[1] >= n_warm]
+    results.sort(key=lambda x: x[1].peer_seq)
+    latency = [x[0] * 1e3 for x in results]
+    half = len(results) // 2
+    errors = []
+    n_frames = len(streams[0].frames)
+    for _, r, idx in results:
+        if r.success and r.T_ego_peer is not None and r.ego_seq is not None:
+            # The service pairs the peer frame with the ego frame nearest in time, not always the same tick.
+            car = next(c for c in streams if c.vehicle_id == r.peer_id)
+            T_true = np.linalg.inv(streams[0].T_world_sensor[r.ego_seq % n_frames]) @ car.T_world_sensor[idx]
+            errors.append(pose_error(r.matrix(), T_true))
+    window_s = cfg.seconds
+    dropped = len(in_window) - len(results)
+    lat_first, lat_second = _pct(latency[:half], (50,))["p50"], _pct(latency[half:], (50,))["p50"]
+    cores = None
+    if cpu0 is not None and cpu1 is not None and wall0 is not None:
+        cores = (cpu1 - cpu0) / max(wall1 - wall0, 1e-9)
+    drop_fraction = dropped / max(len(in_window), 1)
+    sustained = bool(drop_fraction <= 0.01 and (not np.isfinite(lat_first) or lat_second <= 1.25 * lat_first + 10))
+    return {
+        "peers": n_peers,
+        "offered_fps": n_peers * cfg.rate_hz,
+        "sent": len(in_window),
+        "results": len(results),
+        "results_fps": len(results) / window_s,
+        "dropped": dropped,
+        "drop_fraction": drop_fraction,
+        "service_frames_dropped_total": int(sum(p.get("frames_dropped", 0) for p in peers_status.values())),
+        "latency_ms": _pct(latency),
+        "latency_ms_first_half_p50": lat_first,
+        "latency_ms_second_half_p50": lat_second,
+        "service_latency_ms": _pct([r.latency_ms for _, r, _ in results if r.latency_ms is not None]),
+        "queue_wait_ms": _pct([r.timings_ms.get("queue_wait", 0.0) for _, r, _ in results]),
+        "service_timings_ms_p50": {k: float(np.median([r.timings_ms.get(k, 0.0) for _, r, _ in results]))
+                                   for k in sorted({k for _, r, _ in results for k in r.timings_ms})},
+        "success_fraction": float(np.mean([r.success for _, r, _ in results])) if results else 0.0,
+        "outcomes": dict(Counter("success" if r.success else str(r.reason) for _, r, _ in results)),
+        "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
+        "r_err_median_deg": float(np.median([e[1] for e in errors])) if errors else None,
+        "service_cpu_cores": cores,
+        "service_memory": memory,
+        "sustained": sustained,
+    }
+
+
+def _keys(items):
+    """(peer id, seq) of received results; unreadable publications are not counted."""
+    from bb_align.protocol import load_result
+
+    for _, data in items:
+        try:
+            r = load_result(data)
+        except ValueError:
+            continue
+        yield r.peer_id, r.peer_seq
+
+
+def measure_service(cfg: ServiceBenchConfig, config: AlignConfig,
+                    progress: Callable[[Iterable, str], Iterable] | None = None,
+                    log_dir: Path | None = None) -> dict:
+    """One fresh service process per peer count; the report's ``service`` section (or an ``error``)."""
+    import tempfile
+
+    pose = (f"reported poses with {cfg.pose_sigma_m:g} m / {cfg.pose_sigma_deg:g} deg noise" if cfg.send_pose
+            else "no reported poses")
+    out: dict = {"transport": "zenoh tcp/127.0.0.1 (multicast scouting off)", "poses": pose, "rate_hz": cfg.rate_hz,
+                 "seconds": cfg.seconds, "warmup_s": cfg.warmup_s, "workers": cfg.workers,
+                 "config": json.loads(cfg.model_dump_json()), "runs": {}}
+    try:
+        cars = simulated_cars(cfg, max(cfg.peer_counts), config, progress)
+    except Exception as e:  # report, do not lose the engine numbers already measured
+        return {**out, "error": f"building the frames failed: {type(e).__name__}: {e}"}
+    with tempfile.TemporaryDirectory(prefix="bbalign-bench-") as tmp:
+        logs = Path(log_dir or tmp)
+        for n in (progress(cfg.peer_counts, "service runs") if progress else cfg.peer_counts):
+            svc = None
+            try:
+                svc = start_service(cfg, config, logs)
+                out["runs"][str(n)] = run_load(svc, cars, n, cfg)
+            except Exception as e:
+                out.setdefault("errors", {})[str(n)] = f"{type(e).__name__}: {e}"
+            finally:
+                if svc is not None:
+                    svc.stop()
+    return out

@@ -1,0 +1,228 @@
+"""Vectorised ray casting of one rotating-LiDAR sweep, with self-motion distortion.
+
+The scene is extruded footprints over a flat ground (see ``world``), so a ray is cast in two steps:
+1. per azimuth column, the horizontal ray against every footprint (slab test for rectangles, quadratic for
+   circles) gives the entry/exit distances of the K nearest footprints it crosses;
+2. per beam, the ray's height z(d) = z0 + d tan(elevation) selects the first footprint whose [zb, zt] it
+   meets between entry and exit (walls, roofs seen from above, crowns seen from below), else the ground.
+
+Self-motion distortion: column c fires at t_c (the sweep starts and ends facing backwards, faces forward at
+mid-sweep t_mid, spinning clockwise seen from above, like Velodyne sensors); the car, and every other moving
+car, is where it is at t_c. The points are reported in the sensor frame of their own firing time with no
+de-skewing, while the frame's pose ``T_world_sensor`` is the one at t_mid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bb_align.engine.geometry import rotation_rpy
+
+from .sensors import SensorModel
+from .world import ShapeArrays, World
+
+K_NEAREST = 12  # footprints kept per azimuth column (nearer ones occlude the rest for almost every beam)
+
+
+@dataclass(frozen=True)
+class Mount:
+    """Where the LiDAR sits on its car: forward offset and height of the optical centre above the ground,
+    and a small residual tilt (mounting error plus body pitch/roll), radians."""
+
+    height_m: float = 1.9
+    x_offset_m: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
+
+
+@dataclass
+class Sweep:
+    points: np.ndarray  # (N, 4) float32: x, y, z, intensity in the sensor frame (distorted, as measured)
+    owner: np.ndarray  # (N,) vehicle index hit, -1 static scene, -2 ground
+    time: np.ndarray  # (N,) firing time of each point, seconds
+    T_world_sensor: np.ndarray  # 4x4 at t_mid
+
+
+def sensor_pose(world: World, vehicle: int, mount: Mount, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World (x, y, yaw) of the sensor at times t."""
+    x, y, yaw = world.vehicles[vehicle].pose(t)
+    return x + np.cos(yaw) * mount.x_offset_m, y + np.sin(yaw) * mount.x_offset_m, yaw
+
+
+def T_world_sensor_at(world: World, vehicle: int, mount: Mount, t: float) -> np.ndarray:
+    x, y, yaw = (float(v) for v in sensor_pose(world, vehicle, mount, t))
+    T = np.eye(4)
+    T[:3, :3] = rotation_rpy(mount.roll, mount.pitch, yaw)
+    T[:3, 3] = (x, y, mount.height_m)
+    return T
+
+
+def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None, dt: np.ndarray):
+    """Entry/exit distances (n_cols, M) of horizontal rays (origin o, unit direction d per column)."""
+    cx = shapes.xy[None, :, 0]
+    cy = shapes.xy[None, :, 1]
+    if vel is not None:
+        cx = cx + vel[None, :, 0] * dt[:, None]
+        cy = cy + vel[None, :, 1] * dt[:, None]
+    rx, ry = ox[:, None] - cx, oy[:, None] - cy
+    t_in = np.full(rx.shape, np.inf)
+    t_out = np.full(rx.shape, -np.inf)
+    p = ~shapes.is_cyl
+    if p.any():
+        c, s = np.cos(shapes.yaw[p]), np.sin(shapes.yaw[p])
+        lx = c * rx[:, p] + s * ry[:, p]
+        ly = -s * rx[:, p] + c * ry[:, p]
+        ldx = c * dx[:, None] + s * dy[:, None]
+        ldy = -s * dx[:, None] + c * dy[:, None]
+        ldx = np.where(np.abs(ldx) < 1e-12, 1e-12, ldx)
+        ldy = np.where(np.abs(ldy) < 1e-12, 1e-12, ldy)
+        a, b = shapes.a[p], shapes.b[p]
+        t1, t2 = (-a - lx) / ldx, (a - lx) / ldx
+        t3, t4 = (-b - ly) / ldy, (b - ly) / ldy
+        t_in[:, p] = np.maximum(np.minimum(t1, t2), np.minimum(t3, t4))
+        t_out[:, p] = np.minimum(np.maximum(t1, t2), np.maximum(t3, t4))
+    q = shapes.is_cyl
+    if q.any():
+        bq = rx[:, q] * dx[:, None] + ry[:, q] * dy[:, None]
+        cq = rx[:, q] ** 2 + ry[:, q] ** 2 - shapes.a[q] ** 2
+        disc = bq * bq - cq
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        t_in[:, q] = np.where(disc > 0, -bq - sq, np.inf)
+        t_out[:, q] = np.where(disc > 0, -bq + sq, -np.inf)
+    hit = t_out > np.maximum(t_in, 0.0)
+    return np.where(hit, np.maximum(t_in, 0.0), np.inf), t_out
+
+
+def _ground_hits(world: World, ox, oy, dx, dy, z0: float, slope: np.ndarray, max_range: float, rng,
+                 step: float = 1.0, chunk: int = 16) -> np.ndarray:
+    """Horizontal distance (n_cols, n_beams) at which each beam meets the terrain (or its grass), inf if not.
+
+    The terrain profile under each column's ray is sampled once; each downward beam takes the first sample
+    where it has gone below the profile, refined linearly between samples."""
+    n, n_beams = slope.shape
+    ds = np.arange(step, max_range + step, step, dtype=np.float32)
+    xy = np.stack([ox[:, None] + dx[:, None] * ds, oy[:, None] + dy[:, None] * ds], axis=-1)
+    prof = world.terrain.height_at(xy).astype(np.float32)  # (n, S)
+    grass = world.terrain.grass_at(xy).astype(np.float32)
+    out = np.full((n, n_beams), np.inf)
+    down = np.flatnonzero(slope.min(axis=0) < -1e-6)
+    rows = np.arange(n)[:, None]
+    for c0 in range(0, len(down), chunk):
+        b = down[c0:c0 + chunk]
+        sl = slope[:, b].astype(np.float32)  # (n, nb)
+        diff = (z0 + sl[:, :, None] * ds) - prof[:, None, :]  # (n, nb, S) ray height above ground
+        below = diff <= 0
+        k = np.argmax(below, axis=2)
+        found = below.any(axis=2)
+        km = np.maximum(k - 1, 0)
+        d_hi = np.take_along_axis(diff, km[..., None], 2)[..., 0]
+        d_lo = np.take_along_axis(diff, k[..., None], 2)[..., 0]
+        frac = np.where(k > 0, d_hi / np.maximum(d_hi - d_lo, 1e-6), 0.0)
+        d = np.where(k > 0, ds[km] + frac * step, z0 / np.maximum(-sl, 1e-6))
+        lift = rng.random(d.shape) * grass[rows, k]  # grass tops catch the ray a little earlier
+        d = d - np.minimum(lift / np.maximum(-sl, 1e-6), 2.0)
+        out[:, b] = np.where(found & (sl < -1e-6), d, np.inf)
+    return out
+
+
+def cast_sweep(world: World, vehicle: int, sensor: SensorModel, mount: Mount, t_mid: float,
+               rng: np.random.Generator, beam_error_deg: np.ndarray | None = None, distortion: bool = True) -> Sweep:
+    """One full revolution of ``sensor`` on car ``vehicle`` centred on time ``t_mid``.
+
+    ``distortion=False`` freezes the world at t_mid for the whole sweep (an ideal, de-skewed scan).
+    """
+    n = sensor.columns
+    period = 1.0 / sensor.spin_hz if distortion else 0.0
+    frac = (np.arange(n) + 0.5) / n
+    t_col = t_mid + (frac - 0.5) * period
+    az = np.pi - 2 * np.pi * frac  # sensor-frame azimuth of each column (clockwise spin)
+    ox, oy, yaw = sensor_pose(world, vehicle, mount, t_col)
+    phi = yaw + az
+    dx, dy = np.cos(phi), np.sin(phi)
+    dt = t_col - t_mid
+
+    # Candidate footprints near the sensor.
+    reach = sensor.max_range_m + 2.0
+    x0, y0 = float(ox[n // 2]), float(oy[n // 2])
+    st = world.static
+    near = np.hypot(st.xy[:, 0] - x0, st.xy[:, 1] - y0) < reach + st.radius
+    veh, vel = world.vehicle_shapes(t_mid, exclude={vehicle})
+    vnear = np.hypot(veh.xy[:, 0] - x0, veh.xy[:, 1] - y0) < reach + veh.radius + 5.0
+    st, veh, vel = st.take(near), veh.take(vnear), vel[vnear]
+    tin_s, tout_s = _footprint_hits(ox, oy, dx, dy, st, None, dt)
+    tin_v, tout_v = _footprint_hits(ox, oy, dx, dy, veh, vel, dt)
+    shapes = ShapeArrays.concat([st, veh])
+    t_in = np.concatenate([tin_s, tin_v], axis=1)
+    t_out = np.concatenate([tout_s, tout_v], axis=1)
+
+    # K nearest crossed footprints per column.
+    k = min(K_NEAREST, t_in.shape[1])
+    rows = np.arange(n)[:, None]
+    if k > 0:
+        idx = np.argpartition(t_in, k - 1, axis=1)[:, :k] if t_in.shape[1] > k else np.tile(np.arange(k), (n, 1))
+        kin, kout = t_in[rows, idx], t_out[rows, idx]
+        zb, zt = shapes.zb[idx], shapes.zt[idx]
+        por, refl, own = shapes.porosity[idx], shapes.reflect[idx], shapes.owner[idx]
+        relief = shapes.relief[idx]
+    else:
+        kin = kout = zb = zt = por = refl = relief = np.zeros((n, 0))
+        own = np.zeros((n, 0), dtype=np.int64)
+
+    # Beam geometry (true directions include calibration error and the residual tilt).
+    elev = np.radians(np.asarray(sensor.elevations_deg))
+    err = np.zeros_like(elev) if beam_error_deg is None else np.radians(beam_error_deg)
+    e_true = elev[None, :] + err[None, :] - mount.pitch * np.cos(az)[:, None] + mount.roll * np.sin(az)[:, None]
+    slope = np.tan(e_true)  # (n, B)
+    z0 = mount.height_m + float(world.terrain.height_at(np.array([x0, y0])))
+
+    sl = slope[:, :, None]
+    sl = np.where(np.abs(sl) < 1e-9, 1e-9, sl)
+    da = (zb[:, None, :] - z0) / sl
+    db = (zt[:, None, :] - z0) / sl
+    lo, hi = np.minimum(da, db), np.maximum(da, db)
+    enter = np.maximum(kin[:, None, :], lo)
+    leave = np.minimum(kout[:, None, :], hi)
+    hit = enter <= leave
+    porous = por[:, None, :] > 0
+    if porous.any():
+        u = rng.random(hit.shape)
+        hit &= ~(porous & (u < por[:, None, :]))
+        with np.errstate(invalid="ignore"):
+            depth = np.where(hit & porous, np.minimum(leave - enter, 1.0) * rng.random(hit.shape), 0.0)
+        enter = enter + depth
+    rough = relief[:, None, :] > 0
+    if rough.any():
+        with np.errstate(invalid="ignore"):
+            enter = enter + np.where(hit & rough, relief[:, None, :] * rng.random(hit.shape), 0.0)
+    d_obj = np.where(hit, enter, np.inf)
+    if d_obj.shape[2]:
+        kbest = np.argmin(d_obj, axis=2)
+        d_obj_min = np.take_along_axis(d_obj, kbest[..., None], axis=2)[..., 0]
+        own_b = np.take_along_axis(np.broadcast_to(own[:, None, :], d_obj.shape), kbest[..., None], 2)[..., 0]
+        refl_b = np.take_along_axis(np.broadcast_to(refl[:, None, :], d_obj.shape), kbest[..., None], 2)[..., 0]
+    else:
+        d_obj_min = np.full(slope.shape, np.inf)
+        own_b = np.full(slope.shape, -1)
+        refl_b = np.zeros(slope.shape)
+    d_ground = _ground_hits(world, ox, oy, dx, dy, z0, slope, sensor.max_range_m, rng)
+    on_ground = d_ground < d_obj_min
+    d = np.where(on_ground, d_ground, d_obj_min)
+    owner = np.where(on_ground, -2, own_b)
+    reflect = np.where(on_ground, 0.25, refl_b)
+    r = d * np.sqrt(1.0 + slope * slope)
+
+    # Returns: range limits, dropout, weaker far returns from dark surfaces.
+    eff_range = sensor.max_range_m * np.clip(0.5 + reflect, 0.5, 1.0)
+    p_keep = (1.0 - sensor.dropout) * np.clip(1.0 - (r / eff_range) ** sensor.far_falloff, 0.0, 1.0)
+    keep = np.isfinite(r) & (r >= sensor.min_range_m) & (r <= sensor.max_range_m) & (rng.random(r.shape) < p_keep)
+    ci, bi = np.nonzero(keep)
+    rr = r[ci, bi] + rng.normal(0.0, sensor.range_noise_m, len(ci))
+    e_rep, a_rep = elev[bi], az[ci]  # reported with the nominal angles, in the sensor frame of firing time
+    pts = np.empty((len(ci), 4), dtype=np.float32)
+    pts[:, 0] = rr * np.cos(e_rep) * np.cos(a_rep)
+    pts[:, 1] = rr * np.cos(e_rep) * np.sin(a_rep)
+    pts[:, 2] = rr * np.sin(e_rep)
+    pts[:, 3] = np.clip(reflect[ci, bi] * rng.uniform(0.8, 1.2, len(ci)), 0.0, 1.0)
+    return Sweep(pts, owner[ci, bi].astype(np.int64), t_col[ci], T_world_sensor_at(world, vehicle, mount, t_mid))

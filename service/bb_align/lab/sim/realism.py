@@ -1,0 +1,142 @@
+"""How simulated BV images compare with real ones: statistics and a side-by-side figure.
+
+    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data]
+
+Statistics per cloud (engine's default BevConfig): points, lit BV pixels, lit pixels per 100 m^2 in range
+rings (sparsity with range), the share of lit pixels that are low clutter (0.3-1.5 m above the local ground:
+kerbs, bushes, terrain) versus tall structure (over 3 m: walls, trees), and FAST keypoints (what stage 1 can
+match). Real clouds: whatever of KITTI (HDL-64E), Argoverse 2 (2 x VLP-32C) and nuScenes (32 beams) is in the
+data folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from bb_align.engine.bev import make_bev
+from bb_align.engine.config import BevConfig
+from bb_align.engine.keypoints import detect_keypoints
+
+RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
+
+
+def bev_stats(points: np.ndarray, config: BevConfig | None = None) -> dict:
+    cfg = config or BevConfig()
+    bev = make_bev(points, cfg)
+    img = bev.image
+    n = img.shape[0]
+    rc = np.indices(img.shape).reshape(2, -1).T
+    xy = bev.pixel_to_metre(rc)
+    r = np.hypot(xy[:, 0], xy[:, 1]).reshape(n, n)
+    lit = img > 0
+    h = bev.heights_m()
+    out = {"points": int(len(points)), "lit_pixels": int(lit.sum()),
+           "keypoints": int(len(detect_keypoints(img)))}
+    px_area = cfg.resolution_m ** 2
+    for lo, hi in RINGS:
+        ring = (r >= lo) & (r < hi)
+        out[f"lit_per_100m2_{lo}-{hi}m"] = float(lit[ring].sum() * 100.0 / max(ring.sum() * px_area, 1e-9))
+    out["low_clutter_share"] = float(((h > 0) & (h < 1.5)).sum() / max(lit.sum(), 1))
+    out["tall_share"] = float((h > 3.0).sum() / max(lit.sum(), 1))
+    return out
+
+
+def real_clouds(data: Path) -> dict[str, np.ndarray]:
+    """Named real clouds found under the shared data folder (missing ones skipped)."""
+    found = {}
+    k = data / "kitti_seq08_pair" / "000000.bin"
+    if k.exists():
+        found["KITTI HDL-64E"] = np.fromfile(k, np.float32).reshape(-1, 4)
+    for d in sorted(data.glob("av2_sensor_*")):
+        f = sorted(d.glob("lidar_*.bin"))
+        if f:
+            found[f"AV2 2xVLP-32C ({d.name[-8:]})"] = np.fromfile(f[0], np.float32).reshape(-1, 5)
+    n = data / "mmdet3d_single_scans" / "nuscenes_LIDAR_TOP_1532402927647951.pcd.bin"
+    if n.exists():
+        found["nuScenes 32-beam"] = np.fromfile(n, np.float32).reshape(-1, 5)
+    return found
+
+
+def simulated_clouds(seeds=(11, 12, 13, 14)) -> dict[str, np.ndarray]:
+    from .scenario import Scenario
+
+    out = {}
+    for seed in seeds:
+        sc = Scenario(seed, n_agents=2, distance_m=30.0)
+        frame = sc.frame(0)
+        for aid, a in frame.agents.items():
+            out[f"sim seed {seed} agent {aid} {a.sensor}"] = a.points
+    return out
+
+
+def figure(clouds: dict[str, np.ndarray], path: Path, cols: int = 4) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = int(np.ceil(len(clouds) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4.2 * rows))
+    for ax in np.atleast_1d(axes).ravel():
+        ax.axis("off")
+    for ax, (name, pts) in zip(np.atleast_1d(axes).ravel(), clouds.items()):
+        img = make_bev(pts).image
+        ax.imshow(img > 0, cmap="gray", interpolation="nearest")
+        ax.set_title(f"{name}\n{int((img > 0).sum())} lit px", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def pair_overlay(seed: int, distance_m: float, path: Path) -> None:
+    """Ego BV (red) and peer BV moved into the ego frame with the true pose (green): the common view."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .scenario import Scenario
+
+    frame = Scenario(seed, n_agents=2, distance_m=distance_m).frame(0)
+    ego, peer = frame.agents["0"], frame.agents["1"]
+    T = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+    pts = peer.points[:, :3] @ T[:3, :3].T + T[:3, 3]
+    a, b = make_bev(ego.points).image > 0, make_bev(pts).image > 0
+    rgb = np.zeros(a.shape + (3,))
+    rgb[..., 0], rgb[..., 1] = a, b
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.imshow(rgb, interpolation="nearest")
+    ax.set_title(f"sim seed {seed}: ego {ego.sensor} (red), peer {peer.sensor} (green) at the true pose,\n"
+                 f"{np.hypot(*T[:2, 3]):.0f} m apart; yellow = both see it", fontsize=8)
+    ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out_dir", type=Path)
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[4] / "shared" / "data")
+    args = ap.parse_args(argv)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    real = real_clouds(args.data) if args.data.is_dir() else {}
+    sim = simulated_clouds()
+    stats = {"real": {k: bev_stats(v) for k, v in real.items()}, "sim": {k: bev_stats(v) for k, v in sim.items()}}
+    (args.out_dir / "bev_stats.json").write_text(json.dumps(stats, indent=2))
+    figure({**real, **dict(list(sim.items())[:4])}, args.out_dir / "bev_real_vs_sim.png")
+    figure(dict(list(sim.items())[4:]), args.out_dir / "bev_sim_more.png")
+    pair_overlay(21, 25.0, args.out_dir / "pair_overlay_25m.png")
+    pair_overlay(22, 55.0, args.out_dir / "pair_overlay_55m.png")
+    for group, d in stats.items():
+        for name, s in d.items():
+            print(f"{group:4s} {name:40s} " + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                                                       for k, v in s.items()))
+
+
+if __name__ == "__main__":
+    main()

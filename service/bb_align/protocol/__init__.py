@@ -1,0 +1,47 @@
+"""The wire protocol between cars and the ego-side service: models, encodings, validation, signatures, limits.
+
+Imports no server code and none of the engine's stages (only its BV image type and PNG codec), so a sender
+(``bb_align_client``) needs nothing else. Every message from either door goes through :func:`load_frame` /
+:func:`load_align_request`; every refusal is a :class:`WireError` naming the field and the limit.
+"""
+
+from .codec import (
+                    is_signed,
+                    json_align_request,
+                    load_align_request,
+                    load_frame,
+                    load_result,
+                    pack,
+                    pack_align_request,
+                    sign,
+                    to_json,
+)
+from .errors import WireError
+from .keys import align_key, frames_key, poses_key
+from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
+from .models import (
+                    JSON,
+                    MSGPACK,
+                    SCHEMA_VERSION,
+                    WIRE_MODELS,
+                    AlignRequest,
+                    BevMeta,
+                    ErrorBody,
+                    Frame,
+                    Pose,
+                    Result,
+                    Signed,
+)
+from .png import check_png
+from .schemas import json_schemas, write_json_schemas
+from .signatures import AuthError, Keyring, frame_mac
+from .validation import validate_frame
+from .zenoh_config import ZenohSettings, ZenohTls
+
+__all__ = [
+    "FLEET_KEY_ID", "JSON", "MSGPACK", "SCHEMA_VERSION", "VEHICLE_ID_PATTERN", "WIRE_MODELS", "AlignRequest",
+    "AuthError", "BevMeta", "ErrorBody", "Frame", "Keyring", "Limits", "Pose", "Result", "Signed", "WireError",
+    "ZenohSettings", "ZenohTls", "align_key", "check_png", "frame_mac", "frames_key", "is_signed",
+    "json_align_request", "json_schemas", "load_align_request", "load_frame", "load_result", "pack",
+    "pack_align_request", "poses_key", "sign", "to_json", "validate_frame", "write_json_schemas",
+]

@@ -1,0 +1,168 @@
+"""Encodings (msgpack, JSON) and the loaders every message from either door goes through.
+
+:func:`load_frame` / :func:`load_align_request`: size first, then decoding, the signature (on the raw payload
+bytes, before the frame is decoded), the fields, and :func:`bb_align.protocol.validation.validate_frame`. All
+failures raise :class:`WireError` with the offending field, the limit and an HTTP status; nothing else escapes.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import msgpack
+from pydantic import BaseModel, ValidationError
+
+from .errors import WireError, invalid, too_large
+from .limits import FLEET_KEY_ID, Limits
+from .models import JSON, MSGPACK, SCHEMA_VERSION, AlignRequest, Frame, Result, Signed
+from .signatures import AuthError, Keyring, frame_mac
+from .validation import validate_frame
+
+
+def pack(model: BaseModel) -> bytes:
+    """A wire model -> msgpack bytes (PNG as bin)."""
+    return msgpack.packb(model.model_dump(mode="python"), use_bin_type=True)
+
+
+def to_json(model: BaseModel) -> bytes:
+    """A wire model -> JSON bytes (PNG as base64)."""
+    return model.model_dump_json().encode()
+
+
+def pack_align_request(peer: bytes, ego: bytes | None = None) -> bytes:
+    """Two msgpack-encoded frames -> one msgpack AlignRequest, without decoding them (a map of pre-packed values)."""
+    parts = [msgpack.packb("schema_version"), msgpack.packb(SCHEMA_VERSION), msgpack.packb("peer"), peer]
+    if ego is not None:
+        parts += [msgpack.packb("ego"), ego]
+    return bytes([0x80 | (len(parts) // 2)]) + b"".join(parts)
+
+
+def json_align_request(peer: bytes, ego: bytes | None = None) -> bytes:
+    """Two JSON-encoded frames -> one JSON AlignRequest."""
+    body = b'{"schema_version":%d,"peer":%s' % (SCHEMA_VERSION, peer)
+    return body + (b',"ego":' + ego if ego is not None else b"") + b"}"
+
+
+def sign(payload: bytes, key: bytes | str, key_id: str = FLEET_KEY_ID, encoding: str | None = None) -> bytes:
+    """Wrap an encoded frame in a Signed envelope of the same encoding (JSON when the payload is JSON)."""
+    encoding = encoding or (JSON if payload[:1] == b"{" else MSGPACK)
+    env = Signed(key_id=key_id, mac=frame_mac(key, key_id, payload), payload=payload)
+    return to_json(env) if encoding == JSON else pack(env)
+
+
+def is_signed(data: bytes) -> bool:
+    """Whether encoded bytes hold a Signed envelope rather than a bare Frame (cheap: looks at the keys only)."""
+    try:
+        obj = json.loads(data) if data[:1] == b"{" else msgpack.unpackb(data, raw=False, max_bin_len=len(data))
+    except Exception:
+        return False
+    return _is_envelope(obj)
+
+
+def _is_envelope(obj: Any) -> bool:
+    return isinstance(obj, dict) and "mac" in obj and "payload" in obj
+
+
+def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
+    """Bytes -> a plain dict, refusing oversized or undecodable messages before any model is built."""
+    if len(data) > limits.max_message_bytes:
+        raise too_large("message", len(data), limits.max_message_bytes)
+    try:
+        if encoding == MSGPACK:
+            obj = msgpack.unpackb(
+                data, raw=False, strict_map_key=True, max_bin_len=limits.max_message_bytes,
+                max_str_len=limits.max_message_bytes, max_array_len=2 * limits.max_boxes + 64,
+                max_map_len=64, max_ext_len=0)
+        elif encoding == JSON:
+            obj = json.loads(data)
+        else:
+            raise WireError(415, "unsupported_media_type", f"use {MSGPACK} or {JSON}", "content-type", encoding)
+    except WireError:
+        raise
+    except Exception as e:  # msgpack/json raise many types (ExtraData, StackError, RecursionError, ...)
+        raise WireError(400, "undecodable", f"not a {encoding} message: {type(e).__name__}: {e}"[:300]) from None
+    if not isinstance(obj, dict):
+        raise WireError(400, "undecodable", f"the message must be a map, got {type(obj).__name__}")
+    return obj
+
+
+def _model(cls: type[BaseModel], obj: Any, where: str = ""):
+    try:
+        return cls.model_validate(obj)
+    except ValidationError as e:
+        errs = e.errors(include_url=False, include_input=False)
+        loc = lambda err: ".".join(str(p) for p in (*([where] if where else []), *err["loc"]))  # noqa: E731
+        detail = "; ".join(f"{loc(err) or '(message)'}: {err['msg']}" for err in errs[:5])
+        raise invalid(loc(errs[0]) or where or "message", detail) from None
+    except (RecursionError, MemoryError) as e:  # absurd nesting that the decoder let through
+        raise WireError(400, "undecodable", f"{where or 'message'}: {type(e).__name__}") from None
+
+
+def _precheck(obj: dict, limits: Limits, f) -> None:
+    """Counts that must be refused before a model is built for them (e.g. 10^6 boxes)."""
+    for name in ("boxes", "scores"):
+        v = obj.get(name)
+        if isinstance(v, (list, tuple)) and len(v) > limits.max_boxes:
+            raise invalid(f(name), f"{len(v)} {name} exceed {limits.max_boxes}", limits.max_boxes)
+
+
+def _frame_from(obj: Any, limits: Limits, encoding: str, keyring: Keyring | None, now: float | None,
+                where: str = "") -> Frame:
+    """A decoded map (a Frame, or a Signed envelope holding one) -> a checked Frame."""
+    f = (lambda name: f"{where}.{name}" if where else name)  # noqa: E731
+    if not isinstance(obj, dict):
+        raise invalid(where or "message", f"must be a map (a Frame or a Signed frame), got {type(obj).__name__}")
+    bound_to = None
+    if _is_envelope(obj):
+        env: Signed = _model(Signed, obj, where)
+        if keyring is not None:
+            try:
+                bound_to = keyring.verify(env.key_id, env.mac, env.payload)
+            except AuthError as e:
+                if keyring.required or e.detail != f"unknown key id {env.key_id!r}":
+                    raise WireError(e.status, e.error, e.detail, f("mac"), "hmac-sha256") from None
+        obj = _unpack(env.payload, encoding, limits)
+        if _is_envelope(obj):
+            raise invalid(f("payload"), "a signed payload must be a Frame, not another envelope")
+    elif keyring is not None and keyring.required:
+        raise WireError(401, "unauthenticated", "frames must be signed (a Signed envelope with an HMAC-SHA256; "
+                        "see docs/security.md)", where or "message", "hmac-sha256")
+    _precheck(obj, limits, f)
+    frame: Frame = _model(Frame, obj, where)
+    validate_frame(frame, limits, where, now=now)
+    if bound_to is not None and frame.vehicle_id != bound_to:
+        raise WireError(403, "forbidden", f"signed with {bound_to!r}'s key but claims vehicle id "
+                        f"{frame.vehicle_id!r}", f("vehicle_id"), bound_to)
+    return frame
+
+
+def load_frame(data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None,
+               now: float | None = None) -> Frame:
+    """Untrusted bytes (a Frame or a Signed frame) -> a checked Frame (raises WireError, nothing else).
+
+    ``keyring``: verify signatures (and refuse unsigned frames when it requires them); ``now``: the receiver's
+    clock (time.time()) for the stamp window; without it only the absolute stamp range is checked."""
+    return _frame_from(_unpack(data, encoding, limits), limits, encoding, keyring, now)
+
+
+def load_align_request(data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None,
+                       now: float | None = None) -> AlignRequest:
+    """Untrusted bytes -> an AlignRequest holding checked Frames (raises WireError)."""
+    obj = _unpack(data, encoding, limits)
+    extra = sorted(set(obj) - {"schema_version", "peer", "ego"})
+    if extra:
+        raise invalid(str(extra[0]), "Extra inputs are not permitted")
+    if obj.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
+        raise invalid("schema_version", f"Input should be {SCHEMA_VERSION}", SCHEMA_VERSION)
+    if "peer" not in obj:
+        raise invalid("peer", "Field required")
+    peer = _frame_from(obj["peer"], limits, encoding, keyring, now, "peer")
+    ego = None if obj.get("ego") is None else _frame_from(obj["ego"], limits, encoding, keyring, now, "ego")
+    return AlignRequest(peer=peer, ego=ego)
+
+
+def load_result(data: bytes) -> Result:
+    """msgpack or JSON bytes -> Result (a JSON object starts with '{', never a msgpack map)."""
+    encoding = JSON if data[:1] == b"{" else MSGPACK
+    return _model(Result, _unpack(data, encoding, Limits()))

@@ -1,0 +1,209 @@
+"""Wire messages between cars and the ego-side service (pydantic models; JSON Schemas in proto_schemas/).
+
+A peer sends one :class:`Frame` per LiDAR sweep (a PNG BV height image, what is needed to map its pixels to
+metres, its object boxes and optionally its reported pose). The service answers with a :class:`Result`.
+Messages are msgpack maps (PNG as ``bin``); REST also takes JSON with the PNG as a base64 string. A signed frame
+travels in a :class:`Signed` envelope (key id, HMAC-SHA256, the frame's encoded bytes; see
+:mod:`bb_align.protocol.signatures`).
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, WithJsonSchema
+
+from bb_align.engine.bev import BevImage, decode_png, image_size_px
+from bb_align.engine.config import BevConfig
+from bb_align.engine.geometry import rotation_rpy
+
+from .errors import invalid
+from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
+from .png import check_png
+from .signatures import MAC_BYTES
+
+SCHEMA_VERSION = 1
+
+
+MSGPACK = "application/msgpack"
+
+
+JSON = "application/json"
+
+
+def _b64_if_str(v: Any) -> Any:
+    """JSON carries the PNG as a base64 string (standard or URL-safe alphabet); msgpack as raw bytes."""
+    if isinstance(v, str):
+        try:
+            return base64.b64decode(v.replace("-", "+").replace("_", "/"), validate=True)
+        except (binascii.Error, ValueError) as e:
+            raise ValueError(f"not valid base64: {e}") from None
+    return v
+
+
+_B64_JSON = PlainSerializer(lambda b: base64.b64encode(b).decode("ascii"), return_type=str, when_used="json")
+
+
+PngBytes = Annotated[
+    bytes,
+    BeforeValidator(_b64_if_str),
+    PlainSerializer(lambda b: base64.b64encode(b).decode("ascii"), return_type=str, when_used="json"),
+    WithJsonSchema({"type": "string", "contentEncoding": "base64", "contentMediaType": "image/png",
+                    "description": "PNG file, 8-bit greyscale; msgpack: bin, JSON: base64 string"}),
+]
+
+
+Box = Annotated[list[float], Field(min_length=7, max_length=7, description="[x, y, z, l, w, h, yaw]")]
+
+
+class _Wire(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class BevMeta(_Wire):
+    """How the PNG's pixels map to metres (bb_align.engine.bev): the sensor at the image centre, rows along -x,
+    columns along -y; a pixel value v > 0 is a height above ground of clearance + (v-1)/254 (max - clearance)."""
+
+    resolution_m: float = Field(gt=0.01, le=5, description="cell size, metres per pixel")
+    range_m: float = Field(gt=0, le=250, description="half width of the square image, metres")
+    mode: Literal["max_height", "slices"] = "max_height"
+    ground_clearance_m: float = Field(0.3, ge=0, le=5)
+    max_height_m: float = Field(12.0, gt=0, le=100)
+
+
+class Pose(_Wire):
+    """A reported pose T_world_sensor: metres and radians, R = Rz(yaw) Ry(pitch) Rx(roll)."""
+
+    x: float
+    y: float
+    z: float = 0.0
+    roll: float = Field(0.0, ge=-math.tau, le=math.tau)
+    pitch: float = Field(0.0, ge=-math.tau, le=math.tau)
+    yaw: float = Field(0.0, ge=-math.tau, le=math.tau)
+
+    def matrix(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = rotation_rpy(self.roll, self.pitch, self.yaw)
+        T[:3, 3] = (self.x, self.y, self.z)
+        return T
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> "Pose":
+        T = np.asarray(T, dtype=float)
+        R = T[:3, :3]
+        pitch = math.asin(float(np.clip(-R[2, 0], -1.0, 1.0)))
+        return cls(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]),
+                   roll=math.atan2(R[2, 1], R[2, 2]), pitch=pitch, yaw=math.atan2(R[1, 0], R[0, 0]))
+
+
+class Frame(_Wire):
+    """One car's LiDAR sweep as sent on the air (Zenoh ``<prefix>/frames/<vehicle_id>`` or REST)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    vehicle_id: str = Field(pattern=VEHICLE_ID_PATTERN)
+    seq: int = Field(0, ge=0, le=2**63 - 1, description="sender's frame counter")
+    stamp: float = Field(ge=0, description="capture time, seconds (the cars' common clock)")
+    png: PngBytes
+    bev: BevMeta
+    boxes: list[Box] = Field(default_factory=list, description="rows [x, y, z, l, w, h, yaw], sensor frame, "
+                             "metres and radians; (x, y, z) is the box centre, l along the heading")
+    scores: list[Annotated[float, Field(ge=0, le=1)]] | None = Field(None, description="one per box")
+    pose: Pose | None = Field(None, description="reported T_world_sensor (GNSS/odometry); optional")
+    num_points: int | None = Field(None, ge=0, description="points in the raw sweep (bandwidth accounting)")
+
+    def bev_image(self, limits: Limits | None = None) -> BevImage:
+        """Decode the PNG into the engine's BevImage. The PNG's structure is checked again first (cheap), so
+        OpenCV never sees an unchecked file, whoever built this Frame."""
+        n = image_size_px(BevConfig(range_m=self.bev.range_m, resolution_m=self.bev.resolution_m))
+        check_png(self.png, n, limits or Limits(), "png")
+        try:
+            image = decode_png(self.png)
+        except ValueError as e:
+            raise invalid("png", str(e)) from None
+        if image.shape != (n, n):
+            raise invalid("png", f"decoded image is {image.shape}, the header and bev say ({n}, {n})")
+        return BevImage(image=image, **self.bev.model_dump())
+
+    def boxes_array(self) -> np.ndarray:
+        return np.asarray(self.boxes, dtype=np.float64).reshape(-1, 7)
+
+
+class Signed(_Wire):
+    """A signed frame: the frame's own encoded bytes (msgpack, or JSON inside a JSON envelope) with an
+    HMAC-SHA256 made with the key ``key_id`` names (bb_align.protocol.signatures): ``"fleet"`` or the sender's vehicle id."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    key_id: str = Field(pattern=VEHICLE_ID_PATTERN, description=f"{FLEET_KEY_ID!r} or the sender's vehicle id")
+    alg: Literal["hmac-sha256"] = "hmac-sha256"
+    mac: Annotated[bytes, BeforeValidator(_b64_if_str), Field(min_length=MAC_BYTES, max_length=MAC_BYTES),
+                   _B64_JSON, WithJsonSchema({"type": "string", "contentEncoding": "base64",
+                                              "description": "HMAC-SHA256(key, 'bb-align/frame/v1' 0x00 key_id 0x00 "
+                                                             "payload), 32 bytes; msgpack: bin, JSON: base64"})]
+    payload: Annotated[bytes, BeforeValidator(_b64_if_str), Field(min_length=1), _B64_JSON,
+                       WithJsonSchema({"type": "string", "contentEncoding": "base64",
+                                       "description": "the encoded Frame, in the envelope's own encoding; "
+                                                      "msgpack: bin, JSON: base64"})]
+
+
+class AlignRequest(_Wire):
+    """REST POST /v1/align: a peer frame and optionally the ego frame (else the service's cached one); each
+    a Frame or a Signed frame (the service resolves envelopes: a loaded request holds Frames)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    peer: Frame | Signed
+    ego: Frame | Signed | None = None
+
+
+class Result(_Wire):
+    """T_ego_peer for one peer frame (Zenoh ``<prefix>/poses/<ego_id>/<peer_id>``, query replies, REST)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    ego_id: str
+    peer_id: str
+    peer_seq: int
+    peer_stamp: float
+    ego_seq: int | None = Field(None, description="the ego frame used (None: none was available)")
+    ego_stamp: float | None = None
+    ego_skew_s: float | None = Field(None, description="peer_stamp - ego_stamp")
+    success: bool
+    reason: str | None = Field(None, description="a bb_align.FailureReason value when success is false")
+    yaw_deg: float | None = Field(None, description="T_ego_peer's yaw, degrees CCW")
+    tx: float | None = Field(None, description="T_ego_peer's x translation, metres")
+    ty: float | None = Field(None, description="T_ego_peer's y translation, metres")
+    T_ego_peer: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = Field(
+        None, min_length=4, max_length=4, description="4x4 row-major, maps peer sensor points into the ego frame")
+    inliers_bv: int = 0
+    inliers_box: int = 0
+    matches_bv: int = 0
+    box_pairs: int = 0
+    confidence: float = 0.0
+    stage2_applied: bool = False
+    prior_used: bool = Field(False, description="roll, pitch, tz taken from the two reported poses")
+    notes: list[str] = Field(default_factory=list)
+    timings_ms: dict[str, float] = Field(default_factory=dict)
+    latency_ms: float | None = Field(None, description="service: message received -> result ready")
+    bytes_received: int = Field(0, description="size of the peer's message")
+    raw_points_bytes: int | None = Field(None, description="16 B x the sender's point count")
+    ratio_vs_points: float | None = Field(None, description="bytes_received / raw_points_bytes")
+
+    def matrix(self) -> np.ndarray | None:
+        return None if self.T_ego_peer is None else np.asarray(self.T_ego_peer, dtype=float)
+
+
+class ErrorBody(_Wire):
+    """Why a message was refused (REST error responses, Zenoh query error replies)."""
+
+    error: Literal["too_large", "undecodable", "invalid", "unsupported_media_type", "unauthenticated",
+                   "forbidden", "replayed", "overloaded", "timeout", "unavailable"]
+    detail: str
+    field: str | None = Field(None, description="the offending field, dotted path")
+    limit: float | int | str | None = Field(None, description="the limit that was exceeded")
+
+
+WIRE_MODELS: dict[str, type[BaseModel]] = {
+    "frame": Frame, "signed": Signed, "align_request": AlignRequest, "result": Result, "error": ErrorBody,
+}

@@ -1,0 +1,254 @@
+"""The REST door: ``create_app(settings)`` builds the FastAPI app that also runs the Zenoh link and the workers.
+
+Bodies are raw msgpack (``application/msgpack``) or JSON with the PNG as base64 (``application/json``); results
+come back as JSON, or msgpack when the request says ``Accept: application/msgpack``. Errors are ErrorBody JSON:
+400 undecodable, 401 unsigned/wrongly signed frame or missing bearer token, 403 frame signed with another
+vehicle's key, 409 replayed frame, 413 too large, 415 other media types, 422 invalid fields, 503 overloaded,
+504 timeout. With ``auth.rest_token`` set, every /v1 call and /metrics need ``Authorization: Bearer <token>``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import hmac
+import time
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST
+from pydantic import BaseModel
+from pydantic.json_schema import models_json_schema
+
+from bb_align import __version__
+from bb_align.protocol import (
+    JSON,
+    MSGPACK,
+    AlignRequest,
+    ErrorBody,
+    Frame,
+    Result,
+    Signed,
+    WireError,
+    load_align_request,
+    load_frame,
+    pack,
+)
+
+from .bandwidth import BandwidthReport
+from .core import AlignService, Unavailable
+from .peers import PeerStatus
+from .settings import Settings
+
+_MEDIA_TYPES = {"application/msgpack": MSGPACK, "application/x-msgpack": MSGPACK, "application/json": JSON}
+_REF = "#/components/schemas/{model}"
+
+
+class Accepted(BaseModel):
+    accepted: bool
+    kind: str  # "ego" or "peer"
+    vehicle_id: str
+    seq: int
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Readiness(BaseModel):
+    ready: bool
+    workers_running: bool
+    zenoh: bool | None  # None: Zenoh disabled
+    ego_frames: int
+
+
+def _errors(*codes: int) -> dict:
+    text = {400: "Undecodable body", 401: "Missing or wrong bearer token, or an unsigned or wrongly signed frame",
+            403: "Frame signed with another vehicle's key", 409: "Replayed frame: (stamp, seq) not newer than the "
+            "last accepted from that sender", 413: "Body too large", 415: "Unsupported media type",
+            422: "Invalid field (named in `field`, with the `limit`)", 503: "Overloaded or shutting down",
+            504: "No result within request_timeout_s"}
+    return {c: {"model": ErrorBody, "description": text[c]} for c in codes}
+
+
+def _bearer(token: str | None):
+    """A dependency refusing requests without ``Authorization: Bearer <token>`` (a no-op without a token)."""
+    expected = None if token is None else f"Bearer {token}".encode()
+
+    async def check(request: Request) -> None:
+        if expected is None:
+            return
+        given = request.headers.get("authorization", "").encode("latin-1", "replace")
+        if not hmac.compare_digest(given, expected):
+            e = WireError(401, "unauthenticated", "send 'Authorization: Bearer <token>' (auth.rest_token)",
+                          "authorization")
+            e.counted = True  # a refused caller, not a refused frame
+            raise e
+
+    return Depends(check)
+
+
+def _binary_body(model: type[BaseModel], description: str, alt: type[BaseModel] | None = None) -> dict:
+    ref = {"$ref": _REF.format(model=model.__name__)}
+    if alt is not None:
+        ref = {"oneOf": [ref, {"$ref": _REF.format(model=alt.__name__)}]}
+    return {"requestBody": {"required": True, "description": description, "content": {
+        MSGPACK: {"schema": ref}, JSON: {"schema": ref}}}}
+
+
+def _error(e: WireError) -> JSONResponse:
+    # A body refused for its size is not read to its end: the connection is closed after the answer.
+    headers = {"connection": "close"} if e.status == 413 else None
+    return JSONResponse(e.body().model_dump(mode="json"), status_code=e.status, headers=headers)
+
+
+async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
+    """The raw body and its encoding; 415 for other media types, 413 past the limit (read no further)."""
+    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media not in _MEDIA_TYPES:
+        raise WireError(415, "unsupported_media_type", f"send {MSGPACK} or {JSON}, not {media or 'nothing'}",
+                        "content-type", ", ".join(sorted(_MEDIA_TYPES)))
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > max_bytes:
+        raise WireError(413, "too_large", f"{declared} bytes exceed the limit of {max_bytes} bytes", "body",
+                        max_bytes)
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > max_bytes:
+            raise WireError(413, "too_large", f"more than {max_bytes} bytes", "body", max_bytes)
+        chunks.append(chunk)
+    return b"".join(chunks), _MEDIA_TYPES[media]
+
+
+def _result_response(request: Request, result: Result) -> Response:
+    if MSGPACK in request.headers.get("accept", "") or "application/x-msgpack" in request.headers.get("accept", ""):
+        return Response(pack(result), media_type=MSGPACK)
+    return JSONResponse(result.model_dump(mode="json"))
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    service = AlignService(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        link = None
+        service.start()
+        try:
+            if settings.zenoh.enabled:
+                from .zenoh_link import ZenohLink
+
+                link = ZenohLink(service, settings)
+                await asyncio.to_thread(link.open)
+            app.state.link = link
+            yield
+        finally:
+            if link is not None:
+                await asyncio.to_thread(link.stop_intake)
+            await asyncio.to_thread(service.stop)
+            if link is not None:
+                await asyncio.to_thread(link.close)
+
+    app = FastAPI(title="bb-align", version=__version__, lifespan=lifespan,
+                  description="Ego-side V2V pose recovery (BB-Align): peers' BV images and boxes in, T_ego_peer "
+                              "out. Wire format: proto_schemas/WIRE.md.")
+    app.state.settings = settings
+    app.state.service = service
+    app.state.link = None
+    limits = settings.limits
+    token = settings.auth.rest_token
+    guard = [_bearer(None if token is None else token.get_secret_value())]
+    keyring = service.keyring
+
+    @app.exception_handler(WireError)
+    async def _wire_error(_: Request, e: WireError) -> JSONResponse:
+        if not getattr(e, "counted", False):
+            service.metrics.rejected.labels("rest", e.error).inc()
+        return _error(e)
+
+    @app.post("/v1/align", response_model=Result, summary="Align a peer frame now and return T_ego_peer",
+              responses={200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
+                         **_errors(400, 401, 403, 409, 413, 415, 422, 503, 504)},
+              dependencies=guard,
+              openapi_extra=_binary_body(AlignRequest, "An AlignRequest: `peer` and optionally `ego` (else the "
+                                         "cached ego frame nearest in time to the peer's stamp)."))
+    async def align(request: Request) -> Response:
+        received = time.perf_counter()
+        data, encoding = await _read_body(request, limits.max_message_bytes)
+        req = await asyncio.to_thread(load_align_request, data, limits, encoding, keyring=keyring, now=time.time())
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        accepted = service.submit_request(future.set_result, frame=req.peer, ego=req.ego, nbytes=len(data),
+                                          encoding=encoding, door="rest", received=received)
+        if not accepted:
+            raise WireError(503, "overloaded", "the request queue is full, retry later", "requests",
+                            settings.max_pending_requests)
+        try:
+            outcome = await asyncio.wait_for(asyncio.wrap_future(future), settings.request_timeout_s)
+        except asyncio.TimeoutError:
+            raise WireError(504, "timeout", f"no result within {settings.request_timeout_s} s") from None
+        if isinstance(outcome, WireError):
+            raise outcome
+        if isinstance(outcome, Unavailable):
+            raise WireError(503, "unavailable", str(outcome))
+        if isinstance(outcome, Exception):
+            raise outcome
+        return _result_response(request, outcome)
+
+    @app.post("/v1/frames", response_model=Accepted, status_code=202,
+              summary="Hand in an ego or peer frame, as if it came over Zenoh",
+              responses=_errors(400, 401, 403, 409, 413, 415, 422, 503), dependencies=guard,
+              openapi_extra=_binary_body(Frame, "A Frame or a Signed frame (required when authentication is on). "
+                                         "The ego id's frames fill the ego cache; others are aligned and their "
+                                         "results published on Zenoh and listed by /v1/peers.", Signed))
+    async def post_frame(request: Request) -> Accepted:
+        received = time.perf_counter()
+        data, encoding = await _read_body(request, limits.max_message_bytes)
+        frame = await asyncio.to_thread(load_frame, data, limits, encoding, keyring=keyring, now=time.time())
+        if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
+            raise WireError(503, "unavailable", "the service is shutting down")
+        kind = "ego" if frame.vehicle_id == settings.ego_id else "peer"
+        return Accepted(accepted=True, kind=kind, vehicle_id=frame.vehicle_id, seq=frame.seq)
+
+    @app.get("/v1/peers", response_model=dict[str, PeerStatus], summary="Each peer's last result and bandwidth",
+             responses=_errors(401), dependencies=guard)
+    async def peers() -> dict[str, PeerStatus]:
+        return service.peers()
+
+    @app.get("/v1/bandwidth", response_model=BandwidthReport, summary="Bytes received per peer and in total",
+             responses=_errors(401), dependencies=guard)
+    async def bandwidth() -> BandwidthReport:
+        return service.meter.report()
+
+    @app.get("/healthz", response_model=Health, summary="The process is up")
+    async def healthz() -> Health:
+        return Health(status="ok")
+
+    @app.get("/readyz", response_model=Readiness, summary="Workers running and Zenoh open",
+             responses={503: {"model": Readiness, "description": "Not ready"}})
+    async def readyz() -> JSONResponse:
+        link = app.state.link
+        zenoh_ok = None if not settings.zenoh.enabled else bool(link is not None and link.is_open)
+        r = Readiness(ready=service.running and zenoh_ok is not False, workers_running=service.running,
+                      zenoh=zenoh_ok, ego_frames=len(service.cache))
+        return JSONResponse(r.model_dump(), status_code=200 if r.ready else 503)
+
+    @app.get("/metrics", summary="Prometheus metrics", response_class=Response, dependencies=guard,
+             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors(401)})
+    async def metrics() -> Response:
+        return Response(service.metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                                 routes=app.routes)
+            _, defs = models_json_schema([(AlignRequest, "validation"), (Frame, "validation"),
+                                          (Signed, "validation")], ref_template=_REF)
+            schema.setdefault("components", {}).setdefault("schemas", {}).update(defs["$defs"])
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    app.openapi = openapi
+    return app

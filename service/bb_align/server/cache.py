@@ -1,0 +1,80 @@
+"""The ego-frame cache: the last K ego frames, each with its engine features computed at most once.
+
+An ego frame enters the cache as soon as it is decoded (cheap, done with priority), so a peer frame always finds
+the ego frame nearest in time even while the engine is busy. Its features are computed once, by whichever comes
+first: the eager job queued for the newest ego frame, or the first peer frame that needs them (later users wait
+for that one computation instead of repeating it).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Callable
+
+from bb_align.engine.bev import BevImage
+from bb_align.engine.pipeline import PreparedFrame
+from bb_align.protocol import Frame
+
+
+class EgoEntry:
+    def __init__(self, frame: Frame, bev: BevImage):
+        self.frame = frame
+        self.bev = bev
+        self._prepared: PreparedFrame | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def stamp(self) -> float:
+        return self.frame.stamp
+
+    @property
+    def ready(self) -> bool:
+        return self._prepared is not None
+
+    def features(self, prepare: Callable[["EgoEntry"], PreparedFrame]) -> PreparedFrame:
+        """The entry's features, computed by the first caller; concurrent callers wait for that result."""
+        with self._lock:
+            if self._prepared is None:
+                self._prepared = prepare(self)
+            return self._prepared
+
+
+class EgoCache:
+    def __init__(self, size: int):
+        self._entries: deque[EgoEntry] = deque(maxlen=size)
+        self._lock = threading.Lock()
+
+    def add(self, frame: Frame, bev: BevImage) -> EgoEntry:
+        entry = EgoEntry(frame, bev)
+        with self._lock:
+            self._entries.append(entry)
+        return entry
+
+    def nearest(self, stamp: float) -> EgoEntry | None:
+        """The entry nearest in time to ``stamp`` (the newer one on a tie); None when the cache is empty."""
+        with self._lock:
+            entries = list(self._entries)
+        best = None
+        for e in entries:  # arrival order, so '<=' prefers the later of equally near frames
+            if best is None or abs(e.stamp - stamp) <= abs(best.stamp - stamp):
+                best = e
+        return best
+
+    def nearest_ready(self, stamp: float, max_skew: float) -> EgoEntry | None:
+        """The entry nearest in time to ``stamp`` among those whose features are computed, within ``max_skew``."""
+        with self._lock:
+            entries = [e for e in self._entries if e.ready and abs(e.stamp - stamp) <= max_skew]
+        return min(reversed(entries), key=lambda e: abs(e.stamp - stamp), default=None)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._entries)
+
+    def prepared(self) -> int:
+        with self._lock:
+            return sum(e.ready for e in self._entries)
+
+    def stamps(self) -> list[float]:
+        with self._lock:
+            return [e.stamp for e in self._entries]

@@ -1,0 +1,473 @@
+"""The ego-side service without its doors: the gate, admission, queues, the worker pool running the engine.
+
+The doors (Zenoh link, REST app) only hand messages over:
+
+- ``submit_message`` (raw stream bytes, from a Zenoh callback) and ``submit_query`` (a raw query payload) go to
+  the bounded intake; the **gate** thread authenticates and validates them (bb_align.protocol.load_frame), so no
+  unauthenticated or invalid message ever creates peer state or reaches a worker;
+- ``submit_frame`` (REST /v1/frames) and ``submit_request`` (REST /v1/align) carry frames the REST door already
+  loaded through the same validator, in a thread of its own.
+
+Checked frames are admitted by the peer table (replays refused, at most ``max_peers`` senders, idle ones
+evicted). Ego frames go into the cache at once (a PNG decode; their engine features are computed once, by a
+worker, see cache.py); peer frames wait in per-sender latest-only queues, requests in one bounded FIFO. Workers
+(at most ``settings.workers``, the only threads that run the engine) align peer frames against the cached ego
+frame nearest in time; each result (success or not, never a pose from a stale ego frame) goes to the publishers
+(the Zenoh link) or to the request's reply.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from bb_align.engine.pipeline import Aligner, PreparedFrame
+from bb_align.engine.result import AlignResult, FailureReason
+from bb_align.protocol import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, to_json
+
+from .bandwidth import BandwidthMeter, FrameBytes
+from .cache import EgoCache
+from .metrics import Metrics
+from .peers import PeerStatus, PeerTable
+from .scheduler import Intake, Job, Scheduler
+from .settings import Settings
+
+log = logging.getLogger("bb_align.server")
+_EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
+UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
+STREAM, REQUEST = "stream", "request"  # replay channels
+
+
+class Unavailable(RuntimeError):
+    """The service is shutting down or overloaded; the request was not run."""
+
+
+class ConfigurationError(RuntimeError):
+    """The settings are not safe to start with (e.g. authentication on without a key)."""
+
+
+def reported_relative_pose(ego: Frame, peer: Frame) -> np.ndarray | None:
+    """T_ego_peer (4x4) as the two cars' reported poses say; None without both."""
+    if ego.pose is None or peer.pose is None:
+        return None
+    return np.linalg.inv(ego.pose.matrix()) @ peer.pose.matrix()
+
+
+def relative_prior(ego: Frame, peer: Frame) -> tuple[float, float, float] | None:
+    """(tz, roll, pitch) of T_ego_peer from the two reported poses (Eq. 1's constants); None without both."""
+    T = reported_relative_pose(ego, peer)
+    if T is None:
+        return None
+    rel = Pose.from_matrix(T)
+    return rel.z, rel.roll, rel.pitch
+
+
+class _RateLimitedLog:
+    """One log line per (door, error) per ``period_s``, saying how many were not logged in between."""
+
+    def __init__(self, period_s: float = 10.0):
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._last: dict[tuple[str, str], tuple[float, int]] = {}
+
+    def __call__(self, door: str, error: str, msg: str, *args) -> None:
+        now = time.monotonic()
+        with self._lock:
+            t, suppressed = self._last.get((door, error), (-1e18, 0))
+            if now - t < self.period_s:
+                self._last[(door, error)] = (t, suppressed + 1)
+                return
+            self._last[(door, error)] = (now, 0)
+        log.warning(msg + (f" (+{suppressed} more like it)" if suppressed else ""), *args)
+
+
+class AlignService:
+    def __init__(self, settings: Settings):
+        problem = settings.startup_problem()
+        if problem is not None:
+            raise ConfigurationError(problem)
+        self.settings = settings
+        limits = settings.limits
+        self.aligner = Aligner(settings.align)
+        self.cache = EgoCache(settings.ego_cache_size)
+        self.keyring = settings.auth.keyring()
+        # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
+        self.scheduler = Scheduler(settings.peer_queue_depth, settings.max_pending_requests,
+                                   priority=frozenset({settings.ego_id}))
+        self.intake = Intake(limits.intake_queue, limits.intake_bytes)
+        self.meter = BandwidthMeter(settings.bandwidth_window_s)
+        self.peer_table = PeerTable(limits.max_peers, limits.peer_idle_s, reserved=settings.ego_id,
+                                    refuse_replays=self.keyring.required, on_evict=self._forget)
+        self.metrics = Metrics(self.meter.report, lambda: len(self.cache), self.scheduler.pending,
+                               lambda: len(self.peer_table), lambda: len(self.intake))
+        self.publishers: list[Callable[[Result], None]] = []
+        self._threads: list[threading.Thread] = []
+        self._log_refusal = _RateLimitedLog()
+
+    # ---- lifecycle ---------------------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.aligner.warm_up()  # compiled loops and caches ready before the first frame
+        gate = threading.Thread(target=self._gate, name="bbalign-gate", daemon=True)
+        gate.start()
+        self._threads.append(gate)
+        for i in range(self.settings.workers):
+            t = threading.Thread(target=self._work, name=f"bbalign-worker-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self, timeout: float | None = None) -> None:
+        """Graceful drain: refuse new messages, let the gate and the workers finish what was already accepted
+        (results still go out) for up to ``timeout`` s, then answer what is left (requests: Unavailable; stream
+        frames: counted as dropped) and join every thread."""
+        timeout = self.settings.shutdown_timeout_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        for job in self.intake.close():
+            self._never_ran(job)
+        self._join(self._threads[:1], deadline)  # the gate: everything it passes on is queued
+        self.scheduler.close(drain=True)
+        self._join(self._threads[1:], deadline)
+        for job in self.scheduler.close():
+            self._never_ran(job)
+        self._join(self._threads, time.monotonic() + 5.0)
+        self._threads = [t for t in self._threads if t.is_alive()]
+        if self._threads:
+            log.warning("%d thread(s) still busy after %.0f s", len(self._threads), timeout)
+
+    @staticmethod
+    def _join(threads: list[threading.Thread], deadline: float) -> None:
+        for t in threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+
+    def _never_ran(self, job: Job) -> None:
+        if job.reply is not None:
+            _answer(job, Unavailable("the service is shutting down"))
+        elif job.task == "frame":
+            self._count_drop(job.sender if job.frame is not None else UNVERIFIED)
+
+    @property
+    def running(self) -> bool:
+        return bool(self._threads) and all(t.is_alive() for t in self._threads)
+
+    # ---- doors -------------------------------------------------------------------------------------------------
+    def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
+        """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
+        trusted); cheap enough for a Zenoh callback. False when the intake is closed."""
+        return self._to_intake(Job(sender, time.perf_counter(), door, data=data, nbytes=len(data)))
+
+    def submit_query(self, reply: Callable[[object], None], data: bytes, door: str = "zenoh",
+                     refused: WireError | None = None) -> bool:
+        """A raw query payload to align and answer through ``reply`` (called once, with a Result or an
+        exception); ``refused``: the door already knows the answer is this error."""
+        job = Job("", time.perf_counter(), door, data=data, nbytes=len(data), reply=reply,
+                  meta={"refused": refused} if refused is not None else {})
+        return self._to_intake(job)
+
+    def submit_frame(self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest",
+                     received: float | None = None) -> bool:
+        """A checked stream frame (REST /v1/frames). Raises WireError when its sender is refused."""
+        job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, encoding=encoding,
+                  nbytes=nbytes)
+        try:
+            self._admit(job, STREAM)
+        except WireError as e:
+            self._refused(job, e)
+            raise
+        return self._accept_stream(job)
+
+    def submit_request(self, reply: Callable[[object], None], *, frame: Frame, ego: Frame | None = None,
+                       nbytes: int = 0, encoding: str = MSGPACK, door: str = "rest",
+                       received: float | None = None) -> bool:
+        """A checked frame (REST /v1/align) to align and answer through ``reply``. Raises WireError when its
+        sender is refused; False when the request queue is full (the caller answers 'overloaded')."""
+        job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, ego=ego,
+                  encoding=encoding, reply=reply)
+        job.nbytes = len(_encode(frame, encoding))  # the peer frame alone, as it would go on the air
+        try:
+            self._admit(job, REQUEST)
+        except WireError as e:
+            self._refused(job, e)
+            raise
+        return self._queue_request(job)
+
+    def _to_intake(self, job: Job) -> bool:
+        pushed_out = self.intake.put(job)
+        for old in pushed_out:
+            if old is job and self.intake.closed:
+                if job.reply is not None:
+                    _answer(job, Unavailable("the service is shutting down"))
+                return False
+            if old.reply is not None:
+                _answer(old, WireError(503, "overloaded", "the intake queue is full, retry later", "intake",
+                                       self.settings.limits.intake_queue))
+                self.metrics.rejected.labels(old.door, "overloaded").inc()
+            elif old.sender in self.peer_table:
+                self._count_drop(old.sender, "intake_dropped")
+            else:
+                self._count_drop(UNVERIFIED)
+        return True
+
+    # ---- the gate (one thread): authenticate, validate, admit, queue -----------------------------------------
+    def _gate(self) -> None:
+        limits, last_sweep = self.settings.limits, time.monotonic()
+        while True:
+            job = self.intake.get(timeout=1.0)
+            if time.monotonic() - last_sweep > 1.0:
+                self.peer_table.sweep()
+                last_sweep = time.monotonic()
+            if job is None:
+                if self.intake.closed:
+                    return
+                continue
+            try:
+                if "refused" in job.meta:
+                    raise job.meta["refused"]
+                job.frame = load_frame(job.data, limits, job.encoding, keyring=self.keyring, now=time.time())
+                job.data = None
+                if job.reply is None:
+                    if job.frame.vehicle_id != job.sender:
+                        raise WireError(422, "invalid", f"vehicle_id {job.frame.vehicle_id!r} differs from the "
+                                        f"key's {job.sender!r}", "vehicle_id")
+                    self._admit(job, STREAM)
+                    self._accept_stream(job)
+                else:
+                    job.sender = job.frame.vehicle_id
+                    self._admit(job, REQUEST)
+                    if not self._queue_request(job):
+                        _answer(job, WireError(503, "overloaded", "the request queue is full, retry later",
+                                               "requests", self.settings.max_pending_requests))
+            except WireError as e:
+                self._refused(job, e)
+                if job.reply is not None:
+                    _answer(job, e)
+            except Exception as e:  # a bug must not stop the gate; the message is refused and logged
+                log.exception("the gate failed on a message from %s", job.sender or "?")
+                self.metrics.rejected.labels(job.door, "internal").inc()
+                if job.reply is not None:
+                    _answer(job, e)
+
+    def _admit(self, job: Job, channel: str) -> None:
+        """Track the sender (replays and a full table refused) and account the message's bytes."""
+        self.peer_table.admit(job.frame, channel)
+        self.meter.record_message(job.frame.vehicle_id, job.nbytes)
+
+    def _refused(self, job: Job, e: WireError) -> None:
+        e.counted = True  # the REST door counts the refusals it raises itself, not these again
+        self.metrics.rejected.labels(job.door, e.error).inc()
+        self._log_refusal(job.door, e.error, "refused a message from %r on %s: %s", job.sender or "?", job.door, e)
+
+    def _accept_stream(self, job: Job) -> bool:
+        """An admitted stream frame: the ego's goes into the cache at once (a PNG decode, on the caller's thread,
+        so the cache stays current however busy the workers are); a peer's waits in its latest-only queue."""
+        if job.frame.vehicle_id != self.settings.ego_id:
+            return self._queue_frame(job)
+        if self.intake.closed and job.door == "rest":
+            return False
+        frame = job.frame
+        self.metrics.frames.labels(job.door, "ego").inc()
+        self.meter.record_frame(frame.vehicle_id, FrameBytes.of(frame, job.nbytes, job.encoding))
+        try:
+            entry = self.cache.add(frame, frame.bev_image(self.settings.limits))  # corrupt images never enter
+        except WireError:
+            self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "failed", e.status.failed + 1))
+            raise
+        self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "frames_accepted",
+                                                                    e.status.frames_accepted + 1))
+        # Features of the newest ego frame, computed when a worker is free (or by the first peer needing them).
+        self.scheduler.put_frame(Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features",
+                                     meta={"entry": entry}), depth=1)
+        return True
+
+    def _queue_frame(self, job: Job) -> bool:
+        dropped = self.scheduler.put_frame(job)
+        if dropped is job:  # closed
+            self._count_drop(job.sender)
+            return False
+        self.peer_table.update(job.sender, lambda e: setattr(e.status, "frames_accepted",
+                                                              e.status.frames_accepted + 1))
+        if dropped is not None:
+            self._count_drop(dropped.sender)
+        return True
+
+    def _queue_request(self, job: Job) -> bool:
+        if not self.scheduler.put_request(job):
+            self.metrics.rejected.labels(job.door, "overloaded").inc()
+            return False
+        return True
+
+    def _count_drop(self, sender: str, counter: str = "frames_dropped") -> None:
+        self.metrics.dropped.labels(sender).inc()
+        self.peer_table.update(sender, lambda e: setattr(e.status, counter, getattr(e.status, counter) + 1))
+
+    def _forget(self, vehicle_id: str, entry) -> None:
+        """An evicted sender: its queue, bandwidth tally and metric labels go too."""
+        for _ in self.scheduler.forget(vehicle_id):
+            self.metrics.dropped.labels(UNVERIFIED).inc()  # its own label is about to go
+        self.meter.forget(vehicle_id)
+        self.metrics.forget_peer(vehicle_id, entry.outcomes)
+        log.info("forgot peer %s (idle for more than %.0f s)", vehicle_id, self.settings.limits.peer_idle_s)
+
+    # ---- queries -----------------------------------------------------------------------------------------------
+    def peers(self) -> dict[str, PeerStatus]:
+        status = {p: s for p, s in self.peer_table.statuses().items() if p != self.settings.ego_id}
+        for p, s in status.items():
+            s.bandwidth = self.meter.peer(p)
+        return dict(sorted(status.items()))
+
+    # ---- workers -----------------------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            job = self.scheduler.get()
+            if job is None:
+                return
+            try:
+                outcome = self._run(job)
+            except WireError as e:
+                self._refused(job, e)
+                outcome = e
+            except Exception as e:  # a bug must not kill the worker; the request still gets an answer
+                log.exception("job from %s failed", job.sender or "?")
+                outcome = e
+            finally:
+                self.scheduler.done(job)
+            if isinstance(outcome, Exception) and job.task == "frame":
+                self.peer_table.update(job.sender, lambda e: setattr(e.status, "failed", e.status.failed + 1))
+                if job.reply is None:  # a stream frame still gets a result, saying that it failed
+                    outcome = self._failed(job, outcome)
+            if job.reply is not None:
+                _answer(job, outcome)
+            elif isinstance(outcome, Result):
+                for publish in self.publishers:
+                    try:
+                        publish(outcome)
+                    except Exception:
+                        log.exception("publishing a result failed")
+
+    def _run(self, job: Job) -> Result | None:
+        if job.task == "ego_features":
+            job.meta["entry"].features(self._prepare_entry)
+            return None
+        self.metrics.frames.labels(job.door, "peer").inc()
+        return self._align(job.frame, job)
+
+    def _failed(self, job: Job, error: Exception) -> Result:
+        """The result of a stream frame whose processing raised: success=False, never a pose."""
+        f = job.frame
+        reason = "invalid_frame" if isinstance(error, WireError) else "internal_error"
+        return self._finish(job, Result(ego_id=self.settings.ego_id, peer_id=f.vehicle_id, peer_seq=f.seq,
+                                        peer_stamp=f.stamp, success=False, reason=reason,
+                                        notes=[f"{type(error).__name__}: {error}"[:300]], bytes_received=job.nbytes))
+
+    def _prepare_entry(self, entry) -> PreparedFrame:
+        return self.aligner.warm(self._prepare(entry.frame, "prepare_ego", entry.bev))
+
+    def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:
+        t0 = time.perf_counter()
+        bev = bev if bev is not None else frame.bev_image(self.settings.limits)
+        t_png = (time.perf_counter() - t0) * 1e3
+        prepared = self.aligner.prepare(bev, frame.boxes_array())
+        prepared = dataclasses.replace(prepared, num_points=frame.num_points,
+                                       timings_ms={"decode_png": t_png, **prepared.timings_ms})
+        self.metrics.engine.labels(step).observe(time.perf_counter() - t0)
+        return prepared
+
+    def _align(self, peer: Frame, job: Job) -> Result:
+        """Align one peer frame against the given ego frame, or the cached one nearest in time."""
+        s = self.settings
+        fb = FrameBytes.of(peer, job.nbytes, job.encoding)
+        self.meter.record_frame(peer.vehicle_id, fb)
+        timings = {"queue_wait": (time.perf_counter() - job.received) * 1e3}
+        base = dict(ego_id=s.ego_id, peer_id=peer.vehicle_id, peer_seq=peer.seq, peer_stamp=peer.stamp,
+                    bytes_received=fb.total, raw_points_bytes=fb.raw_points,
+                    ratio_vs_points=fb.total / fb.raw_points if fb.raw_points else None)
+
+        newest_ego = max(self.cache.stamps(), default=None)
+        if job.ego is None and newest_ego is not None and newest_ego >= peer.stamp:
+            # The ego stream is already past this sweep, so no nearer ego frame can come: when none is usable,
+            # answer at once, before any engine work. Otherwise the ego frame of this sweep may still be in
+            # flight (it travels in another Zenoh session): prepare the peer first and decide after.
+            picked = self._pick_ego(peer, job, base, timings, wait=False)
+            if isinstance(picked, Result):
+                return picked
+        peer_prep = self._prepare(peer, "prepare_peer")
+        if job.ego is not None:
+            ego_frame, ego_prep = job.ego, self._prepare(job.ego, "prepare_ego")
+        else:  # look again: a nearer ego frame may have come in while the peer was prepared
+            picked = self._pick_ego(peer, job, base, timings, wait=True)
+            if isinstance(picked, Result):
+                return picked
+            ego_frame, ego_prep = picked
+        base.update(ego_seq=ego_frame.seq, ego_stamp=ego_frame.stamp, ego_skew_s=peer.stamp - ego_frame.stamp)
+
+        prior = relative_prior(ego_frame, peer)
+        tz, roll, pitch = prior if prior is not None else (0.0, 0.0, 0.0)
+        t0 = time.perf_counter()
+        T_prior = reported_relative_pose(ego_frame, peer) if self.settings.use_pose_prior else None
+        res = self.aligner.align(ego_prep, peer_prep, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior)
+        self.metrics.engine.labels("align").observe(time.perf_counter() - t0)
+        timings.update({f"peer_{k}": v for k, v in peer_prep.timings_ms.items()}, **res.timings_ms)
+        return self._finish(job, _from_engine(res, base, prior is not None, timings))
+
+    def _pick_ego(self, peer: Frame, job: Job, base: dict, timings: dict, wait: bool):
+        """(ego frame, its features) nearest in time to the peer frame, or a failed Result saying why."""
+        s = self.settings
+        entry = self.cache.nearest(peer.stamp)
+        if entry is None:
+            return self._finish(job, Result(**base, success=False, reason=FailureReason.no_ego_frame.value,
+                                            timings_ms=timings))
+        skew = peer.stamp - entry.stamp
+        if abs(skew) > s.max_ego_skew_s:
+            return self._finish(job, Result(
+                **base, ego_seq=entry.frame.seq, ego_stamp=entry.stamp, ego_skew_s=skew, success=False,
+                reason=FailureReason.stale_ego_frame.value, timings_ms=timings,
+                notes=[f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s"]))
+        if not wait:
+            return entry.frame, None
+        if not entry.ready and s.prefer_prepared_ego:
+            # An ego frame already prepared and within the skew saves a whole prepare (the result names the
+            # ego frame it used): under load the ego stream is then prepared only as often as peers need it.
+            entry = self.cache.nearest_ready(peer.stamp, s.max_ego_skew_s) or entry
+        t0 = time.perf_counter()
+        prepared = entry.features(self._prepare_entry)
+        timings["ego_features"] = (time.perf_counter() - t0) * 1e3  # waited for, or computed here
+        return entry.frame, prepared
+
+    def _finish(self, job: Job, result: Result) -> Result:
+        latency_s = time.perf_counter() - job.received
+        result = result.model_copy(update={"latency_ms": latency_s * 1e3})
+        outcome = "success" if result.success else result.reason
+        self.metrics.latency.labels(job.door).observe(latency_s)
+
+        def record(entry) -> None:
+            entry.status.last_result = result
+            entry.status.results += 1
+            entry.outcomes.add(outcome)
+
+        if self.peer_table.update(result.peer_id, record):  # an evicted peer leaves no labels behind
+            self.metrics.alignments.labels(result.peer_id, outcome).inc()
+        return result
+
+
+def _answer(job: Job, outcome: object) -> None:
+    """Hand a request its answer; a caller that is gone (e.g. a REST request that timed out) is not an error."""
+    try:
+        job.reply(outcome)
+    except Exception as e:
+        log.info("a request from %s could not be answered (%s: %s)", job.sender or "?", type(e).__name__, e)
+
+
+def _encode(frame: Frame, encoding: str) -> bytes:
+    return to_json(frame) if encoding == JSON else pack(frame)
+
+
+def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[str, float]) -> Result:
+    T = np.asarray(res.T_ego_peer, dtype=float)
+    return Result(**base, success=res.success, reason=res.reason, yaw_deg=res.yaw_deg, tx=res.tx, ty=res.ty,
+                  T_ego_peer=T.tolist(), inliers_bv=res.inliers_bv, inliers_box=res.inliers_box,
+                  matches_bv=res.matches_bv, box_pairs=res.box_pairs, confidence=res.confidence,
+                  stage2_applied=res.stage2_applied, prior_used=prior_used, notes=list(res.notes),
+                  timings_ms={k: float(v) for k, v in timings.items()})

@@ -1,0 +1,117 @@
+"""The senders the service tracks: admission, replay refusal, idle eviction, per-peer counters.
+
+Only a frame that passed the whole validator (and its signature check) creates or refreshes a sender's entry,
+so junk ids cannot fill the table. At most ``max_peers`` senders besides the ego are tracked; a sender silent for
+``peer_idle_s`` is forgotten (its queue, replay state, bandwidth tally and metric labels go with it, through
+``on_evict``). With replay refusal on (authentication on), each sender's frames must come with ever newer
+``(stamp, seq)``, separately for its stream (Zenoh frames/*, REST /v1/frames) and its requests (queries, REST
+/v1/align): a signed frame sent again is refused. A forgotten sender's old frames are older than
+``max_stamp_age_s`` (Limits requires peer_idle_s >= max_stamp_age_s), so the stamp window refuses them.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+from pydantic import BaseModel, Field
+
+from bb_align.protocol import Frame, Result, WireError
+
+from .bandwidth import PeerBandwidth
+
+
+class PeerStatus(BaseModel):
+    last_result: Result | None = None
+    frames_accepted: int = Field(0, description="stream frames that passed the validator and were queued")
+    frames_dropped: int = Field(0, description="accepted stream frames replaced by a newer one (latest-only) "
+                                "or still queued at shutdown")
+    intake_dropped: int = Field(0, description="messages pushed out of the full intake before the gate "
+                                "checked them (while this sender was tracked)")
+    results: int = Field(0, description="results produced for this sender's frames (streams and requests)")
+    failed: int = Field(0, description="accepted frames whose processing raised (logged; their result says "
+                        "invalid_frame or internal_error)")
+    bandwidth: PeerBandwidth | None = None
+
+
+class _Entry:
+    def __init__(self, now: float):
+        self.status = PeerStatus()
+        self.last_seen = now
+        self.newest: dict[str, tuple[float, int]] = {}  # channel -> newest (stamp, seq) accepted
+        self.outcomes: set[str] = set()  # metric label values used, removed on eviction
+
+
+class PeerTable:
+    def __init__(self, max_peers: int, idle_s: float, *, reserved: str, refuse_replays: bool,
+                 on_evict: Callable[[str, _Entry], None] = lambda vid, entry: None, clock=time.monotonic):
+        self.max_peers, self.idle_s, self.reserved = max_peers, idle_s, reserved
+        self.refuse_replays = refuse_replays
+        self._on_evict = on_evict
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._entries: dict[str, _Entry] = {}
+
+    def admit(self, frame: Frame, channel: str) -> None:
+        """Track ``frame``'s sender (or refresh it); raises WireError 409 (replayed) or 503 (table full)."""
+        now = self._clock()
+        evicted = []
+        with self._lock:
+            entry = self._entries.get(frame.vehicle_id)
+            if entry is None:
+                evicted = self._evict_idle(now)
+                if frame.vehicle_id != self.reserved and self._count() >= self.max_peers:
+                    self._notify(evicted)
+                    raise WireError(503, "overloaded", f"already tracking {self.max_peers} peers, none idle for "
+                                    f"{self.idle_s} s", "vehicle_id", self.max_peers)
+                entry = self._entries[frame.vehicle_id] = _Entry(now)
+            key = (frame.stamp, frame.seq)
+            newest = entry.newest.get(channel)
+            if self.refuse_replays and newest is not None and key <= newest:
+                self._notify(evicted)
+                raise WireError(409, "replayed", f"(stamp, seq) = ({frame.stamp}, {frame.seq}) is not newer than "
+                                f"the last accepted from {frame.vehicle_id!r} ({newest[0]}, {newest[1]})",
+                                "stamp", newest[0])
+            entry.newest[channel] = max(key, newest) if newest is not None else key
+            entry.last_seen = now
+        self._notify(evicted)
+
+    def sweep(self) -> list[str]:
+        """Forget every sender idle for longer than idle_s; returns their ids."""
+        with self._lock:
+            evicted = self._evict_idle(self._clock())
+        self._notify(evicted)
+        return [vid for vid, _ in evicted]
+
+    def update(self, vehicle_id: str, fn: Callable[[_Entry], None]) -> bool:
+        """Apply ``fn`` to a tracked sender's entry under the lock; False when it is not tracked (evicted)."""
+        with self._lock:
+            entry = self._entries.get(vehicle_id)
+            if entry is None:
+                return False
+            fn(entry)
+            return True
+
+    def statuses(self) -> dict[str, PeerStatus]:
+        with self._lock:
+            return {vid: e.status.model_copy() for vid, e in self._entries.items()}
+
+    def __contains__(self, vehicle_id: str) -> bool:
+        with self._lock:
+            return vehicle_id in self._entries
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._entries)
+
+    def _count(self) -> int:
+        return sum(1 for vid in self._entries if vid != self.reserved)
+
+    def _evict_idle(self, now: float) -> list[tuple[str, _Entry]]:
+        idle = [vid for vid, e in self._entries.items() if now - e.last_seen > self.idle_s]
+        return [(vid, self._entries.pop(vid)) for vid in idle]
+
+    def _notify(self, evicted: list[tuple[str, _Entry]]) -> None:
+        for vid, entry in evicted:  # outside the lock: the callback takes other locks
+            self._on_evict(vid, entry)

@@ -1,0 +1,141 @@
+"""The service's settings: one pydantic-settings model, read from ``BBALIGN_*`` environment variables.
+
+Nested fields use ``__``: ``BBALIGN_ZENOH__MODE=client``, ``BBALIGN_ZENOH__CONNECT='["tcp/10.0.0.2:7447"]'``,
+``BBALIGN_ALIGN__BEV__RANGE_M=60``, ``BBALIGN_LIMITS__MAX_BOXES=128``, ``BBALIGN_AUTH__FLEET_KEY=...``. Every
+default binds to loopback only: REST on 127.0.0.1, Zenoh listening on tcp/127.0.0.1:7447 with multicast scouting
+off. Opening the service to a vehicle network is an explicit choice (``--host``, ``--zenoh-listen``,
+``--zenoh-connect``).
+
+Peer authentication is on by default (``auth.mode = "hmac"``): every frame must carry an HMAC-SHA256 made with
+the fleet key or the sender's own key (docs/security.md). Only the embedded demo profile (``profile = "demo"``,
+``bb-align serve --demo``, ``make run``) turns it off, and the service says so loudly when it starts.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from bb_align.engine.config import AlignConfig
+from bb_align.protocol.limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
+from bb_align.protocol.signatures import Keyring
+from bb_align.protocol.zenoh_config import ZenohSettings
+
+MIN_KEY_CHARS = 16
+
+
+class AuthSettings(BaseModel):
+    """Peer authentication (HMAC-SHA256 over each frame) and the REST bearer token. Secrets never print."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["hmac", "off"] = Field("hmac", description="hmac: every frame must be signed; off: no checks")
+    fleet_key: SecretStr | None = Field(None, description=f"key shared by the fleet (key id {FLEET_KEY_ID!r})")
+    peer_keys: dict[str, SecretStr] = Field(default_factory=dict, description="vehicle id -> its own key; a frame "
+                                            "signed with one must carry that vehicle id")
+    rest_token: SecretStr | None = Field(None, description="REST: every /v1 call and /metrics need "
+                                         "'Authorization: Bearer <token>'")
+
+    @field_validator("fleet_key", "rest_token")
+    @classmethod
+    def _long_enough(cls, v: SecretStr | None) -> SecretStr | None:
+        if v is not None and len(v.get_secret_value()) < MIN_KEY_CHARS:
+            raise ValueError(f"secrets need at least {MIN_KEY_CHARS} characters (use secrets.token_hex(32))")
+        return v
+
+    @field_validator("peer_keys")
+    @classmethod
+    def _peer_keys(cls, v: dict[str, SecretStr]) -> dict[str, SecretStr]:
+        for vid, key in v.items():
+            if not re.match(VEHICLE_ID_PATTERN, vid) or vid == FLEET_KEY_ID:
+                raise ValueError(f"peer_keys: {vid!r} is not a vehicle id (or is the reserved {FLEET_KEY_ID!r})")
+            if len(key.get_secret_value()) < MIN_KEY_CHARS:
+                raise ValueError(f"peer_keys[{vid!r}]: keys need at least {MIN_KEY_CHARS} characters")
+        return v
+
+    @property
+    def has_keys(self) -> bool:
+        return self.fleet_key is not None or bool(self.peer_keys)
+
+    def keyring(self) -> Keyring:
+        """The protocol's keyring for these settings (fleet key under ``"fleet"``, peer keys under their ids)."""
+        keys = {vid: k.get_secret_value() for vid, k in self.peer_keys.items()}
+        if self.fleet_key is not None:
+            keys[FLEET_KEY_ID] = self.fleet_key.get_secret_value()
+        return Keyring(keys, required=self.mode == "hmac")
+
+
+class Settings(BaseSettings):
+    """Everything the ego-side service needs: engine configuration, identity, doors, workers and limits."""
+
+    model_config = SettingsConfigDict(env_prefix="BBALIGN_", env_nested_delimiter="__", extra="forbid")
+
+    profile: Literal["vehicle", "demo"] = Field(
+        "vehicle", description="demo: the embedded demo (authentication off, loopback); vehicle: secure defaults")
+    ego_id: str = Field("ego", pattern=VEHICLE_ID_PATTERN, description="vehicle id of this car's own frames")
+    host: str = Field("127.0.0.1", description="REST bind address (loopback by default)")
+    port: int = Field(8000, ge=0, le=65535, description="REST port (0: any free port)")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+    align: AlignConfig = Field(default_factory=AlignConfig)
+    use_pose_prior: bool = Field(
+        True, description="when both frames carry a reported pose, gate descriptor matches by it (align.prior "
+        "tolerances, 10 m / 10 deg by default); a wrong report then fails the alignment instead of biasing it")
+    limits: Limits = Field(default_factory=Limits)
+    ego_cache_size: int = Field(10, ge=1, le=1000, description="K: last ego frames kept with their features")
+    prefer_prepared_ego: bool = Field(
+        False, description="align against an ego frame whose features are ready when one is within "
+        "max_ego_skew_s, rather than preparing the nearest (about halves the ego work at 10 Hz under load; the "
+        "result names the ego frame used). Off: the nearest ego frame in time, always")
+    max_ego_skew_s: float = Field(0.15, ge=0, description="a peer frame needs an ego frame this close in time")
+    workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
+    peer_queue_depth: int = Field(1, ge=1, le=64,
+                                  description="frames waiting per peer; older ones are dropped (1 = latest only)")
+    max_pending_requests: int = Field(8, ge=1, le=1024,
+                                      description="REST /v1/align and Zenoh queries waiting for a worker")
+    request_timeout_s: float = Field(30.0, gt=0, description="REST /v1/align gives up (504) after this")
+    shutdown_timeout_s: float = Field(30.0, gt=0, description="SIGTERM: longest wait for in-flight work")
+    bandwidth_window_s: float = Field(5.0, gt=0, description="sliding window of the kbit/s rates")
+
+    @model_validator(mode="after")
+    def _demo_profile_turns_auth_off(self) -> "Settings":
+        if self.profile == "demo":
+            self.auth = self.auth.model_copy(update={"mode": "off"})
+        if self.zenoh.max_message_bytes is None:  # Zenoh's own reassembly limit backs up the door's size check
+            self.zenoh = self.zenoh.model_copy(update={"max_message_bytes": self.limits.max_message_bytes})
+        return self
+
+    def startup_problem(self) -> str | None:
+        """Why the service must not start with these settings (None: fine)."""
+        if self.auth.mode == "hmac" and not self.auth.has_keys:
+            return ("authentication is on (auth.mode='hmac') but no key is configured: set "
+                    "BBALIGN_AUTH__FLEET_KEY (or BBALIGN_AUTH__PEER_KEYS), or run the embedded demo without "
+                    "authentication (bb-align serve --demo, BBALIGN_PROFILE=demo)")
+        return None
+
+    def security_warnings(self) -> list[str]:
+        """What the startup banner must say loudly."""
+        out = []
+        if self.auth.mode == "off":
+            why = "demo profile" if self.profile == "demo" else "auth.mode='off'"
+            out.append(f"AUTHENTICATION IS OFF ({why}): any process that reaches the endpoints can inject frames")
+        exposed = [e for e in self.zenoh.listen if not _loopback_endpoint(e)] if self.zenoh.enabled else []
+        if self.host not in ("127.0.0.1", "localhost", "::1"):
+            exposed.append(f"REST on {self.host}")
+        if exposed and self.auth.mode == "off":
+            out.append("NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION: " + ", ".join(exposed))
+        if self.host not in ("127.0.0.1", "localhost", "::1") and self.auth.rest_token is None:
+            out.append("REST is reachable beyond loopback without a bearer token (auth.rest_token)")
+        plain = [e for e in self.zenoh.listen + self.zenoh.connect if not _loopback_endpoint(e)
+                 and not e.startswith(("tls/", "quic/"))] if self.zenoh.enabled else []
+        if plain:
+            out.append("Zenoh traffic beyond loopback is not encrypted (use tls/ endpoints): " + ", ".join(plain))
+        return out
+
+
+def _loopback_endpoint(endpoint: str) -> bool:
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    return endpoint.startswith("unixsock-stream/") or host in ("127.0.0.1", "localhost", "::1")
