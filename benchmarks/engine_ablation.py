@@ -48,8 +48,10 @@ def real_scans(data: Path, n_copies: int) -> None:
                 p, _, T = moved_copy(pts, boxes, seed)
                 errs.append(pose_error(al.align(ego, al.prepare(p)).T_ego_peer, T))
         e = np.array(errs)
-        print(f"| {name} | {kt:.3f} | {kr:.3f} | {np.median(e[:, 0]):.3f} / {np.median(e[:, 1]):.3f} | "
-              f"{np.percentile(e[:, 0], 90):.3f} / {np.percentile(e[:, 1], 90):.3f} |")
+        print(
+            f"| {name} | {kt:.3f} | {kr:.3f} | {np.median(e[:, 0]):.3f} / {np.median(e[:, 1]):.3f} | "
+            f"{np.percentile(e[:, 0], 90):.3f} / {np.percentile(e[:, 1], 90):.3f} |"
+        )
 
 
 def sim_pairs(n: int) -> None:
@@ -72,9 +74,12 @@ def sim_pairs(n: int) -> None:
     for name in ("default", "paper_box_always", "no_refine", "no_fitness_gate", "default+prior"):
         al = Aligner(VARIANTS[name.replace("+prior", "")])
         rows = []
-        for (d, e, p, T), T_prior in tqdm(list(zip(pairs, priors)), desc=name, leave=False):
-            r = al.align(al.prepare(e.points, e.boxes), al.prepare(p.points, p.boxes),
-                         T_prior=T_prior if name.endswith("+prior") else None)
+        for (_d, e, p, T), T_prior in tqdm(list(zip(pairs, priors)), desc=name, leave=False):
+            r = al.align(
+                al.prepare(e.points, e.boxes),
+                al.prepare(p.points, p.boxes),
+                T_prior=T_prior if name.endswith("+prior") else None,
+            )
             t, y = pose_error(r.T_ego_peer, T)
             rows.append((r.success, t < 1 and y < 1))
         a = np.array(rows, dtype=bool)

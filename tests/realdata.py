@@ -25,8 +25,17 @@ def av2_scan(data: Path) -> tuple[np.ndarray, np.ndarray]:
     with open(folder / f"annotations_{ts}.csv", newline="") as f:
         for r in csv.DictReader(f):
             yaw = 2.0 * np.arctan2(float(r["qz"]), float(r["qw"]))  # rotation about z only
-            boxes.append([float(r["tx_m"]), float(r["ty_m"]), float(r["tz_m"]), float(r["length_m"]),
-                          float(r["width_m"]), float(r["height_m"]), yaw])
+            boxes.append(
+                [
+                    float(r["tx_m"]),
+                    float(r["ty_m"]),
+                    float(r["tz_m"]),
+                    float(r["length_m"]),
+                    float(r["width_m"]),
+                    float(r["height_m"]),
+                    yaw,
+                ]
+            )
     return pts, np.array(boxes)
 
 
@@ -38,8 +47,15 @@ def nuscenes_scan(data: Path) -> tuple[np.ndarray, np.ndarray]:
     return pts, boxes
 
 
-def moved_copy(pts_ego: np.ndarray, boxes_ego: np.ndarray, seed: int, *, max_shift: float = 40.0,
-               drop: float = 0.3, max_range: float = 80.0):
+def moved_copy(
+    pts_ego: np.ndarray,
+    boxes_ego: np.ndarray,
+    seed: int,
+    *,
+    max_shift: float = 40.0,
+    drop: float = 0.3,
+    max_range: float = 80.0,
+):
     """The scan seen from a random pose: any yaw in (-180, 180], a shift up to max_shift, a random fraction of
     points dropped, cropped to max_range around the new sensor. Returns (pts_peer, boxes_peer, T_ego_peer)."""
     rng = np.random.default_rng(seed)

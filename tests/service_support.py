@@ -3,7 +3,6 @@ in the synthetic street (tests/synthetic.py) with known poses."""
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -15,17 +14,12 @@ import uvicorn
 from bb_align.engine.boxes import transform_boxes
 from bb_align.engine.config import AlignConfig, BevConfig
 from bb_align.engine.geometry import se2, se3_from_se2
+from bb_align.lab.harness import free_port  # noqa: F401  (tests import it from here)
 from bb_align.server import create_app
 from bb_align.server.settings import Settings
 from synthetic import synthetic_world, view_from
 
 RANGE_M = 40.0  # small BV images keep the engine quick in tests
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 FLEET_KEY = "test-fleet-key-0123456789abcdef"  # tests only
@@ -36,11 +30,16 @@ def service_settings(zenoh: bool = True, zenoh_config: dict | None = None, **ove
 
     The embedded demo profile (no authentication) and no receiver-clock stamp window by default: the synthetic
     scenes are stamped from 0 s. Security tests pass ``secure_settings`` instead."""
-    z = {"enabled": zenoh, "listen": [f"tcp/127.0.0.1:{free_port()}"], "multicast_scouting": False,
-         **(zenoh_config or {})}
+    z = {
+        "enabled": zenoh,
+        "listen": [f"tcp/127.0.0.1:{free_port()}"],
+        "multicast_scouting": False,
+        **(zenoh_config or {}),
+    }
     limits = {"check_stamp_clock": False, **overrides.pop("limits", {})}
-    base = dict(profile="demo", port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)),
-                limits=limits)
+    base = dict(
+        profile="demo", port=free_port(), zenoh=z, align=AlignConfig(bev=BevConfig(range_m=RANGE_M)), limits=limits
+    )
     return Settings(**{**base, **overrides})
 
 

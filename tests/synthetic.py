@@ -55,8 +55,15 @@ def _rect_edges(cx, cy, L, W, yaw):
     return [(pts[i], pts[(i + 1) % 4]) for i in range(4)]
 
 
-def view_from(points_world: np.ndarray, T_world_sensor: np.ndarray, *, max_range: float = 80.0,
-              drop: float = 0.3, sensor_height: float = 1.8, seed: int = 0) -> np.ndarray:
+def view_from(
+    points_world: np.ndarray,
+    T_world_sensor: np.ndarray,
+    *,
+    max_range: float = 80.0,
+    drop: float = 0.3,
+    sensor_height: float = 1.8,
+    seed: int = 0,
+) -> np.ndarray:
     """The world seen from a sensor pose: points in the sensor frame (z up from the sensor), a random fraction
     dropped, cropped to max_range."""
     rng = np.random.default_rng(seed)

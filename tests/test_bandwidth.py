@@ -16,9 +16,14 @@ from bb_align.server.bandwidth import RAW_POINT_BYTES, BandwidthMeter, FrameByte
 def _frame(n_boxes=3, num_points=100_000) -> Frame:
     img = np.zeros((100, 100), np.uint8)
     img[10:20, 30:60] = 200
-    return Frame(vehicle_id="car1", stamp=1.0, png=cv2.imencode(".png", img)[1].tobytes(),
-                 bev=BevMeta(resolution_m=0.4, range_m=20), boxes=[[1.0, 2.0, 0.5, 4.0, 2.0, 1.5, 0.1]] * n_boxes,
-                 num_points=num_points)
+    return Frame(
+        vehicle_id="car1",
+        stamp=1.0,
+        png=cv2.imencode(".png", img)[1].tobytes(),
+        bev=BevMeta(resolution_m=0.4, range_m=20),
+        boxes=[[1.0, 2.0, 0.5, 4.0, 2.0, 1.5, 0.1]] * n_boxes,
+        num_points=num_points,
+    )
 
 
 def test_parts_add_up_and_raw_sizes_follow_their_definitions():

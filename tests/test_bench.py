@@ -57,8 +57,9 @@ def test_descriptors_equal_the_engine_for_the_same_keypoints(small_scene):
     np.testing.assert_allclose(d_base[~tie], d_engine[~tie], atol=1e-6)
     if tie.any():
         assert np.min((d_base[tie] * d_engine[tie]).sum(1)) > 0.9
-    np.testing.assert_allclose(bl.flip_180(d_base, CFG.features)[~tie],
-                               bl.flip_180(d_engine, CFG.features)[~tie], atol=1e-6)
+    np.testing.assert_allclose(
+        bl.flip_180(d_base, CFG.features)[~tie], bl.flip_180(d_engine, CFG.features)[~tie], atol=1e-6
+    )
 
 
 def test_432_bin_descriptors_also_agree(small_scene):
@@ -132,9 +133,26 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
     png = tmp_path / "bench.png"
     md = tmp_path / "bench.md"
     # A 40 m BV range (200 px images) keeps the slow baseline short; everything else is the --quick run.
-    res = CliRunner().invoke(app, ["bench", "--quick", "--no-service", "--runs", "1", "--range-m", "40",
-                                   "--engine-threads", "1",
-                                   "--json", str(out), "--plot", str(png), "--markdown", str(md)])
+    res = CliRunner().invoke(
+        app,
+        [
+            "bench",
+            "--quick",
+            "--no-service",
+            "--runs",
+            "1",
+            "--range-m",
+            "40",
+            "--engine-threads",
+            "1",
+            "--json",
+            str(out),
+            "--plot",
+            str(png),
+            "--markdown",
+            str(md),
+        ],
+    )
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
     for key in ("peer_vs_cached_ego_ms_p50", "peer_vs_cached_ego_ms_p90", "cold_pair_ms_p50", "cold_pair_ms_p90"):

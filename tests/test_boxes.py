@@ -29,8 +29,16 @@ def test_corner_pairing_survives_heading_flips(flip):
 def test_stage2_recovers_a_small_offset_with_flipped_detections():
     rng = np.random.default_rng(0)
     n = 8
-    boxes_ego = np.column_stack([rng.uniform(-40, 40, (n, 2)), np.full(n, 0.8), rng.uniform(3.8, 4.8, n),
-                                 rng.uniform(1.7, 2.0, n), np.full(n, 1.5), rng.uniform(-np.pi, np.pi, n)])
+    boxes_ego = np.column_stack(
+        [
+            rng.uniform(-40, 40, (n, 2)),
+            np.full(n, 0.8),
+            rng.uniform(3.8, 4.8, n),
+            rng.uniform(1.7, 2.0, n),
+            np.full(n, 1.5),
+            rng.uniform(-np.pi, np.pi, n),
+        ]
+    )
     T_ego_peer = se2(np.radians(30.0), 12.0, -7.0)
     boxes_peer = transform_boxes(np.linalg.inv(T_ego_peer), boxes_ego)
     boxes_peer[::3, 6] += np.pi  # the peer's detector flips every third heading

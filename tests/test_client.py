@@ -24,8 +24,17 @@ def test_encoded_frame_holds_the_engine_bev_image_boxes_and_pose(pair):
     stamp, ego, _ = pair[0]
     T = ego.T_world_sensor.copy()
     T[:3, 3] = (5.0, -3.0, 1.8)
-    data = encode_frame(ego.points, ego.boxes, vehicle_id="car1", stamp=1.25, seq=4, pose=T, range_m=RANGE_M,
-                        resolution_m=0.5, scores=np.linspace(0.1, 0.9, len(ego.boxes)))
+    data = encode_frame(
+        ego.points,
+        ego.boxes,
+        vehicle_id="car1",
+        stamp=1.25,
+        seq=4,
+        pose=T,
+        range_m=RANGE_M,
+        resolution_m=0.5,
+        scores=np.linspace(0.1, 0.9, len(ego.boxes)),
+    )
     f = load_frame(data, Limits())
     expected = make_bev(ego.points, BevConfig(range_m=RANGE_M, resolution_m=0.5))
     np.testing.assert_array_equal(f.bev_image().image, expected.image)

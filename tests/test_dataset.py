@@ -72,7 +72,8 @@ def test_reader_on_hand_written_dataset(tmp_path):
     for agent in ("641", "1005", "77"):
         (scen / agent).mkdir(parents=True)
     # ego 641: OPV2V 6-vector pose, one vehicle, no detections
-    (scen / "641" / "000068.yaml").write_text(textwrap.dedent("""\
+    (scen / "641" / "000068.yaml").write_text(
+        textwrap.dedent("""\
         lidar_pose: [10.0, 20.0, 1.9, 0.0, 90.0, 0.0]
         vehicles:
           1005:
@@ -81,10 +82,12 @@ def test_reader_on_hand_written_dataset(tmp_path):
             extent: [2.25, 0.9, 0.8]
             angle: [0.0, 180.0, 0.0]
         ego_speed: 12.5
-        """))
+        """)
+    )
     _pcd(scen / "641" / "000068.pcd", [[1, 2, 3, 0.5], [4, 5, 6, 0.25]])
     # peer 1005: V2V4Real 4x4 pose, detections with scores
-    (scen / "1005" / "000068.yaml").write_text(textwrap.dedent("""\
+    (scen / "1005" / "000068.yaml").write_text(
+        textwrap.dedent("""\
         lidar_pose:
           - [1.0, 0.0, 0.0, 30.0]
           - [0.0, 1.0, 0.0, 20.0]
@@ -94,7 +97,8 @@ def test_reader_on_hand_written_dataset(tmp_path):
         detections:
           - [5.0, 1.0, -1.0, 4.5, 1.8, 1.6, 0.1]
         detection_scores: [0.9]
-        """))
+        """)
+    )
     _pcd(scen / "1005" / "000068.pcd", [[7, 8, 9, 1.0]])
     # agent 77 has a yaml without its pcd at 000068 and a lone frame at 000069: neither makes a group with it
     (scen / "77" / "000068.yaml").write_text("lidar_pose: [0, 0, 0, 0, 0, 0]\n")
@@ -143,8 +147,19 @@ def test_writer_reader_round_trip(tmp_path):
     vehicles = {12: np.array([5.0, 6.0, 0.75, 4.6, 1.9, 1.5, 0.4]), 40: np.array([-8, 2, 1.5, 10, 2.5, 3, -2.0])}
     dets = np.array([[1.0, 2.0, -1.0, 4.4, 1.8, 1.5, 3.0]])
     for agent, as_matrix in (("0", False), ("1", True)):
-        write_agent_frame(tmp_path, "s", agent, "000001", pts, T, vehicles, detections=dets,
-                          detection_scores=[0.7], extra={"sensor": "vlp32c"}, pose_as_matrix=as_matrix)
+        write_agent_frame(
+            tmp_path,
+            "s",
+            agent,
+            "000001",
+            pts,
+            T,
+            vehicles,
+            detections=dets,
+            detection_scores=[0.7],
+            extra={"sensor": "vlp32c"},
+            pose_as_matrix=as_matrix,
+        )
     g = next(iter_frames(tmp_path))
     for a in g.agents.values():
         np.testing.assert_allclose(a.T_world_sensor, T, atol=1e-9)

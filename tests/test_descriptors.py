@@ -70,5 +70,6 @@ def test_threaded_prepare_gives_the_same_features():
     two = Aligner(AlignConfig(features=FeatureConfig(threads=3))).prepare(bev)
     np.testing.assert_array_equal(one.descriptors, two.descriptors)
     np.testing.assert_array_equal(one.keypoints_rc, two.keypoints_rc)
-    np.testing.assert_array_equal(one.reference_descriptors(one_cfg := FeatureConfig(threads=1), 12),
-                                  two.reference_descriptors(one_cfg, 12))
+    np.testing.assert_array_equal(
+        one.reference_descriptors(one_cfg := FeatureConfig(threads=1), 12), two.reference_descriptors(one_cfg, 12)
+    )

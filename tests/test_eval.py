@@ -52,8 +52,16 @@ def test_match_frame_uses_each_ground_truth_once_and_nms_removes_duplicates():
 def test_graph_matching_baseline_recovers_a_known_transform():
     rng = np.random.default_rng(4)
     n = 9
-    boxes_ego = np.column_stack([rng.uniform(-40, 40, (n, 2)), np.zeros(n), rng.uniform(4, 5, n),
-                                 rng.uniform(1.7, 2.0, n), np.full(n, 1.5), rng.uniform(-np.pi, np.pi, n)])
+    boxes_ego = np.column_stack(
+        [
+            rng.uniform(-40, 40, (n, 2)),
+            np.zeros(n),
+            rng.uniform(4, 5, n),
+            rng.uniform(1.7, 2.0, n),
+            np.full(n, 1.5),
+            rng.uniform(-np.pi, np.pi, n),
+        ]
+    )
     T_ego_peer = se2(np.radians(35.0), 12.0, -7.0)
     boxes_peer = transform_boxes(np.linalg.inv(T_ego_peer), boxes_ego)
     boxes_peer[:, :2] += rng.normal(0, 0.1, (n, 2))
@@ -79,16 +87,55 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
 
     runner = CliRunner()
     data = tmp_path / "sim"
-    out = runner.invoke(app, ["sim", str(data), "--scenarios", "3", "--seed", "5", "--min-distance", "5",
-                              "--max-distance", "25", "--workers", "1"])
+    out = runner.invoke(
+        app,
+        [
+            "sim",
+            str(data),
+            "--scenarios",
+            "3",
+            "--seed",
+            "5",
+            "--min-distance",
+            "5",
+            "--max-distance",
+            "25",
+            "--workers",
+            "1",
+        ],
+    )
     assert out.exit_code == 0, out.output
     summary_path, plots = tmp_path / "summary.json", tmp_path / "plots"
-    out = runner.invoke(app, ["eval", str(data), "--json", str(summary_path), "--plots", str(plots),
-                              "--workers", "1", "--pose-noise", "2,2"])
+    out = runner.invoke(
+        app,
+        [
+            "eval",
+            str(data),
+            "--json",
+            str(summary_path),
+            "--plots",
+            str(plots),
+            "--workers",
+            "1",
+            "--pose-noise",
+            "2,2",
+        ],
+    )
     assert out.exit_code == 0, out.output
     s = json.loads(summary_path.read_text())
-    for key in ("pairs", "success_rate", "frac_under_1m_1deg", "median_t_err_m", "median_r_err_deg", "by_distance",
-                "stage1_only", "baseline_graph_matching", "detection_ap", "by_common_cars", "by_inliers_bv"):
+    for key in (
+        "pairs",
+        "success_rate",
+        "frac_under_1m_1deg",
+        "median_t_err_m",
+        "median_r_err_deg",
+        "by_distance",
+        "stage1_only",
+        "baseline_graph_matching",
+        "detection_ap",
+        "by_common_cars",
+        "by_inliers_bv",
+    ):
         assert key in s
     assert s["pairs"] == 3
     assert set(s["by_distance"]) == {"0-20", "20-40", "40-70", "70+"}

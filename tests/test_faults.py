@@ -70,8 +70,10 @@ def test_service_recovers_by_itself_when_the_zenoh_router_restarts(pair):
     try:
         with running_service(settings) as (app, url):
             link_session = app.state.link.session
-            with ZenohPeer("ego", connect=[router_ep], mode="client", block_when_congested=True) as ego_car, \
-                    ZenohPeer("car1", connect=[router_ep], mode="client", block_when_congested=True) as car:
+            with (
+                ZenohPeer("ego", connect=[router_ep], mode="client", block_when_congested=True) as ego_car,
+                ZenohPeer("car1", connect=[router_ep], mode="client", block_when_congested=True) as car,
+            ):
                 poses = car.poses("ego")
                 assert car.wait_for_subscriber(20) and ego_car.wait_for_subscriber(20)
                 time.sleep(0.3)
@@ -121,8 +123,10 @@ def test_peers_leave_and_return_and_a_stalled_ego_stream_gives_stale_results(pai
     _, ego, peer = pair[1]
     with running_service(settings) as (app, url):
         service = app.state.service
-        with ZenohPeer("ego", connect=ep, block_when_congested=True) as ego_car, \
-                ZenohPeer("car1", connect=ep, block_when_congested=True) as car1:
+        with (
+            ZenohPeer("ego", connect=ep, block_when_congested=True) as ego_car,
+            ZenohPeer("car1", connect=ep, block_when_congested=True) as car1,
+        ):
             poses1 = car1.poses("ego")
             car2 = ZenohPeer("car2", connect=ep, block_when_congested=True).open()
             poses2 = car2.poses("ego")
@@ -151,8 +155,7 @@ def test_peers_leave_and_return_and_a_stalled_ego_stream_gives_stale_results(pai
                 if stamp <= settings.max_ego_skew_s:
                     assert res.success and res.ego_seq == 0
                 else:
-                    assert (res.success, res.reason, res.T_ego_peer, res.ego_seq) == (False, "stale_ego_frame",
-                                                                                      None, 0)
+                    assert (res.success, res.reason, res.T_ego_peer, res.ego_seq) == (False, "stale_ego_frame", None, 0)
                     assert res.ego_skew_s == pytest.approx(stamp)
         peers = httpx.get(f"{url}/v1/peers").json()
         assert peers["car2"]["results"] == 2 and peers["car1"]["results"] == 5
@@ -166,9 +169,24 @@ def test_sigterm_drains_answers_in_flight_work_and_exits_0(pair, tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")}
     env.update(BBALIGN_ALIGN__BEV__RANGE_M=str(RANGE_M), BBALIGN_LIMITS__CHECK_STAMP_CLOCK="false")
     log = open(tmp_path / "serve.log", "w+")
-    proc = subprocess.Popen([str(BIN), "serve", "--demo", "--port", str(port), "--zenoh-listen",
-                             f"tcp/127.0.0.1:{zport}", "--workers", "1", "--log-level", "info"],
-                            stdout=log, stderr=subprocess.STDOUT, env=env)
+    proc = subprocess.Popen(
+        [
+            str(BIN),
+            "serve",
+            "--demo",
+            "--port",
+            str(port),
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--workers",
+            "1",
+            "--log-level",
+            "info",
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=env,
+    )
     answers: list = []
     try:
         url = f"http://127.0.0.1:{port}"
@@ -237,6 +255,7 @@ def test_the_engine_never_runs_on_more_than_the_configured_workers(pair):
             finally:
                 with lock:
                     running[0] -= 1
+
         return wrapper
 
     service.aligner.prepare = counted(service.aligner.prepare)
@@ -250,8 +269,15 @@ def test_the_engine_never_runs_on_more_than_the_configured_workers(pair):
         for i in range(6):
             for seq in range(3):  # three frames per peer, faster than the engine: latest-only drops some
                 service.submit_message(f"car{i}", _enc(peer, f"car{i}", seq, 0.0))
-        wait_for(lambda: service.scheduler.pending() == 0 and len(service.intake) == 0 and sum(
-            p.results + p.frames_dropped for p in service.peers().values()) == 18, 120, "every frame")
+        wait_for(
+            lambda: (
+                service.scheduler.pending() == 0
+                and len(service.intake) == 0
+                and sum(p.results + p.frames_dropped for p in service.peers().values()) == 18
+            ),
+            120,
+            "every frame",
+        )
     finally:
         service.stop()
     assert 1 <= peak[0] <= settings.workers
@@ -289,8 +315,11 @@ def test_a_request_whose_caller_gave_up_does_not_cost_a_worker(pair):
             with pytest.raises(ServiceError) as e:
                 client.align(_enc(peer, "car1", 0, 0.0), _enc(ego, "ego", 0, 0.0))
             assert (e.value.status, e.value.body.error) == (504, "timeout")
-            wait_for(lambda: service.scheduler.pending() == 0 and service.peers()["car1"].results == 1, 60,
-                     "the abandoned job")
+            wait_for(
+                lambda: service.scheduler.pending() == 0 and service.peers()["car1"].results == 1,
+                60,
+                "the abandoned job",
+            )
             assert service.running
             client.post_frame(_enc(ego, "ego", 1, 0.0))
             client.post_frame(_enc(peer, "car1", 1, 0.0))

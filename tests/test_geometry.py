@@ -54,5 +54,6 @@ def test_eq1_rotation_matches_independent_composition():
 
 
 def test_wrap_angle():
-    np.testing.assert_allclose(wrap_angle(np.array([np.pi, -np.pi, 3 * np.pi, 0.1 - 2 * np.pi])),
-                               [np.pi, np.pi, np.pi, 0.1], atol=1e-12)
+    np.testing.assert_allclose(
+        wrap_angle(np.array([np.pi, -np.pi, 3 * np.pi, 0.1 - 2 * np.pi])), [np.pi, np.pi, np.pi, 0.1], atol=1e-12
+    )

@@ -46,10 +46,21 @@ def test_cli_align_json_and_plot(tmp_path, world):  # noqa: F811
     save_boxes_json(tmp_path / "ego_boxes.json", boxes_ego)
     save_boxes_json(tmp_path / "peer_boxes.json", boxes_peer)
     runner = CliRunner()
-    out = runner.invoke(app, ["align", str(tmp_path / "ego.npy"), str(tmp_path / "peer.bin"),
-                              "--ego-boxes", str(tmp_path / "ego_boxes.json"),
-                              "--peer-boxes", str(tmp_path / "peer_boxes.json"),
-                              "--json", "--plot", str(tmp_path / "fig.png")])
+    out = runner.invoke(
+        app,
+        [
+            "align",
+            str(tmp_path / "ego.npy"),
+            str(tmp_path / "peer.bin"),
+            "--ego-boxes",
+            str(tmp_path / "ego_boxes.json"),
+            "--peer-boxes",
+            str(tmp_path / "peer_boxes.json"),
+            "--json",
+            "--plot",
+            str(tmp_path / "fig.png"),
+        ],
+    )
     assert out.exit_code == 0, out.output
     res = json.loads(out.stdout)
     for key in ("T_ego_peer", "yaw_deg", "tx", "ty", "inliers_bv", "inliers_box", "success", "confidence"):
@@ -61,3 +72,38 @@ def test_cli_align_json_and_plot(tmp_path, world):  # noqa: F811
 
     out = runner.invoke(app, ["align", str(tmp_path / "ego.npy"), str(tmp_path / "peer.bin")])
     assert out.exit_code == 0 and "stage 2 skipped" in out.stdout
+
+
+def test_cli_align_exits_3_on_a_failed_alignment_and_config_files_drive_it(tmp_path, world):  # noqa: F811
+    """A failed alignment is a non-zero exit (3), with --json too; --config loads a saved AlignConfig (JSON or
+    YAML, missing fields default) and it changes the run: an impossible success rule turns success into failure."""
+    import yaml
+
+    from bb_align.cli import ALIGN_FAILED
+    from bb_align.engine.config import AlignConfig
+
+    pts_ego, _, pts_peer, _, _ = _pair(world, 30.0, (10.0, -4.0))
+    np.save(tmp_path / "ego.npy", pts_ego)
+    np.save(tmp_path / "peer.npy", pts_peer)
+    runner = CliRunner()
+    args = ["align", str(tmp_path / "ego.npy"), str(tmp_path / "peer.npy"), "--json"]
+    ok = runner.invoke(app, args)
+    assert ok.exit_code == 0 and json.loads(ok.stdout)["success"], ok.output
+
+    dumped = runner.invoke(app, ["config", "--dump"])
+    assert dumped.exit_code == 0
+    assert AlignConfig.model_validate_json(dumped.stdout) == AlignConfig()  # the dump is the defaults, loadable
+    strict = json.loads(dumped.stdout)
+    strict["success"]["min_inliers_bv"] = 100000
+    (tmp_path / "strict.json").write_text(json.dumps(strict))
+    (tmp_path / "strict.yaml").write_text(yaml.safe_dump({"success": {"min_inliers_bv": 100000}}))
+    for cfg_file in ("strict.json", "strict.yaml"):
+        failed = runner.invoke(app, [*args, "--config", str(tmp_path / cfg_file)])
+        assert failed.exit_code == ALIGN_FAILED == 3, failed.output
+        assert json.loads(failed.stdout)["reason"] == "too_few_inliers_bv"
+    plain = runner.invoke(app, args[:3] + ["--config", str(tmp_path / "strict.yaml")])
+    assert plain.exit_code == 3 and "FAILED (too_few_inliers_bv)" in plain.stdout
+
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"success": {"min_inliers_bv": -1}}))
+    bad = runner.invoke(app, [*args, "--config", str(tmp_path / "bad.yaml")])
+    assert bad.exit_code == 2 and "min_inliers_bv" in bad.output

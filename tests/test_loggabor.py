@@ -124,8 +124,9 @@ def _amplitudes_by_numpy(img, cfg):
     return out[:, m : m + img.shape[0], m : m + img.shape[1]]
 
 
-@pytest.mark.parametrize("origin,shape,margin", [((0, 0), (200, 200), 16), ((50, 40), (90, 130), 0),
-                                                 ((45, 95), (7, 5), 3)])
+@pytest.mark.parametrize(
+    "origin,shape,margin", [((0, 0), (200, 200), 16), ((50, 40), (90, 130), 0), ((45, 95), (7, 5), 3)]
+)
 def test_amplitudes_equal_dense_complex128_transforms(origin, shape, margin):
     """The boxed, shifted float32 transforms give the dense complex128 transforms' amplitudes (square and
     rectangular transforms, boxes that wrap around the spectrum's edges, boxes as large as the spectrum)."""

@@ -15,16 +15,18 @@ def aligner():
 
 def test_kitti_pair_matches_icp_reference(shared_data, aligner):
     T_ref = np.loadtxt(shared_data / "kitti_seq08_pair" / "T_velo0_velo49_icp_refined.txt")
-    res = aligner.align(aligner.prepare(kitti_scan(shared_data, "000000")),
-                        aligner.prepare(kitti_scan(shared_data, "000049")))
+    res = aligner.align(
+        aligner.prepare(kitti_scan(shared_data, "000000")), aligner.prepare(kitti_scan(shared_data, "000049"))
+    )
     t_err, r_err = pose_error(res.T_ego_peer, T_ref)
     assert res.success, res.reason
     assert t_err < 0.5 and r_err < 0.5, (t_err, r_err)
 
 
 def test_kitti_without_overlap_fails_explicitly(shared_data, aligner):
-    res = aligner.align(aligner.prepare(kitti_scan(shared_data, "000000")),
-                        aligner.prepare(kitti_scan(shared_data, "000186")))
+    res = aligner.align(
+        aligner.prepare(kitti_scan(shared_data, "000000")), aligner.prepare(kitti_scan(shared_data, "000186"))
+    )
     assert not res.success
     assert res.reason in {"too_few_inliers_bv", "ambiguous_bv", "too_few_matches"}
     assert res.confidence <= 0.1

@@ -19,8 +19,13 @@ def test_grid_nearest_equals_kd_tree(gate):
     cloud = bev_cloud(bev)
     rng = np.random.default_rng(int(gate * 10))
     # Around lit pixels (the ICP's case), anywhere in the image, and off the image.
-    pts = np.concatenate([cloud.xy[rng.integers(len(cloud.xy), size=3000)] + rng.normal(0, gate, (3000, 2)),
-                          rng.uniform(-30, 30, (1000, 2)), rng.uniform(-40, 40, (500, 2))])
+    pts = np.concatenate(
+        [
+            cloud.xy[rng.integers(len(cloud.xy), size=3000)] + rng.normal(0, gate, (3000, 2)),
+            rng.uniform(-30, 30, (1000, 2)),
+            rng.uniform(-40, 40, (500, 2)),
+        ]
+    )
     d, j = cloud.nearest(pts, gate)
     d_ref, j_ref = cKDTree(cloud.xy).query(pts, distance_upper_bound=gate)
     found = np.isfinite(d_ref)

@@ -26,8 +26,9 @@ def pair():
 
 
 def _enc(car, name, stamp, seq, encoding=MSGPACK):
-    return encode_frame(car.points, car.boxes, vehicle_id=name, stamp=stamp, seq=seq, range_m=RANGE_M,
-                        encoding=encoding)
+    return encode_frame(
+        car.points, car.boxes, vehicle_id=name, stamp=stamp, seq=seq, range_m=RANGE_M, encoding=encoding
+    )
 
 
 @pytest.fixture
@@ -92,8 +93,11 @@ def test_cached_ego_frame_nearest_in_time_is_used(server, pair):
 def test_accept_msgpack_returns_msgpack(server, pair):
     _, http = server
     stamp, ego, peer = pair[0]
-    r = http.post("/v1/align", content=pack_align_request(_enc(peer, "car1", stamp, 0), _enc(ego, "ego", stamp, 0)),
-                  headers={**MSGPACK_CT, "accept": MSGPACK})
+    r = http.post(
+        "/v1/align",
+        content=pack_align_request(_enc(peer, "car1", stamp, 0), _enc(ego, "ego", stamp, 0)),
+        headers={**MSGPACK_CT, "accept": MSGPACK},
+    )
     assert r.headers["content-type"] == MSGPACK and msgpack.unpackb(r.content)["peer_id"] == "car1"
 
 
@@ -176,8 +180,9 @@ def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
     stamp, ego, peer = pair[1]
     noisy = peer.T_world_sensor @ se3_from_se2(se2(np.radians(2.0), 1.5, -1.0))  # GNSS-grade error
     p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=5, range_m=RANGE_M, pose=noisy)
-    e = encode_frame(ego.points, ego.boxes, vehicle_id="ego", stamp=stamp, seq=5, range_m=RANGE_M,
-                     pose=ego.T_world_sensor)
+    e = encode_frame(
+        ego.points, ego.boxes, vehicle_id="ego", stamp=stamp, seq=5, range_m=RANGE_M, pose=ego.T_world_sensor
+    )
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
     assert res.success and "matches gated by the prior pose" in res.notes
     assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3

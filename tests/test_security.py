@@ -38,7 +38,7 @@ from bb_align.protocol import (
     sign,
     to_json,
 )
-from bb_align.protocol.signatures import DOMAIN, Keyring
+from bb_align.protocol.signatures import DOMAIN
 from bb_align.server.settings import AuthSettings
 from bb_align_client import AlignClient, ServiceError, ZenohPeer, encode_frame, sign_frame
 from service_support import (
@@ -69,8 +69,14 @@ def _image(seed=0) -> np.ndarray:
 
 
 def _frame(**kw) -> Frame:
-    base = dict(vehicle_id="car1", seq=1, stamp=100.0, png=_png(_image()), bev=BevMeta(resolution_m=0.4, range_m=20),
-                boxes=[[10.0, -2.0, 0.8, 4.5, 1.9, 1.6, 0.3]])
+    base = dict(
+        vehicle_id="car1",
+        seq=1,
+        stamp=100.0,
+        png=_png(_image()),
+        bev=BevMeta(resolution_m=0.4, range_m=20),
+        boxes=[[10.0, -2.0, 0.8, 4.5, 1.9, 1.6, 0.3]],
+    )
     return Frame(**{**base, **kw})
 
 
@@ -80,8 +86,7 @@ def _chunk(kind: bytes, body: bytes) -> bytes:
 
 def _make_png(idat: bytes, side=N, interlace=0, extra: bytes = b"", tail: bytes = b"") -> bytes:
     ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, interlace)
-    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + extra + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
-            + tail)
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + extra + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"") + tail
 
 
 def _refused(data: bytes, encoding=MSGPACK, limits=LIMITS, **kw) -> WireError:
@@ -110,16 +115,19 @@ def test_png_bomb_is_refused_without_inflating_it():
 _ROWS = bytes(np.column_stack([np.zeros(N, np.uint8), _image()]).tobytes())  # filter byte 0 + pixels per row
 
 
-@pytest.mark.parametrize("png,words", [
-    (_make_png(zlib.compress(bytes(N * (N + 1)))), "ratio"),  # an empty image: ~500:1, over the 100 configured
-    (_make_png(zlib.compress(bytes(N * (N + 1)), 0) + bytes(60_000)), "more than"),  # IDAT padded with junk
-    (_make_png(zlib.compress(_ROWS)[:-8]), "inflate"),  # truncated stream
-    (_make_png(zlib.compress(bytes(N * (N + 1)), 0), interlace=1), "interlace"),
-    (_make_png(zlib.compress(bytes(N * (N + 1)), 0), extra=_chunk(b"PLTE", b"\x00" * 3)), "critical"),
-    (_make_png(zlib.compress(bytes(N * (N + 1)), 0), tail=b"junk"), "after the PNG"),
-    (_make_png(zlib.compress(bytes(N * (N + 1)), 0)).replace(b"IEND", b"IENX"), "checksum"),
-    (_make_png(zlib.compress(b"\x07" * (N * (N + 1)), 0)), "filter"),
-])
+@pytest.mark.parametrize(
+    "png,words",
+    [
+        (_make_png(zlib.compress(bytes(N * (N + 1)))), "ratio"),  # an empty image: ~500:1, over the 100 configured
+        (_make_png(zlib.compress(bytes(N * (N + 1)), 0) + bytes(60_000)), "more than"),  # IDAT padded with junk
+        (_make_png(zlib.compress(_ROWS)[:-8]), "inflate"),  # truncated stream
+        (_make_png(zlib.compress(bytes(N * (N + 1)), 0), interlace=1), "interlace"),
+        (_make_png(zlib.compress(bytes(N * (N + 1)), 0), extra=_chunk(b"PLTE", b"\x00" * 3)), "critical"),
+        (_make_png(zlib.compress(bytes(N * (N + 1)), 0), tail=b"junk"), "after the PNG"),
+        (_make_png(zlib.compress(bytes(N * (N + 1)), 0)).replace(b"IEND", b"IENX"), "checksum"),
+        (_make_png(zlib.compress(b"\x07" * (N * (N + 1)), 0)), "filter"),
+    ],
+)
 def test_malformed_png_structures_are_refused_before_decoding(png, words):
     e = _refused(pack(_frame(png=png)), limits=Limits(max_png_ratio=100))
     assert (e.status, e.field) == (422, "png") and words in e.detail, e.detail
@@ -150,8 +158,10 @@ def test_a_million_boxes_are_refused_by_size_then_by_count():
     big = Limits(max_message_bytes=len(body) + 1)  # even when the size is allowed, no model is built for them
     e = _refused(body, JSON, limits=big)
     assert (e.status, e.field, e.limit) == (422, "boxes", LIMITS.max_boxes)
-    e = _refused(msgpack.packb({**_frame().model_dump(mode="python"), "boxes": [box] * 10**6}), limits=Limits(
-        max_message_bytes=64 * 2**20))
+    e = _refused(
+        msgpack.packb({**_frame().model_dump(mode="python"), "boxes": [box] * 10**6}),
+        limits=Limits(max_message_bytes=64 * 2**20),
+    )
     assert e.status == 400 and "max_array_len" in e.detail
 
 
@@ -166,15 +176,18 @@ def test_stamps_far_from_the_receivers_clock_are_refused():
     assert load_frame(data, Limits(check_stamp_clock=False), now=now)  # replays of recorded data
 
 
-@pytest.mark.parametrize("change,field", [
-    ({"schema_version": 7}, "schema_version"),
-    ({"vehicle_id": "car\u00e91"}, "vehicle_id"),
-    ({"vehicle_id": "x" * 65}, "vehicle_id"),
-    ({"seq": -1}, "seq"),
-    ({"seq": 2**63}, "seq"),
-    ({"boxes": [[1, 2, 0, 4, 2, 1.5, 7.0]]}, "boxes.0"),  # yaw beyond 2 pi
-    ({"bev": {"resolution_m": 0.4, "range_m": 20, "max_height_m": float("inf")}}, "bev.max_height_m"),
-])
+@pytest.mark.parametrize(
+    "change,field",
+    [
+        ({"schema_version": 7}, "schema_version"),
+        ({"vehicle_id": "car\u00e91"}, "vehicle_id"),
+        ({"vehicle_id": "x" * 65}, "vehicle_id"),
+        ({"seq": -1}, "seq"),
+        ({"seq": 2**63}, "seq"),
+        ({"boxes": [[1, 2, 0, 4, 2, 1.5, 7.0]]}, "boxes.0"),  # yaw beyond 2 pi
+        ({"bev": {"resolution_m": 0.4, "range_m": 20, "max_height_m": float("inf")}}, "bev.max_height_m"),
+    ],
+)
 def test_field_limits_name_the_field(change, field):
     e = _refused(msgpack.packb({**_frame().model_dump(mode="python"), **change}))
     assert (e.status, e.field) == (422, field)
@@ -231,8 +244,11 @@ _PNG = _png(_image())
 
 
 @hsettings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(st.tuples(st.integers(0, len(_PNG) - 1), st.integers(0, 255)), max_size=6),
-       st.integers(0, len(_PNG)), st.binary(max_size=64))
+@given(
+    st.lists(st.tuples(st.integers(0, len(_PNG) - 1), st.integers(0, 255)), max_size=6),
+    st.integers(0, len(_PNG)),
+    st.binary(max_size=64),
+)
 def test_mutated_pngs_are_refused_or_decode_to_the_declared_size(flips, cut, junk):
     png = bytearray(_PNG)
     for i, v in flips:
@@ -246,21 +262,34 @@ def test_mutated_pngs_are_refused_or_decode_to_the_declared_size(flips, cut, jun
     assert _frame(png=png).bev_image().image.shape == (N, N)  # what passes, OpenCV decodes as promised
 
 
-_FIELD_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-2**64, 2**64), st.floats(), st.text(max_size=8),
-                          st.binary(max_size=64), st.lists(st.floats(), max_size=9),
-                          st.lists(st.lists(st.floats(), max_size=8), max_size=4),
-                          st.dictionaries(st.text(max_size=12), st.floats(), max_size=4))
+_FIELD_VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**64), 2**64),
+    st.floats(),
+    st.text(max_size=8),
+    st.binary(max_size=64),
+    st.lists(st.floats(), max_size=9),
+    st.lists(st.lists(st.floats(), max_size=8), max_size=4),
+    st.dictionaries(st.text(max_size=12), st.floats(), max_size=4),
+)
 
 
 @hsettings(max_examples=200, deadline=None)
-@given(st.dictionaries(st.sampled_from(list(Frame.model_fields)), _FIELD_VALUES, max_size=10),
-       st.sampled_from([MSGPACK, JSON]), st.booleans())
+@given(
+    st.dictionaries(st.sampled_from(list(Frame.model_fields)), _FIELD_VALUES, max_size=10),
+    st.sampled_from([MSGPACK, JSON]),
+    st.booleans(),
+)
 def test_fuzzed_frames_and_envelopes_only_raise_wire_errors(fields, encoding, signed):
     base = _frame().model_dump(mode="json" if encoding == JSON else "python")
     d = {**base, **fields}
     try:
-        data = json.dumps(d, default=lambda b: b.hex()).encode() if encoding == JSON else msgpack.packb(
-            d, use_bin_type=True)
+        data = (
+            json.dumps(d, default=lambda b: b.hex()).encode()
+            if encoding == JSON
+            else msgpack.packb(d, use_bin_type=True)
+        )
     except (ValueError, OverflowError, TypeError):
         return  # not encodable at all
     if signed:
@@ -276,8 +305,13 @@ def test_fuzzed_frames_and_envelopes_only_raise_wire_errors(fields, encoding, si
 @hsettings(max_examples=200, deadline=None)
 @given(st.binary(max_size=400), st.sampled_from([MSGPACK, JSON]))
 def test_fuzzed_envelope_payloads_only_raise_wire_errors(payload, encoding):
-    data = msgpack.packb({"key_id": "fleet", "mac": hmac.new(FLEET_KEY.encode(), DOMAIN + b"fleet\x00" + payload,
-                                                             hashlib.sha256).digest(), "payload": payload})
+    data = msgpack.packb(
+        {
+            "key_id": "fleet",
+            "mac": hmac.new(FLEET_KEY.encode(), DOMAIN + b"fleet\x00" + payload, hashlib.sha256).digest(),
+            "payload": payload,
+        }
+    )
     with pytest.raises(WireError):
         load_frame(data, LIMITS, keyring=KEYRING)
     with pytest.raises(WireError):
@@ -292,8 +326,15 @@ def pair():
 
 def _enc(car, name, seq, stamp=None, **kw):
     """A frame stamped now (the secure profile checks stamps against the clock) or at ``stamp``."""
-    return encode_frame(car.points, car.boxes, vehicle_id=name, stamp=time.time() if stamp is None else stamp,
-                        seq=seq, range_m=RANGE_M, **kw)
+    return encode_frame(
+        car.points,
+        car.boxes,
+        vehicle_id=name,
+        stamp=time.time() if stamp is None else stamp,
+        seq=seq,
+        range_m=RANGE_M,
+        **kw,
+    )
 
 
 def _metric(url: str, name: str, headers=None) -> float:
@@ -305,8 +346,10 @@ def _metric(url: str, name: str, headers=None) -> float:
 
 def test_rest_requires_signed_fresh_frames_and_the_bearer_token(pair):
     _, ego, peer = pair[0]
-    settings = secure_settings(zenoh=False, auth={"fleet_key": FLEET_KEY, "rest_token": "r" * 32,
-                                                  "peer_keys": {"car1": "car1-own-key-0123456789"}})
+    settings = secure_settings(
+        zenoh=False,
+        auth={"fleet_key": FLEET_KEY, "rest_token": "r" * 32, "peer_keys": {"car1": "car1-own-key-0123456789"}},
+    )
     with running_service(settings) as (_, url):
         assert httpx.get(f"{url}/healthz").status_code == 200  # probes stay open
         r = httpx.get(f"{url}/v1/peers")
@@ -353,8 +396,10 @@ def test_a_100_mb_body_is_refused_by_size_without_being_read():
         assert r.status_code == 413 and r.json()["limit"] == LIMITS.max_message_bytes
         assert sent < 40 * 2**20, f"the client got to send {sent} bytes"
         with socket.create_connection(("127.0.0.1", int(url.rsplit(":", 1)[1])), timeout=10) as s:
-            s.sendall(b"POST /v1/align HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-type: application/msgpack\r\n"
-                      b"content-length: 104857600\r\n\r\n")  # declared, never sent
+            s.sendall(
+                b"POST /v1/align HTTP/1.1\r\nhost: 127.0.0.1\r\ncontent-type: application/msgpack\r\n"
+                b"content-length: 104857600\r\n\r\n"
+            )  # declared, never sent
             head = b""
             while chunk := s.recv(4096):  # the service answers and closes
                 head += chunk
@@ -367,9 +412,11 @@ def test_zenoh_door_drops_and_counts_unsigned_frames_and_answers_bad_queries(pai
     settings = secure_settings(limits={"max_peers": 2})
     with running_service(settings) as (app, url):
         service = app.state.service
-        with ZenohPeer("car1", connect=settings.zenoh.listen, block_when_congested=True) as plain, \
-                ZenohPeer("car1", connect=settings.zenoh.listen, key=FLEET_KEY, block_when_congested=True) as car, \
-                ZenohPeer("ego", connect=settings.zenoh.listen, key=FLEET_KEY, block_when_congested=True) as ego_car:
+        with (
+            ZenohPeer("car1", connect=settings.zenoh.listen, block_when_congested=True) as plain,
+            ZenohPeer("car1", connect=settings.zenoh.listen, key=FLEET_KEY, block_when_congested=True) as car,
+            ZenohPeer("ego", connect=settings.zenoh.listen, key=FLEET_KEY, block_when_congested=True) as ego_car,
+        ):
             poses = car.poses("ego")
             assert car.wait_for_subscriber(10) and plain.wait_for_subscriber(10)
             time.sleep(0.2)
@@ -377,8 +424,10 @@ def test_zenoh_door_drops_and_counts_unsigned_frames_and_answers_bad_queries(pai
             for i in range(20):  # junk ids, unsigned: never tracked, never queued
                 raw.put(f"bbalign/frames/junk{i}", _enc(peer, f"junk{i}", i))
             plain.publish(_enc(peer, "car1", 0))
-            wait_for(lambda: _metric(url, 'bbalign_frames_rejected_total{door="zenoh",error="unauthenticated"}')
-                     == 21, what="21 refusals")
+            wait_for(
+                lambda: _metric(url, 'bbalign_frames_rejected_total{door="zenoh",error="unauthenticated"}') == 21,
+                what="21 refusals",
+            )
             assert len(service.peer_table) == 0 and service.scheduler.senders() == 0
             t0 = time.time()  # the ego and peer frames below are stamped within max_ego_skew_s of each other
             ego_car.publish(_enc(ego, "ego", 1, t0))
@@ -388,8 +437,10 @@ def test_zenoh_door_drops_and_counts_unsigned_frames_and_answers_bad_queries(pai
             res = poses.get(timeout=30)
             assert res.peer_seq == 1 and res.success
             raw.put("bbalign/frames/car1", frame)  # replayed byte for byte
-            wait_for(lambda: _metric(url, 'bbalign_frames_rejected_total{door="zenoh",error="replayed"}') == 1,
-                     what="the replay refusal")
+            wait_for(
+                lambda: _metric(url, 'bbalign_frames_rejected_total{door="zenoh",error="replayed"}') == 1,
+                what="the replay refusal",
+            )
             with pytest.raises(ServiceError) as e:
                 plain.request_align(_enc(peer, "car1", 2), ego_id="ego", timeout=20)
             assert e.value.status is None and e.value.body.error == "unauthenticated"
@@ -411,8 +462,13 @@ def test_peer_table_is_bounded_and_forgets_idle_peers(pair):
             with pytest.raises(ServiceError) as e:
                 client.post_frame(_enc(peer, "car2", 0))
             assert (e.value.status, e.value.body.error, e.value.body.limit) == (503, "overloaded", 1)
-            wait_for(lambda: app.state.service.peers().get("car1", None) is None or
-                     app.state.service.peers()["car1"].results == 1, what="car1's result")
+            wait_for(
+                lambda: (
+                    app.state.service.peers().get("car1", None) is None
+                    or app.state.service.peers()["car1"].results == 1
+                ),
+                what="car1's result",
+            )
             time.sleep(1.2)  # car1 goes idle
             assert client.post_frame(_enc(peer, "car2", 1))["accepted"]
             assert list(client.peers()) == ["car2"]
@@ -445,11 +501,12 @@ def test_openapi_fuzzing_finds_no_5xx_and_no_undocumented_response():
 
             @given(cases)
             @hsettings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck), database=None)
-            def fuzz(case):
+            def fuzz(case):  # run right below, within this iteration: `op` is this operation
                 response = case.call(timeout=60)
-                seen.setdefault(f"{op.method.upper()} {op.path}", set()).add(response.status_code)
-                case.validate_response(response, checks=[not_a_server_error, status_code_conformance,
-                                                         response_schema_conformance])
+                seen.setdefault(f"{op.method.upper()} {op.path}", set()).add(response.status_code)  # noqa: B023
+                case.validate_response(
+                    response, checks=[not_a_server_error, status_code_conformance, response_schema_conformance]
+                )
 
             fuzz()
         assert httpx.get(f"{url}/readyz").status_code == 200  # still serving
@@ -472,14 +529,55 @@ def certificates(tmp_path_factory):
     if shutil.which("openssl") is None:
         pytest.skip("the openssl command is not installed (needed to make test certificates)")
     d = tmp_path_factory.mktemp("pki")
-    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
-             "-subj", "/CN=bb-align test CA", cwd=d)
+    _openssl(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=bb-align test CA",
+        cwd=d,
+    )
     (d / "san.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
     for name in ("service", "car1"):
-        _openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj",
-                 f"/CN={name}", cwd=d)
-        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
-                 "-out", f"{name}.pem", "-days", "2", "-extfile", "san.cnf", cwd=d)
+        _openssl(
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            f"{name}.key",
+            "-out",
+            f"{name}.csr",
+            "-subj",
+            f"/CN={name}",
+            cwd=d,
+        )
+        _openssl(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            f"{name}.pem",
+            "-days",
+            "2",
+            "-extfile",
+            "san.cnf",
+            cwd=d,
+        )
     return d
 
 
@@ -487,15 +585,26 @@ def test_zenoh_mutual_tls_admits_a_car_with_a_certificate_and_no_other(pair, cer
     d = certificates
     ep = f"tls/localhost:{free_port()}"
     tls = {"root_ca_certificate": str(d / "ca.pem"), "mtls": True}
-    settings = secure_settings(zenoh_config={"listen": [ep], "tls": {
-        **tls, "certificate": str(d / "service.pem"), "private_key": str(d / "service.key")}})
+    settings = secure_settings(
+        zenoh_config={
+            "listen": [ep],
+            "tls": {**tls, "certificate": str(d / "service.pem"), "private_key": str(d / "service.key")},
+        }
+    )
     assert not settings.security_warnings()  # signed frames, loopback, TLS: nothing to shout about
     _, ego, peer = pair[0]
     with running_service(settings) as (app, url):
         car_tls = {**tls, "certificate": str(d / "car1.pem"), "private_key": str(d / "car1.key")}
-        with ZenohPeer("car1", connect=[ep], key=FLEET_KEY, tls=car_tls, block_when_congested=True) as car, \
-                ZenohPeer("intruder", connect=[ep], key=FLEET_KEY, tls={"root_ca_certificate": str(d / "ca.pem")},
-                          block_when_congested=True) as intruder:
+        with (
+            ZenohPeer("car1", connect=[ep], key=FLEET_KEY, tls=car_tls, block_when_congested=True) as car,
+            ZenohPeer(
+                "intruder",
+                connect=[ep],
+                key=FLEET_KEY,
+                tls={"root_ca_certificate": str(d / "ca.pem")},
+                block_when_congested=True,
+            ) as intruder,
+        ):
             assert car.wait_for_subscriber(10)
             assert not intruder.wait_for_subscriber(2.0)  # no client certificate: the link is refused
             t0 = time.time()

@@ -63,9 +63,13 @@ def test_environment_configures_nested_fields(monkeypatch):
 
 def test_serve_without_a_key_refuses_to_start_and_says_how_to_fix_it(monkeypatch):
     _clear_env(monkeypatch)
-    out = subprocess.run([str(BIN), "serve", "--port", str(free_port()), "--zenoh-listen",
-                          f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60,
-                         env={k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")})
+    out = subprocess.run(
+        [str(BIN), "serve", "--port", str(free_port()), "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")},
+    )
     assert out.returncode == 2
     assert "BBALIGN_AUTH__FLEET_KEY" in out.stderr and "--demo" in out.stderr
 
@@ -86,9 +90,24 @@ def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
     _clear_env(monkeypatch)
     port, zport = free_port(), free_port()
     env = {**os.environ, "BBALIGN_ALIGN__BEV__RANGE_M": "40", "BBALIGN_AUTH__FLEET_KEY": "f" * 32}
-    proc = subprocess.Popen([str(BIN), "serve", "--port", str(port), "--ego-id", "car0", "--zenoh-listen",
-                             f"tcp/127.0.0.1:{zport}", "--log-level", "warning"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(
+        [
+            str(BIN),
+            "serve",
+            "--port",
+            str(port),
+            "--ego-id",
+            "car0",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--log-level",
+            "warning",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         deadline = time.monotonic() + 30
         while True:
@@ -114,9 +133,24 @@ def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
     # The secure path: default engine configuration, signed frames stamped on the clock, as `bb-align serve`.
     settings = secure_settings(align={})
     with running_service(settings):
-        out = CliRunner().invoke(app, ["demo", "--connect", settings.zenoh.listen[0], "--frames", "2",
-                                       "--distance-m", "20", "--json", str(tmp_path / "demo.json"),
-                                       "--plot", str(tmp_path / "demo.png"), "--key", FLEET_KEY])
+        out = CliRunner().invoke(
+            app,
+            [
+                "demo",
+                "--connect",
+                settings.zenoh.listen[0],
+                "--frames",
+                "2",
+                "--distance-m",
+                "20",
+                "--json",
+                str(tmp_path / "demo.json"),
+                "--plot",
+                str(tmp_path / "demo.png"),
+                "--key",
+                FLEET_KEY,
+            ],
+        )
     assert out.exit_code == 0, out.output
     report = json.loads((tmp_path / "demo.json").read_text())
     assert report["summary"]["results"] == 2 and report["summary"]["peer_frames_sent"] == 2

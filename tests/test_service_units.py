@@ -127,8 +127,9 @@ def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
 
     T_rel = np.linalg.inv(T(ego_pose)) @ T(peer_pose)
     yaw, pitch, roll = Rotation.from_matrix(T_rel[:3, :3]).as_euler("ZYX")
-    tz, r, p = relative_prior(_ego(0, 0).model_copy(update={"pose": ego_pose}),
-                              _ego(0, 0).model_copy(update={"pose": peer_pose}))
+    tz, r, p = relative_prior(
+        _ego(0, 0).model_copy(update={"pose": ego_pose}), _ego(0, 0).model_copy(update={"pose": peer_pose})
+    )
     np.testing.assert_allclose([tz, r, p], [T_rel[2, 3], roll, pitch], atol=1e-12)
     assert relative_prior(_ego(0, 0), _ego(0, 0)) is None
 

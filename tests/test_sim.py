@@ -14,8 +14,16 @@ from bb_align.lab.sim.sensors import SensorModel
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
 
-SENSOR = SensorModel(name="ideal", elevations_deg=(-10.0, -5.0, 0.0, 5.0), columns=3600, max_range_m=100,
-                     range_noise_m=0.0, dropout=0.0, far_falloff=60.0, elevation_jitter_deg=0.0)
+SENSOR = SensorModel(
+    name="ideal",
+    elevations_deg=(-10.0, -5.0, 0.0, 5.0),
+    columns=3600,
+    max_range_m=100,
+    range_noise_m=0.0,
+    dropout=0.0,
+    far_falloff=60.0,
+    elevation_jitter_deg=0.0,
+)
 
 
 def _walls_world(speed: float) -> World:
@@ -54,8 +62,9 @@ def test_self_motion_distortion_tears_the_scan_behind_a_moving_car(distortion):
     # 10 m/s, 10 Hz: the sweep starts facing backwards 0.05 s before mid-sweep (car 0.5 m behind its mid-sweep
     # pose: rear wall 9.5 m away) and ends facing backwards 0.05 s after (10.5 m away); the front wall is
     # swept at mid-sweep (10 m).
-    sweep = cast_sweep(_walls_world(10.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0),
-                       distortion=distortion)
+    sweep = cast_sweep(
+        _walls_world(10.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0), distortion=distortion
+    )
     p = sweep.points
     front = (p[:, 0] > 5) & (np.abs(p[:, 1]) < 0.3)
     rear_start = (p[:, 0] < -5) & (p[:, 1] > 0) & (p[:, 1] < 0.3)  # azimuth just under +180: fired first
@@ -72,8 +81,18 @@ def test_self_motion_distortion_tears_the_scan_behind_a_moving_car(distortion):
 def test_detection_model_keeps_vehicles_with_enough_points_and_applies_flips():
     boxes = np.array([[10, 0, -1, 4.5, 1.8, 1.5, 0.3], [30, 5, -1, 4.5, 1.8, 1.5, -1.0], [50, -5, -1, 4, 1.8, 1.5, 2]])
     counts = np.array([50, 9, 10])
-    exact = DetectionModel(min_points=10, miss_prob=0, miss_prob_far=0, centre_sigma_m=0, centre_sigma_far_m=0,
-                           z_sigma_m=0, size_sigma_m=0, yaw_sigma_deg=0, flip_prob=0, false_positives=0)
+    exact = DetectionModel(
+        min_points=10,
+        miss_prob=0,
+        miss_prob_far=0,
+        centre_sigma_m=0,
+        centre_sigma_far_m=0,
+        z_sigma_m=0,
+        size_sigma_m=0,
+        yaw_sigma_deg=0,
+        flip_prob=0,
+        false_positives=0,
+    )
     det = detect(boxes, counts, None, np.random.default_rng(1), exact)
     np.testing.assert_array_equal(det.truth, [0, 2])
     np.testing.assert_allclose(det.boxes, boxes[[0, 2]])

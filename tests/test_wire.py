@@ -53,10 +53,17 @@ def _png(img) -> bytes:
 
 
 def _frame(**kw) -> Frame:
-    base = dict(vehicle_id="car-1", seq=3, stamp=12.5, png=_png(_image()), bev=BevMeta(resolution_m=0.4, range_m=20),
-                boxes=[[10.0, -2.0, 0.8, 4.5, 1.9, 1.6, 0.3], [-5.0, 3.0, 0.7, 4.2, 1.8, 1.5, -2.9]],
-                scores=[0.9, 0.6], pose=Pose(x=100.0, y=-50.0, z=1.8, roll=0.01, pitch=-0.02, yaw=1.2),
-                num_points=120_000)
+    base = dict(
+        vehicle_id="car-1",
+        seq=3,
+        stamp=12.5,
+        png=_png(_image()),
+        bev=BevMeta(resolution_m=0.4, range_m=20),
+        boxes=[[10.0, -2.0, 0.8, 4.5, 1.9, 1.6, 0.3], [-5.0, 3.0, 0.7, 4.2, 1.8, 1.5, -2.9]],
+        scores=[0.9, 0.6],
+        pose=Pose(x=100.0, y=-50.0, z=1.8, roll=0.01, pitch=-0.02, yaw=1.2),
+        num_points=120_000,
+    )
     return Frame(**{**base, **kw})
 
 
@@ -96,13 +103,16 @@ def test_a_real_bev_frame_is_small_against_its_raw_points():
     assert len(pack(f)) < 16 * len(pts) / 10
 
 
-@pytest.mark.parametrize("data,status", [
-    (b"\x93\x01\x02", 400),  # an array, not a map
-    (b"\xde\xff", 400),  # truncated map
-    (msgpack.packb({"a": 1}) + b"\x00", 400),  # trailing bytes
-    (b"\x91" * 5000 + b"\x00", 400),  # nesting bomb
-    (msgpack.packb({"vehicle_id": msgpack.ExtType(5, b"x")}), 400),  # extension types are refused
-])
+@pytest.mark.parametrize(
+    "data,status",
+    [
+        (b"\x93\x01\x02", 400),  # an array, not a map
+        (b"\xde\xff", 400),  # truncated map
+        (msgpack.packb({"a": 1}) + b"\x00", 400),  # trailing bytes
+        (b"\x91" * 5000 + b"\x00", 400),  # nesting bomb
+        (msgpack.packb({"vehicle_id": msgpack.ExtType(5, b"x")}), 400),  # extension types are refused
+    ],
+)
 def test_undecodable_messages_are_400(data, status):
     assert _refused(data).status == status
 
@@ -112,34 +122,40 @@ def test_oversized_message_is_413_before_decoding():
     assert (e.status, e.field, e.limit) == (413, "message", 4096)
 
 
-@pytest.mark.parametrize("change,field", [
-    ({"schema_version": 2}, "schema_version"),
-    ({"vehicle_id": "car/1"}, "vehicle_id"),
-    ({"vehicle_id": "*"}, "vehicle_id"),
-    ({"stamp": -1.0}, "stamp"),
-    ({"stamp": float("nan")}, "stamp"),
-    ({"boxes": [[1, 2, 3, 4, 5, 6]]}, "boxes.0"),
-    ({"boxes": [[1, 2, 3, 4, 5, float("inf"), 0]]}, "boxes.0.5"),
-    ({"scores": [0.5, 1.5]}, "scores.1"),
-    ({"bev": {"resolution_m": 0.4, "range_m": 1000}}, "bev.range_m"),
-    ({"unknown": 1}, "unknown"),
-])
+@pytest.mark.parametrize(
+    "change,field",
+    [
+        ({"schema_version": 2}, "schema_version"),
+        ({"vehicle_id": "car/1"}, "vehicle_id"),
+        ({"vehicle_id": "*"}, "vehicle_id"),
+        ({"stamp": -1.0}, "stamp"),
+        ({"stamp": float("nan")}, "stamp"),
+        ({"boxes": [[1, 2, 3, 4, 5, 6]]}, "boxes.0"),
+        ({"boxes": [[1, 2, 3, 4, 5, float("inf"), 0]]}, "boxes.0.5"),
+        ({"scores": [0.5, 1.5]}, "scores.1"),
+        ({"bev": {"resolution_m": 0.4, "range_m": 1000}}, "bev.range_m"),
+        ({"unknown": 1}, "unknown"),
+    ],
+)
 def test_field_errors_are_422_naming_the_field(change, field):
     e = _refused(msgpack.packb({**_fields(_frame()), **change}))
     assert (e.status, e.field) == (422, field)
 
 
-@pytest.mark.parametrize("frame,limits,field,limit", [
-    (_frame(stamp=5e9), LIMITS, "stamp", LIMITS.max_stamp_s),
-    (_frame(num_points=10**9), LIMITS, "num_points", LIMITS.max_points),
-    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]] * 3, scores=None), Limits(max_boxes=2), "boxes", 2),
-    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]], scores=[0.5, 0.5]), LIMITS, "scores", None),
-    (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0], [1, 2, 0, 0, 2, 1.5, 0]], scores=None), LIMITS, "boxes.1", 40.0),
-    (_frame(boxes=[[900, 2, 0, 4, 2, 1.5, 0]], scores=None), LIMITS, "boxes.0", 500.0),
-    (_frame(pose=Pose(x=1e8, y=0)), LIMITS, "pose.x", 1e7),
-    (_frame(png=_png(_image(100)), bev=BevMeta(resolution_m=0.4, range_m=40)), LIMITS, "png", None),
-    (_frame(png=_png(_image(100))), Limits(max_image_px=64), "png", 64),
-])
+@pytest.mark.parametrize(
+    "frame,limits,field,limit",
+    [
+        (_frame(stamp=5e9), LIMITS, "stamp", LIMITS.max_stamp_s),
+        (_frame(num_points=10**9), LIMITS, "num_points", LIMITS.max_points),
+        (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]] * 3, scores=None), Limits(max_boxes=2), "boxes", 2),
+        (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0]], scores=[0.5, 0.5]), LIMITS, "scores", None),
+        (_frame(boxes=[[1, 2, 0, 4, 2, 1.5, 0], [1, 2, 0, 0, 2, 1.5, 0]], scores=None), LIMITS, "boxes.1", 40.0),
+        (_frame(boxes=[[900, 2, 0, 4, 2, 1.5, 0]], scores=None), LIMITS, "boxes.0", 500.0),
+        (_frame(pose=Pose(x=1e8, y=0)), LIMITS, "pose.x", 1e7),
+        (_frame(png=_png(_image(100)), bev=BevMeta(resolution_m=0.4, range_m=40)), LIMITS, "png", None),
+        (_frame(png=_png(_image(100))), Limits(max_image_px=64), "png", 64),
+    ],
+)
 def test_limit_errors_are_422_naming_the_field_and_limit(frame, limits, field, limit):
     e = _refused(pack(frame), limits=limits)
     assert (e.status, e.field, e.limit) == (422, field, limit)
@@ -148,20 +164,22 @@ def test_limit_errors_are_422_naming_the_field_and_limit(frame, limits, field, l
 
 def _with_ihdr(png: bytes, width=None, height=None, depth=None, colour=None, fix_crc=True) -> bytes:
     w, h, d, c, cm, fm, il = struct.unpack(">IIBBBBB", png[16:29])
-    body = struct.pack(">IIBBBBB", width or w, height or h, depth or d, colour if colour is not None else c, cm, fm,
-                       il)
+    body = struct.pack(">IIBBBBB", width or w, height or h, depth or d, colour if colour is not None else c, cm, fm, il)
     crc = struct.pack(">I", zlib.crc32(b"IHDR" + body)) if fix_crc else png[29:33]
     return png[:16] + body + crc + png[33:]
 
 
-@pytest.mark.parametrize("png,words", [
-    (b"GIF89a" + b"\x00" * 40, "signature"),
-    (_png(_image())[:20], "signature"),
-    (_png(np.zeros((100, 100), np.uint16)), "bit depth"),
-    (_png(np.zeros((100, 100, 3), np.uint8)), "colour type"),
-    (_with_ihdr(_png(_image()), width=60000, height=60000), "exceeds"),
-    (_with_ihdr(_png(_image()), width=101, fix_crc=False), "checksum"),
-])
+@pytest.mark.parametrize(
+    "png,words",
+    [
+        (b"GIF89a" + b"\x00" * 40, "signature"),
+        (_png(_image())[:20], "signature"),
+        (_png(np.zeros((100, 100), np.uint16)), "bit depth"),
+        (_png(np.zeros((100, 100, 3), np.uint8)), "colour type"),
+        (_with_ihdr(_png(_image()), width=60000, height=60000), "exceeds"),
+        (_with_ihdr(_png(_image()), width=101, fix_crc=False), "checksum"),
+    ],
+)
 def test_png_header_is_checked_before_any_pixel_is_decoded(png, words):
     e = _refused(pack(_frame(png=png)))
     assert (e.status, e.field) == (422, "png") and words in e.detail
@@ -201,9 +219,20 @@ def test_random_bytes_only_ever_raise_wire_errors(data):
 
 
 @hsettings(max_examples=100, deadline=None)
-@given(st.dictionaries(st.sampled_from(list(Frame.model_fields) + ["x"]),
-                       st.one_of(st.none(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=5), st.binary(max_size=40),
-                                 st.lists(st.floats(), max_size=8)), max_size=8))
+@given(
+    st.dictionaries(
+        st.sampled_from(list(Frame.model_fields) + ["x"]),
+        st.one_of(
+            st.none(),
+            st.integers(-(2**63), 2**64 - 1),
+            st.floats(),
+            st.text(max_size=5),
+            st.binary(max_size=40),
+            st.lists(st.floats(), max_size=8),
+        ),
+        max_size=8,
+    )
+)
 def test_random_maps_only_ever_raise_wire_errors(d):
     with pytest.raises(WireError):
         load_frame(msgpack.packb(d), LIMITS)
@@ -218,8 +247,17 @@ def test_pose_matrix_matches_scipy_and_round_trips():
 
 
 def test_result_decodes_from_msgpack_and_json():
-    r = Result(ego_id="ego", peer_id="car1", peer_seq=1, peer_stamp=0.1, success=True, yaw_deg=3.0, tx=1.0, ty=2.0,
-               T_ego_peer=np.eye(4).tolist())
+    r = Result(
+        ego_id="ego",
+        peer_id="car1",
+        peer_seq=1,
+        peer_stamp=0.1,
+        success=True,
+        yaw_deg=3.0,
+        tx=1.0,
+        ty=2.0,
+        T_ego_peer=np.eye(4).tolist(),
+    )
     assert load_result(pack(r)) == r == load_result(to_json(r))
     np.testing.assert_array_equal(r.matrix(), np.eye(4))
 

@@ -39,8 +39,10 @@ def _drive_lockstep(settings, frames: list[tuple[bytes, bytes]]):
     """Publish (ego, peer) encoded frames over Zenoh, one pair at a time, and collect the published results."""
     with running_service(settings) as (app, _):
         service = app.state.service
-        with ZenohPeer("ego", connect=_endpoint(settings), block_when_congested=True) as ego_car, \
-                ZenohPeer("car1", connect=_endpoint(settings), block_when_congested=True) as car:
+        with (
+            ZenohPeer("ego", connect=_endpoint(settings), block_when_congested=True) as ego_car,
+            ZenohPeer("car1", connect=_endpoint(settings), block_when_congested=True) as car,
+        ):
             poses = car.poses("ego")
             assert ego_car.wait_for_subscriber(10) and car.wait_for_subscriber(10)
             time.sleep(0.2)  # the pose subscription reaches the service
@@ -59,8 +61,13 @@ def _drive_lockstep(settings, frames: list[tuple[bytes, bytes]]):
 
 def test_moving_pair_published_over_zenoh_gets_correct_poses(pair):
     settings = service_settings()
-    frames = [(_enc(ego, "ego", stamp, seq, pose=ego.T_world_sensor),
-               _enc(peer, "car1", stamp, seq, pose=peer.T_world_sensor)) for seq, (stamp, ego, peer) in enumerate(pair)]
+    frames = [
+        (
+            _enc(ego, "ego", stamp, seq, pose=ego.T_world_sensor),
+            _enc(peer, "car1", stamp, seq, pose=peer.T_world_sensor),
+        )
+        for seq, (stamp, ego, peer) in enumerate(pair)
+    ]
     results = _drive_lockstep(settings, frames)
     for res in results:
         ego_used = pair[res.ego_seq][1]
@@ -80,14 +87,21 @@ def test_simulated_moving_pair_gets_poses_within_the_paper_criterion():
     frames = []
     for seq, f in enumerate(sim):
         e, p = f.agents["0"], f.agents["1"]
-        frames.append((encode_frame(e.points, e.boxes, vehicle_id="ego", stamp=f.stamp, seq=seq,
-                                    pose=e.T_world_sensor, scores=e.scores),
-                       encode_frame(p.points, p.boxes, vehicle_id="car1", stamp=f.stamp, seq=seq,
-                                    pose=p.T_world_sensor, scores=p.scores)))
+        frames.append(
+            (
+                encode_frame(
+                    e.points, e.boxes, vehicle_id="ego", stamp=f.stamp, seq=seq, pose=e.T_world_sensor, scores=e.scores
+                ),
+                encode_frame(
+                    p.points, p.boxes, vehicle_id="car1", stamp=f.stamp, seq=seq, pose=p.T_world_sensor, scores=p.scores
+                ),
+            )
+        )
     settings = service_settings(align={})  # the engine's default configuration (80 m BV range)
     for res in _drive_lockstep(settings, frames):
-        T_true = np.linalg.inv(sim[res.ego_seq].agents["0"].T_world_sensor) @ \
-            sim[res.peer_seq].agents["1"].T_world_sensor
+        T_true = (
+            np.linalg.inv(sim[res.ego_seq].agents["0"].T_world_sensor) @ sim[res.peer_seq].agents["1"].T_world_sensor
+        )
         t_err, r_err = pose_error(res.matrix(), T_true)
         assert res.success and t_err < 1.0 and r_err < 1.0, (res.reason, t_err, r_err)
 
@@ -98,8 +112,9 @@ def test_queryable_answers_a_frame_and_refuses_a_bad_one(pair):
         stamp, ego, peer = pair[2]
         with ZenohPeer("car7", connect=_endpoint(settings)) as car:
             car.wait_for_subscriber(10)
-            httpx.post(f"{url}/v1/frames", content=_enc(ego, "ego", stamp, 2),
-                       headers={"content-type": "application/msgpack"})
+            httpx.post(
+                f"{url}/v1/frames", content=_enc(ego, "ego", stamp, 2), headers={"content-type": "application/msgpack"}
+            )
             _wait(lambda: len(app.state.service.cache) == 1, what="the ego frame")
             res = car.request_align(_enc(peer, "car7", stamp, 5), ego_id="ego", timeout=20)
             t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego, peer))
@@ -168,6 +183,11 @@ def test_oversized_messages_are_refused_at_the_door(pair):
                 car.request_align(data, ego_id="ego", timeout=20)
             assert (e.value.body.error, e.value.body.field, e.value.body.limit) == ("too_large", "message", 4096)
             car.publish(data)
-            _wait(lambda: 'bbalign_frames_rejected_total{door="zenoh",error="too_large"} 2.0' in
-                  httpx.get(f"{url}/metrics").text, what="the refusal")
+            _wait(
+                lambda: (
+                    'bbalign_frames_rejected_total{door="zenoh",error="too_large"} 2.0'
+                    in httpx.get(f"{url}/metrics").text
+                ),
+                what="the refusal",
+            )
         assert app.state.service.meter.peer("car1") is None  # never admitted, never queued

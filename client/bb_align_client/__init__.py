@@ -17,8 +17,17 @@ from .encode import decode_result, encode_frame, sign_frame
 from .errors import ServiceError
 from .rest import AlignClient, AsyncAlignClient
 
-__all__ = ["AlignClient", "AsyncAlignClient", "PoseStream", "Result", "ServiceError", "ZenohPeer", "decode_result",
-           "encode_frame", "sign_frame"]
+__all__ = [
+    "AlignClient",
+    "AsyncAlignClient",
+    "PoseStream",
+    "Result",
+    "ServiceError",
+    "ZenohPeer",
+    "decode_result",
+    "encode_frame",
+    "sign_frame",
+]
 
 
 def __getattr__(name: str):

@@ -39,8 +39,18 @@ def as_pose(pose: Any) -> Pose | None:
     raise ValueError(f"pose must be a 4x4 matrix or (x, y, z, roll, pitch, yaw), got shape {arr.shape}")
 
 
-def make_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 0, pose: Any = None,
-               scores=None, png_compression: int = 6, **bev_options) -> Frame:
+def make_frame(
+    points,
+    boxes=None,
+    *,
+    vehicle_id: str,
+    stamp: float,
+    seq: int = 0,
+    pose: Any = None,
+    scores=None,
+    png_compression: int = 6,
+    **bev_options,
+) -> Frame:
     """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame."""
     if isinstance(points, BevImage):
         bev, num_points = points, None
@@ -48,15 +58,32 @@ def make_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 
         pts = np.asarray(points)
         bev, num_points = make_bev(pts, BevConfig(**bev_options)), int(len(pts))
     rows = as_boxes(boxes).tolist()
-    return Frame(vehicle_id=vehicle_id, seq=seq, stamp=float(stamp), png=bev.to_png(png_compression),
-                 bev=BevMeta(**bev.meta()), boxes=rows,
-                 scores=None if scores is None else [float(s) for s in scores], pose=as_pose(pose),
-                 num_points=num_points)
+    return Frame(
+        vehicle_id=vehicle_id,
+        seq=seq,
+        stamp=float(stamp),
+        png=bev.to_png(png_compression),
+        bev=BevMeta(**bev.meta()),
+        boxes=rows,
+        scores=None if scores is None else [float(s) for s in scores],
+        pose=as_pose(pose),
+        num_points=num_points,
+    )
 
 
-def encode_frame(points, boxes=None, *, vehicle_id: str, stamp: float, seq: int = 0, pose: Any = None,
-                 encoding: str = MSGPACK, key: bytes | str | None = None, key_id: str = FLEET_KEY_ID,
-                 **bev_options) -> bytes:
+def encode_frame(
+    points,
+    boxes=None,
+    *,
+    vehicle_id: str,
+    stamp: float,
+    seq: int = 0,
+    pose: Any = None,
+    encoding: str = MSGPACK,
+    key: bytes | str | None = None,
+    key_id: str = FLEET_KEY_ID,
+    **bev_options,
+) -> bytes:
     """The bytes a car sends for one sweep: msgpack (default) or JSON (``encoding="application/json"``).
     ``key``: sign the frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``) or the car's own key
     (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields (range_m, resolution_m, ...) plus ``scores`` and

@@ -60,8 +60,15 @@ class AlignClient:
 
     ``token``: the service's REST bearer token; ``key``/``key_id``: sign unsigned frames (fleet key by default)."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0, token: str | None = None,
-                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID):
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        timeout: float = 60.0,
+        token: str | None = None,
+        key: bytes | str | None = None,
+        key_id: str = FLEET_KEY_ID,
+    ):
         self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
@@ -74,8 +81,7 @@ class AlignClient:
     def post_frame(self, frame: bytes) -> dict:
         """Hand in an encoded ego or peer frame (202 Accepted; its result is published like a Zenoh frame's)."""
         frame = self._sign(frame)
-        return _check(self._http.post("/v1/frames", content=frame,
-                                      headers={"content-type": _frame_type(frame)})).json()
+        return _check(self._http.post("/v1/frames", content=frame, headers={"content-type": _frame_type(frame)})).json()
 
     def peers(self) -> dict:
         return _check(self._http.get("/v1/peers")).json()
@@ -86,7 +92,7 @@ class AlignClient:
     def close(self) -> None:
         self._http.close()
 
-    def __enter__(self) -> "AlignClient":
+    def __enter__(self) -> AlignClient:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -96,8 +102,15 @@ class AlignClient:
 class AsyncAlignClient:
     """The asyncio twin of AlignClient: ``async with AsyncAlignClient(url) as c: await c.align(frame)``."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, timeout: float = 60.0, token: str | None = None,
-                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID):
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        *,
+        timeout: float = 60.0,
+        token: str | None = None,
+        key: bytes | str | None = None,
+        key_id: str = FLEET_KEY_ID,
+    ):
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
@@ -120,7 +133,7 @@ class AsyncAlignClient:
     async def aclose(self) -> None:
         await self._http.aclose()
 
-    async def __aenter__(self) -> "AsyncAlignClient":
+    async def __aenter__(self) -> AsyncAlignClient:
         return self
 
     async def __aexit__(self, *exc) -> None:

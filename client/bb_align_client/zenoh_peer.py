@@ -5,8 +5,8 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import zenoh
 
@@ -77,26 +77,42 @@ class ZenohPeer:
     car's own key (``key_id=vehicle_id``). ``tls``: certificates for ``tls/`` endpoints (bb_align.protocol.ZenohTls
     or a dict of its fields)."""
 
-    def __init__(self, vehicle_id: str, connect: Sequence[str] = ("tcp/127.0.0.1:7447",), *,
-                 listen: Sequence[str] = (), prefix: str = "bbalign", mode: str = "peer",
-                 multicast_scouting: bool = False, block_when_congested: bool = False,
-                 key: bytes | str | None = None, key_id: str = FLEET_KEY_ID, tls: ZenohTls | dict | None = None):
+    def __init__(
+        self,
+        vehicle_id: str,
+        connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
+        *,
+        listen: Sequence[str] = (),
+        prefix: str = "bbalign",
+        mode: str = "peer",
+        multicast_scouting: bool = False,
+        block_when_congested: bool = False,
+        key: bytes | str | None = None,
+        key_id: str = FLEET_KEY_ID,
+        tls: ZenohTls | dict | None = None,
+    ):
         self.vehicle_id = vehicle_id
         self.block_when_congested = block_when_congested
         self.prefix = prefix
         self._key, self._key_id = key, key_id
-        self._config = ZenohSettings(mode=mode, listen=list(listen), connect=list(connect),
-                                     multicast_scouting=multicast_scouting, prefix=prefix,
-                                     tls=tls if tls is not None else ZenohTls())
+        self._config = ZenohSettings(
+            mode=mode,
+            listen=list(listen),
+            connect=list(connect),
+            multicast_scouting=multicast_scouting,
+            prefix=prefix,
+            tls=tls if tls is not None else ZenohTls(),
+        )
         self.session: zenoh.Session | None = None
         self._publisher = None
         self._streams: list[PoseStream] = []
 
-    def open(self) -> "ZenohPeer":
+    def open(self) -> ZenohPeer:
         self.session = zenoh.open(self._config.to_zenoh_config())
         cc = zenoh.CongestionControl.BLOCK if self.block_when_congested else zenoh.CongestionControl.DROP
-        self._publisher = self.session.declare_publisher(frames_key(self.prefix, self.vehicle_id),
-                                                         congestion_control=cc)
+        self._publisher = self.session.declare_publisher(
+            frames_key(self.prefix, self.vehicle_id), congestion_control=cc
+        )
         return self
 
     def publish(self, frame: bytes) -> None:
@@ -142,7 +158,7 @@ class ZenohPeer:
             self.session.close()
             self.session = None
 
-    def __enter__(self) -> "ZenohPeer":
+    def __enter__(self) -> ZenohPeer:
         return self.open()
 
     def __exit__(self, *exc) -> None:

@@ -1,15 +1,21 @@
-"""The `bb-align` command line. Each feature area registers its own commands (register(app))."""
+"""The `bb-align` command line. Each feature area registers its own commands (register(app)).
+
+Exit codes: 0 done; 1 a run failed (e.g. the demo got no result); 2 bad usage or input; 3 ``bb-align align`` ran
+but the alignment failed (the reason is printed; with --json it is in the object).
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-app = typer.Typer(no_args_is_help=True, add_completion=False,
-                  help="BB-Align: V2V relative pose recovery from LiDAR BV images and object boxes.")
+app = typer.Typer(
+    no_args_is_help=True,
+    add_completion=False,
+    help="BB-Align: V2V relative pose recovery from LiDAR BV images and object boxes.",
+)
 
 
 @app.callback()
@@ -19,23 +25,32 @@ def main() -> None:
 
 @app.command()
 def align(
-    ego_cloud: Path = typer.Argument(..., exists=True, dir_okay=False,
-                                     help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd"),
+    ego_cloud: Path = typer.Argument(
+        ..., exists=True, dir_okay=False, help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd"
+    ),
     peer_cloud: Path = typer.Argument(..., exists=True, dir_okay=False, help="peer cloud, same formats"),
-    ego_boxes: Optional[Path] = typer.Option(None, exists=True, dir_okay=False,
-                                             help="ego boxes: JSON or CSV x,y,z,l,w,h,yaw"),
-    peer_boxes: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="peer boxes: JSON or CSV"),
+    ego_boxes: Path | None = typer.Option(
+        None, exists=True, dir_okay=False, help="ego boxes: JSON or CSV x,y,z,l,w,h,yaw"
+    ),
+    peer_boxes: Path | None = typer.Option(None, exists=True, dir_okay=False, help="peer boxes: JSON or CSV"),
     json_out: bool = typer.Option(False, "--json", help="print one JSON object on stdout"),
-    plot: Optional[Path] = typer.Option(None, help="write a diagnostic PNG (matches and aligned overlay)"),
-    range_m: Optional[float] = typer.Option(None, help="BV half width R in metres (default from config)"),
-    resolution_m: Optional[float] = typer.Option(None, help="BV cell size in metres (default from config)"),
+    plot: Path | None = typer.Option(None, help="write a diagnostic PNG (matches and aligned overlay)"),
+    range_m: float | None = typer.Option(None, help="BV half width R in metres (default from config)"),
+    resolution_m: float | None = typer.Option(None, help="BV cell size in metres (default from config)"),
+    config: Path | None = typer.Option(
+        None,
+        exists=True,
+        dir_okay=False,
+        help="an AlignConfig saved as JSON or YAML (see `bb-align config --dump`); "
+        "fields it leaves out keep their defaults",
+    ),
 ) -> None:
-    """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes)."""
-    from bb_align.engine.config import AlignConfig
+    """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes). Exits 3 when the
+    alignment fails (success=false; the reason is printed)."""
     from bb_align.engine.pipeline import Aligner
     from bb_align.io.clouds import load_boxes, load_cloud
 
-    cfg = AlignConfig()
+    cfg = _load_config(config)
     bev_over = {k: v for k, v in (("range_m", range_m), ("resolution_m", resolution_m)) if v is not None}
     if bev_over:
         cfg = cfg.model_copy(update={"bev": cfg.bev.model_copy(update=bev_over)})
@@ -46,25 +61,71 @@ def align(
     if plot is not None:
         from bb_align.io.plot import plot_alignment
 
-        plot_alignment(plot, ego.bev, peer.bev, result, ego.boxes, peer.boxes,
-                       title=f"{ego_cloud.name} <- {peer_cloud.name}")
+        plot_alignment(
+            plot, ego.bev, peer.bev, result, ego.boxes, peer.boxes, title=f"{ego_cloud.name} <- {peer_cloud.name}"
+        )
     if json_out:
         typer.echo(json.dumps(result.to_dict()))
-        return
+        raise typer.Exit(0 if result.success else ALIGN_FAILED)
     status = "success" if result.success else f"FAILED ({result.reason})"
-    typer.echo(f"{status}: yaw {result.yaw_deg:.3f} deg, tx {result.tx:.3f} m, ty {result.ty:.3f} m, "
-               f"inliers_bv {result.inliers_bv}/{result.matches_bv}, inliers_box {result.inliers_box}, "
-               f"confidence {result.confidence:.2f}")
+    typer.echo(
+        f"{status}: yaw {result.yaw_deg:.3f} deg, tx {result.tx:.3f} m, ty {result.ty:.3f} m, "
+        f"inliers_bv {result.inliers_bv}/{result.matches_bv}, inliers_box {result.inliers_box}, "
+        f"confidence {result.confidence:.2f}"
+    )
     for note in result.notes:
         typer.echo(f"note: {note}")
     typer.echo("T_ego_peer =\n" + "\n".join("  " + " ".join(f"{v: .6f}" for v in row) for row in result.T_ego_peer))
-    typer.echo("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in
-                                            {**ego.timings_ms, **result.timings_ms}.items()))
+    typer.echo("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in {**ego.timings_ms, **result.timings_ms}.items()))
     if plot is not None:
         typer.echo(f"plot: {plot}")
+    if not result.success:
+        raise typer.Exit(ALIGN_FAILED)
 
 
-# Feature areas register their commands below (one line each).
-from bb_align.server.commands import register as _register_service; _register_service(app)  # serve, demo, wire-schemas
-from bb_align.lab.evaluation.cli import register as _register_evaluation; _register_evaluation(app)  # sim, eval
-from bb_align.lab.bench.cli import register as _register_bench; _register_bench(app)  # bench
+ALIGN_FAILED = 3  # exit code of `bb-align align` when the alignment failed
+
+
+def _load_config(path: Path | None):
+    """An AlignConfig from a JSON or YAML file (defaults for what it leaves out); the defaults without one."""
+    from pydantic import ValidationError
+
+    from bb_align.engine.config import AlignConfig
+
+    if path is None:
+        return AlignConfig()
+    try:
+        if path.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+
+            return AlignConfig.model_validate(yaml.safe_load(path.read_text()) or {})
+        return AlignConfig.model_validate_json(path.read_text())
+    except (ValidationError, ValueError) as e:
+        raise typer.BadParameter(f"{path}: {e}", param_hint="--config") from None
+
+
+@app.command("config")
+def config_cmd(
+    dump: bool = typer.Option(False, "--dump", help="print the engine's default AlignConfig as JSON"),
+    check: Path | None = typer.Option(
+        None, exists=True, dir_okay=False, help="validate a saved config file and print it with defaults filled in"
+    ),
+) -> None:
+    """The engine's configuration: every tunable number, with its default (service: BBALIGN_ALIGN__*)."""
+    if not dump and check is None:
+        raise typer.BadParameter("give --dump or --check FILE")
+    typer.echo(_load_config(check).model_dump_json(indent=2))
+
+
+def _register_feature_commands() -> None:
+    """Each feature area adds its own commands."""
+    from bb_align.lab.bench.cli import register as bench  # bench
+    from bb_align.lab.commands import register as lab  # demo, soak
+    from bb_align.lab.evaluation.cli import register as evaluation  # sim, eval
+    from bb_align.server.commands import register as server  # serve, wire-schemas
+
+    for register in (server, lab, evaluation, bench):
+        register(app)
+
+
+_register_feature_commands()

@@ -10,11 +10,20 @@ first use, so ``import bb_align.engine.bev`` (the BV encoder a sender needs) doe
 """
 
 _API = {
-    "BevImage": "bev", "make_bev": "bev",
-    "AlignConfig": "config", "BevConfig": "config", "BoxConfig": "config", "FeatureConfig": "config",
-    "MatchConfig": "config", "MimConfig": "config", "SuccessRule": "config",
-    "Aligner": "pipeline", "PreparedFrame": "pipeline", "align_clouds": "pipeline",
-    "AlignResult": "result", "FailureReason": "result",
+    "BevImage": "bev",
+    "make_bev": "bev",
+    "AlignConfig": "config",
+    "BevConfig": "config",
+    "BoxConfig": "config",
+    "FeatureConfig": "config",
+    "MatchConfig": "config",
+    "MimConfig": "config",
+    "SuccessRule": "config",
+    "Aligner": "pipeline",
+    "align_clouds": "pipeline",
+    "PreparedFrame": "frame",
+    "AlignResult": "result",
+    "FailureReason": "verdict",
 }
 __all__ = sorted(_API)
 

@@ -79,7 +79,7 @@ class BevImage:
         }
 
     @classmethod
-    def from_png(cls, data: bytes, **meta) -> "BevImage":
+    def from_png(cls, data: bytes, **meta) -> BevImage:
         return cls(image=decode_png(data), **meta)
 
 

@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .config import BoxConfig
 from .geometry import se2_params, transform_points_2d, wrap_angle
-from .ransac import rigid_ransac
+from .ransac import RigidRansac
 
 BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
 
@@ -82,8 +82,19 @@ class BoxAlignment:
     pairs: int  # box pairs found
 
 
-def align_boxes(boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray,
-                cfg: BoxConfig | None = None, seed: int = 0) -> BoxAlignment:
+class BoxStage:
+    """Stage 2 (Algorithm 1 lines 12-14) as a pipeline step, built once from its config."""
+
+    def __init__(self, cfg: BoxConfig, seed: int = 0):
+        self.cfg, self.seed = cfg, seed
+
+    def align(self, boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray) -> BoxAlignment:
+        return align_boxes(boxes_ego, boxes_peer, T_bv, self.cfg, self.seed)
+
+
+def align_boxes(
+    boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray, cfg: BoxConfig | None = None, seed: int = 0
+) -> BoxAlignment:
     """Stage 2: T_box with ego corners ~ T_box @ (T_bv @ peer corners); pairs == 0 when nothing overlaps."""
     cfg = cfg or BoxConfig()
     boxes_ego, boxes_peer = as_boxes(boxes_ego), as_boxes(boxes_peer)
@@ -94,8 +105,7 @@ def align_boxes(boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray,
     c_ego = box_corners_bev(boxes_ego[ia])
     c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
     src, dst = c_peer.reshape(-1, 2), c_ego.reshape(-1, 2)
-    fit = rigid_ransac(src, dst, threshold=cfg.inlier_threshold_m, min_sample_dist=1.0,
-                       max_iterations=cfg.max_iterations, min_iterations=min(cfg.max_iterations, 256), seed=seed)
+    fit = RigidRansac(cfg.ransac, seed).fit(src, dst)
     if fit is None:
         return BoxAlignment(np.eye(3), 0, len(ia))
     return BoxAlignment(fit.T_dst_src, fit.num_inliers, len(ia))

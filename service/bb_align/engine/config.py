@@ -1,8 +1,9 @@
 """Every tunable number of the engine, in one place (pydantic models).
 
 Defaults follow ../shared/reference/ALGORITHM.md (the numbers the paper leaves out) unless a measurement in
-docs/ says otherwise. The service's own settings (ports, Zenoh, limits) live in ``bb_align.server.settings`` and embed
-an :class:`AlignConfig`.
+docs/ says otherwise. Each step of the pipeline is built once from its section (``Aligner.__init__``). The
+service's own settings (ports, Zenoh, limits) live in ``bb_align.server.settings`` and embed an :class:`AlignConfig`;
+``bb-align config --dump`` prints these defaults, ``bb-align align --config FILE`` loads a saved one.
 """
 
 from __future__ import annotations
@@ -42,8 +43,12 @@ class MimConfig(_Frozen):
     lowpass_cutoff: float = Field(0.45, gt=0, le=0.5)
     lowpass_order: int = Field(15, ge=1)
     min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
-    fft_margin_px: int = Field(16, ge=0, description="zero margin around the image before the FFT (no wrap-around; "
-                               "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)")
+    fft_margin_px: int = Field(
+        16,
+        ge=0,
+        description="zero margin around the image before the FFT (no wrap-around; "
+        "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)",
+    )
     threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
 
 
@@ -56,28 +61,44 @@ class FeatureConfig(_Frozen):
     grid: int = Field(6, ge=2, description="cells per side l")
     merge_bins: bool = Field(True, description="True: 216-D (bins merged in pairs); False: 432-D")
     reference_orientation_offsets: tuple[int, ...] = Field(
-        (0, -1, 1), description="the matched-against (ego) side also describes each keypoint as if its dominant "
+        (0, -1, 1),
+        description="the matched-against (ego) side also describes each keypoint as if its dominant "
         "orientation were these neighbouring bins: a peer whose orientation estimate is one bin off still finds "
-        "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)")
+        "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)",
+    )
     window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
     threads: int = Field(2, ge=1, le=16, description="keypoint groups described in parallel (same result)")
     orientation_stride: int = Field(
-        2, ge=1, le=4, description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
-        "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)")
+        2,
+        ge=1,
+        le=4,
+        description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
+        "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)",
+    )
 
 
 class MatchConfig(_Frozen):
-    """Descriptor matching and rigid 2-D RANSAC (stage 1)."""
+    """Descriptor matching (stage 1, Algorithm 1 lines 9-10)."""
 
     mutual: bool = Field(False, description="keep only mutual nearest neighbours")
     ratio: float = Field(1.0, gt=0, le=1, description="Lowe ratio test; 1.0 disables it")
-    inlier_threshold_m: float = Field(2.0, gt=0)
-    min_sample_dist_m: float = Field(3.0, ge=0)
-    max_iterations: int = Field(5000, ge=10)
-    min_iterations: int = Field(200, ge=1)
-    confidence: float = Field(0.9999, gt=0, lt=1)
-    seed: int = 0
     threads: int = Field(2, ge=1, le=16, description="blocks of query descriptors matched in parallel (same result)")
+
+
+class RansacConfig(_Frozen):
+    """Rigid 2-D RANSAC (seeded, adaptive, vectorised; Kabsch refit). Stage 1 fits keypoint matches with
+    ``AlignConfig.ransac``; stage 2 fits box corners with ``BoxConfig.ransac``."""
+
+    inlier_threshold_m: float = Field(2.0, gt=0, description="a match is an inlier when mapped this close")
+    min_sample_dist_m: float = Field(3.0, ge=0, description="the two points of a sample must be this far apart")
+    max_iterations: int = Field(5000, ge=10)
+    min_iterations: int = Field(200, ge=1, description="hypotheses scored at least, whatever the adaptive count")
+    confidence: float = Field(0.9999, gt=0, lt=1, description="adaptive stop: P(an all-inlier sample was drawn)")
+    batch: int = Field(256, ge=1, description="samples scored together (vectorised)")
+    refits: int = Field(3, ge=0, description="Kabsch refits on the inliers after the best hypothesis")
+    ambiguity_hypotheses: int = Field(
+        1024, ge=1, description="best-scoring hypotheses searched for a distinct runner-up (RansacResult.ambiguity)"
+    )
 
 
 class PriorConfig(_Frozen):
@@ -95,12 +116,25 @@ class RefineConfig(_Frozen):
     enabled: bool = True
     gates_m: tuple[float, ...] = Field((2.0, 1.0, 0.5, 0.4), description="correspondence gates, coarse to fine")
     iters_per_gate: int = Field(3, ge=1, le=50)
-    step_relaxation: float = Field(2.0, ge=1.0, le=3.0,
-                                   description="a Gauss-Newton step continuing the previous one is lengthened so")
+    step_relaxation: float = Field(
+        2.0, ge=1.0, le=3.0, description="a Gauss-Newton step continuing the previous one is lengthened so"
+    )
     min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
     max_peer_points: int = Field(2000, ge=100, description="seeded random subset of the peer's lit pixels")
     max_correction_m: float = Field(2.0, gt=0)
     max_correction_deg: float = Field(3.0, gt=0)
+    point_weight: float = Field(
+        0.1,
+        ge=0,
+        description="weight of the point-to-point terms beside the point-to-line ones: pins the motion along a line",
+    )
+    huber_fraction: float = Field(
+        0.25, gt=0, description="Huber threshold of the point-to-line residual, as a fraction of the current gate"
+    )
+    normal_neighbours: int = Field(8, ge=3, le=64, description="ego pixels in each pixel's PCA normal")
+    min_points: int = Field(10, ge=3, description="fewer ego pixels, peer points or matches: no refinement")
+    converged_rad: float = Field(2e-5, gt=0, description="a step under this yaw and converged_m ends a gate")
+    converged_m: float = Field(0.002, gt=0)
 
 
 class BoxConfig(_Frozen):
@@ -116,9 +150,16 @@ class BoxConfig(_Frozen):
     )
     recheck_m: float = Field(0.5, ge=0, description="auto: box corrections beyond this are re-refined and compared")
     recheck_deg: float = Field(0.5, ge=0, description="auto: likewise for the yaw correction")
+    recheck_min_gain: float = Field(
+        0.01,
+        ge=0,
+        description="auto: the re-refined box-corrected pose is kept when "
+        "its overlap fitness beats the refined stage-1 pose's by more than this",
+    )
     pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
-    inlier_threshold_m: float = Field(0.8, gt=0)
-    max_iterations: int = Field(500, ge=10)
+    ransac: RansacConfig = RansacConfig(
+        inlier_threshold_m=0.8, min_sample_dist_m=1.0, max_iterations=500, min_iterations=256
+    )
     max_correction_m: float = Field(4.0, gt=0, description="stage 2 may move stage 1 by at most this")
     max_correction_deg: float = Field(6.0, gt=0)
 
@@ -129,9 +170,12 @@ class SuccessRule(_Frozen):
     min_inliers_bv: int = Field(25, ge=0, description="success needs inliers_bv > this")
     min_inliers_box: int = Field(6, ge=0, description="success needs inliers_box > this (when boxes are given)")
     strong_inliers_bv: int | None = Field(
-        None, ge=0, description="if set, a pair whose stage 2 cannot verify it (no box overlap, too few box "
+        None,
+        ge=0,
+        description="if set, a pair whose stage 2 cannot verify it (no box overlap, too few box "
         "inliers) still succeeds when inliers_bv exceeds this (the paper's Fig. 9: > 100 puts > 90% of pairs "
-        "under 1 m / 1 deg); None keeps the paper's rule")
+        "under 1 m / 1 deg); None keeps the paper's rule",
+    )
     require_boxes: bool = Field(
         False, description="True: a pair without boxes fails; False: stage 1 alone decides (said in the reason)"
     )
@@ -139,11 +183,31 @@ class SuccessRule(_Frozen):
         0.8, gt=0, le=1, description="fail when a distinct runner-up pose has this fraction of the best inliers"
     )
     min_refine_fitness: float = Field(
-        0.2, ge=0, le=1,
+        0.2,
+        ge=0,
+        le=1,
         description="fail when, after the dense refinement, fewer than this fraction of the peer's lit BV pixels lie "
         "within the finest gate of an ego pixel (catches keypoint aliases along repetitive streets; measured: "
         "correct sim pairs >= 0.19, wrong ones <= 0.17, real KITTI 16 m pair 0.51)",
     )
+
+
+class ConfidenceConfig(_Frozen):
+    """Evidence -> confidence in [0, 1] (bb_align.engine.verdict): each stage's share saturates exponentially in its
+    inliers above the success rule's minimum; the paper's Fig. 9 puts > 90 % of pairs under 1 m / 1 deg beyond
+    100 BV or 20 box inliers."""
+
+    bv_inlier_scale: float = Field(
+        40.0, gt=0, description="BV inliers above the minimum giving 63 % of stage 1's share"
+    )
+    box_inlier_scale: float = Field(8.0, gt=0, description="likewise for box inliers")
+    fitness_span: float = Field(
+        0.2,
+        gt=0,
+        description="stage 1's share grows linearly over this much refinement fitness above success.min_refine_fitness",
+    )
+    cap_stage1_failed: float = Field(0.1, ge=0, le=1, description="most confidence a failure before stage 2 gets")
+    cap_stage2_failed: float = Field(0.5, ge=0, le=1, description="most confidence when only stage 2 failed")
 
 
 class AlignConfig(_Frozen):
@@ -151,8 +215,12 @@ class AlignConfig(_Frozen):
     mim: MimConfig = MimConfig()
     features: FeatureConfig = FeatureConfig()
     match: MatchConfig = MatchConfig()
+    ransac: RansacConfig = RansacConfig()
     prior: PriorConfig = PriorConfig()
     refine: RefineConfig = RefineConfig()
     box: BoxConfig = BoxConfig()
     success: SuccessRule = SuccessRule()
+    confidence: ConfidenceConfig = ConfidenceConfig()
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
+    min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
+    seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")

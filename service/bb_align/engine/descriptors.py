@@ -54,8 +54,9 @@ def _rotated_grids(patch: int, grid: int, n_orient: int, width: int, stride: int
     return offsets, cell
 
 
-def dominant_orientation(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int,
-                         stride: int = 1) -> np.ndarray:
+def dominant_orientation(
+    mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, radius: int, n_orient: int, stride: int = 1
+) -> np.ndarray:
     """(K,) dominant orientation m in 1..No per keypoint (0 when the disc holds no MIM value).
 
     If the lower cyclic neighbour of the peak bin beats the upper one, the lower bin is taken (the reference's
@@ -82,17 +83,24 @@ def descriptor_radius(cfg: FeatureConfig) -> int:
     return int(np.ceil(cfg.patch_px * np.sqrt(2) / 2))
 
 
-def keypoint_orientations(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
-                          n_orient: int = 12) -> np.ndarray:
+def keypoint_orientations(
+    mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None, n_orient: int = 12
+) -> np.ndarray:
     """(K,) dominant orientation m in 1..No of each keypoint (0: empty disc), as the descriptors use it."""
     cfg = cfg or FeatureConfig()
     rc = np.asarray(rc, dtype=np.int64).reshape(-1, 2)
     return dominant_orientation(mim, amp, rc, descriptor_radius(cfg), n_orient, cfg.orientation_stride)
 
 
-def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig | None = None,
-                     n_orient: int = 12, orientation_offset: int = 0,
-                     orientations: np.ndarray | None = None) -> np.ndarray:
+def bvft_descriptors(
+    mim: np.ndarray,
+    amp: np.ndarray,
+    rc: np.ndarray,
+    cfg: FeatureConfig | None = None,
+    n_orient: int = 12,
+    orientation_offset: int = 0,
+    orientations: np.ndarray | None = None,
+) -> np.ndarray:
     """MIM (uint8, 0..No), max amplitude, (K, 2) keypoints (row, col) -> (K, D) float32 descriptors, unit norm
     (all-zero for an empty patch). D = l*l*No/2 when cfg.merge_bins (216 by default), else l*l*No.
     ``orientations``: the keypoints' dominant orientations when already known (:func:`keypoint_orientations`)."""

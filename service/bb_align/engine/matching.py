@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+from .config import FeatureConfig, MatchConfig, PriorConfig
+from .geometry import se2, se2_params
 from .parallel import run_parts
+
+if TYPE_CHECKING:
+    from .frame import PreparedFrame
 
 
 def _sq_distances(q: np.ndarray, t: np.ndarray, threads: int = 1) -> np.ndarray:
@@ -26,8 +33,9 @@ def _sq_distances(q: np.ndarray, t: np.ndarray, threads: int = 1) -> np.ndarray:
     return d2
 
 
-def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual: bool = False,
-                      ratio: float = 1.0, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def match_descriptors(
+    desc_query: np.ndarray, desc_train: np.ndarray, *, mutual: bool = False, ratio: float = 1.0, threads: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Indices (i_query, i_train) of each query descriptor's nearest train descriptor.
 
     Empty (all-zero) query descriptors never match. ``ratio`` < 1 keeps a match only when its distance is below
@@ -51,9 +59,18 @@ def match_descriptors(desc_query: np.ndarray, desc_train: np.ndarray, *, mutual:
     return i_q, nn[i_q]
 
 
-def match_with_prior(desc_query: np.ndarray, desc_train: np.ndarray, xy_query: np.ndarray, xy_train: np.ndarray,
-                     T_train_query: np.ndarray, *, max_translation: float, max_yaw_rad: float,
-                     top_k: int, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def match_with_prior(
+    desc_query: np.ndarray,
+    desc_train: np.ndarray,
+    xy_query: np.ndarray,
+    xy_train: np.ndarray,
+    T_train_query: np.ndarray,
+    *,
+    max_translation: float,
+    max_yaw_rad: float,
+    top_k: int,
+    threads: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
     """The ``top_k`` nearest train descriptors of each query, kept only where the prior pose T_train_query (3x3)
     puts the two keypoints within ``max_translation`` plus the displacement a ``max_yaw_rad`` rotation error
     causes at the query's range. Returns (i_query, i_train) pairs (a query may keep several)."""
@@ -70,3 +87,36 @@ def match_with_prior(desc_query: np.ndarray, desc_train: np.ndarray, xy_query: n
     ok = (dist < gate[:, None]) & ((q * q).sum(1) > 0)[:, None]
     i_q, j = np.nonzero(ok)
     return i_q, cand[i_q, j]
+
+
+class Matcher:
+    """Algorithm 1 lines 9-10 as a pipeline step, built once from the config: the peer's descriptors against the
+    ego frame's reference descriptors (every orientation offset, and the 180-degree copies), by nearest neighbour
+    or, given a prior pose, the top-k gated by it. Returns the matched keypoints (P_src, P_dest) in metres."""
+
+    def __init__(self, match: MatchConfig, prior: PriorConfig, features: FeatureConfig, n_orient: int):
+        self.match, self.prior, self.features, self.n_orient = match, prior, features, n_orient
+
+    def __call__(
+        self, ego: PreparedFrame, peer: PreparedFrame, T_prior: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        desc_ego = ego.reference_descriptors(self.features, self.n_orient)
+        n_ego = len(ego.descriptors)
+        if T_prior is None:
+            i_peer, i_ego = match_descriptors(
+                peer.descriptors, desc_ego, mutual=self.match.mutual, ratio=self.match.ratio, threads=self.match.threads
+            )
+        else:
+            xy_ego = np.tile(ego.keypoints_xy, (len(desc_ego) // n_ego, 1))  # row i is keypoint i % K
+            i_peer, i_ego = match_with_prior(
+                peer.descriptors,
+                desc_ego,
+                peer.keypoints_xy,
+                xy_ego,
+                se2(*se2_params(T_prior)),
+                max_translation=self.prior.max_translation_m,
+                max_yaw_rad=np.radians(self.prior.max_yaw_deg),
+                top_k=self.prior.top_k,
+                threads=self.match.threads,
+            )
+        return peer.keypoints_xy[i_peer], ego.keypoints_xy[i_ego % n_ego]

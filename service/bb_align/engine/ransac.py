@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .config import RansacConfig
 from .geometry import kabsch_2d, se2
 
 
@@ -51,9 +52,17 @@ def _inliers_of(T, src, dst, thr2):
     return ((p - dst) ** 2).sum(1) < thr2
 
 
-def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_sample_dist: float = 0.0,
-                 max_iterations: int = 5000, min_iterations: int = 100, confidence: float = 0.9999,
-                 seed: int = 0, batch: int = 256, refits: int = 3) -> RansacResult | None:
+class RigidRansac:
+    """Algorithm 1 line 11 (and 14): the step object, built once from its config; ``fit(src, dst)``."""
+
+    def __init__(self, cfg: RansacConfig, seed: int = 0):
+        self.cfg, self.seed = cfg, seed
+
+    def fit(self, src: np.ndarray, dst: np.ndarray) -> RansacResult | None:
+        return rigid_ransac(src, dst, self.cfg, self.seed)
+
+
+def rigid_ransac(src: np.ndarray, dst: np.ndarray, cfg: RansacConfig, seed: int = 0) -> RansacResult | None:
     """Fit dst ~ T @ src on (M, 2) correspondences. Returns None when M < 2 or no valid sample exists."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
@@ -61,8 +70,10 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_samp
     if m < 2:
         return None
     rng = np.random.default_rng(seed)
+    threshold, batch = cfg.inlier_threshold_m, cfg.batch
+    max_iterations, min_iterations, confidence = cfg.max_iterations, cfg.min_iterations, cfg.confidence
     thr2 = threshold * threshold
-    min_d2 = min_sample_dist * min_sample_dist
+    min_d2 = cfg.min_sample_dist_m * cfg.min_sample_dist_m
     best_count, best_params = -1, None
     kept = []  # (count, theta, tx, ty) of each scored batch, for the ambiguity check
     it, needed = 0, max_iterations
@@ -84,14 +95,17 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_samp
             best_count, best_params = int(counts[b]), (theta[b], tx[b], ty[b])
             w = best_count / m
             p_good = w * w
-            needed = max_iterations if p_good <= 0 else (
-                0 if p_good >= 1 else int(np.ceil(np.log(1 - confidence) / np.log(1 - p_good))))
+            needed = (
+                max_iterations
+                if p_good <= 0
+                else (0 if p_good >= 1 else int(np.ceil(np.log(1 - confidence) / np.log(1 - p_good))))
+            )
     if best_params is None:
         return None
 
     T = se2(*best_params)
     inliers = _inliers_of(T, src, dst, thr2)
-    for _ in range(refits):
+    for _ in range(cfg.refits):
         if inliers.sum() < 2:
             break
         T_new = kabsch_2d(src[inliers], dst[inliers])
@@ -100,11 +114,11 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_samp
             break
         T, inliers = T_new, new_inliers
 
-    ambiguity = _ambiguity(np.concatenate(kept), src, dst, inliers, thr2)
+    ambiguity = _ambiguity(np.concatenate(kept), src, dst, inliers, thr2, cfg.ambiguity_hypotheses)
     return RansacResult(T_dst_src=T, inliers=inliers, iterations=it, ambiguity=ambiguity)
 
 
-def _ambiguity(hyps: np.ndarray, src, dst, inliers: np.ndarray, thr2: float, top: int = 1024) -> float:
+def _ambiguity(hyps: np.ndarray, src, dst, inliers: np.ndarray, thr2: float, top: int) -> float:
     n_best = int(inliers.sum())
     if n_best == 0 or len(hyps) == 0:
         return 0.0

@@ -18,6 +18,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 
 from .bev import BevImage
+from .config import RefineConfig
 from .geometry import se2, se2_params
 
 
@@ -47,8 +48,12 @@ def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None,
     return bev.pixel_to_metre(rc)
 
 
-def bev_cloud(bev: BevImage, k: int = 8, min_value: int = 1) -> BevCloud:
-    rc = np.argwhere(bev.image >= min_value)
+def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
+    """The ego side of the refinement: lit pixels (>= cfg.min_pixel_value) with PCA normals of their
+    cfg.normal_neighbours nearest pixels."""
+    cfg = cfg or RefineConfig()
+    k = cfg.normal_neighbours
+    rc = np.argwhere(bev.image >= cfg.min_pixel_value)
     xy = bev.pixel_to_metre(rc)
     index = np.full(bev.shape, -1, dtype=np.int32)
     index[rc[:, 0], rc[:, 1]] = np.arange(len(rc), dtype=np.int32)
@@ -71,35 +76,53 @@ class Refinement:
     accepted: bool
 
 
-def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, *, gates=(2.0, 1.0, 0.5, 0.4),
-               iters_per_gate: int = 3, relax: float = 2.0, point_weight: float = 0.1, max_correction_m: float = 2.0,
-               max_correction_deg: float = 3.0) -> Refinement:
+class Refiner:
+    """The dense refinement as a pipeline step, built once from its config: ``sample`` the peer's lit pixels
+    (seeded subset), ``refine`` them onto an ego frame's cloud from a start pose."""
+
+    def __init__(self, cfg: RefineConfig, seed: int = 0):
+        self.cfg, self.seed = cfg, seed
+
+    @property
+    def enabled(self) -> bool:
+        return self.cfg.enabled
+
+    def sample(self, peer: BevImage) -> np.ndarray:
+        return bev_points(peer, self.cfg.min_pixel_value, self.cfg.max_peer_points, seed=self.seed)
+
+    def refine(self, ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray) -> Refinement:
+        return refine_icp(ego, pts_peer, T_init, self.cfg)
+
+
+def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, cfg: RefineConfig | None = None) -> Refinement:
     """Robust 2-D point-to-line ICP of peer points onto the ego cloud, from T_init (3x3, ego <- peer).
 
     ICP creeps along shallow valleys in small steps of the same direction; a step that continues the previous
-    one is lengthened by ``relax`` (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24)."""
+    one is lengthened by ``cfg.step_relaxation`` (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24)."""
+    cfg = cfg or RefineConfig()
+    gates = cfg.gates_m
     T = np.array(T_init, dtype=float)
-    if len(ego.xy) < 10 or len(pts_peer) < 10:
+    if len(ego.xy) < cfg.min_points or len(pts_peer) < cfg.min_points:
         return Refinement(T, *overlap_fitness(ego, pts_peer, T, gates[-1]), False)
     prev = None
     for gate in gates:
-        for _ in range(iters_per_gate):
+        for _ in range(cfg.iters_per_gate):
             p = pts_peer @ T[:2, :2].T + T[:2, 2]
             d, j = ego.nearest(p, gate)
             ok = np.isfinite(d)
-            if ok.sum() < 10:
+            if ok.sum() < cfg.min_points:
                 T0 = np.array(T_init, dtype=float)
                 return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
-            H, g = _normal_equations(p, ego.xy, ego.normals, j, gate, point_weight)
+            H, g = _normal_equations(p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight)
             delta = np.linalg.solve(H, -g)
             if prev is not None and float(delta @ prev) > 0:  # the same way again: ICP creeps along a valley
-                delta = delta * relax
+                delta = delta * cfg.step_relaxation
             prev = delta
             T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta[0]) < 2e-5 and np.abs(delta[1:]).max() < 2e-3:  # 0.001 deg, 2 mm: converged
+            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
-    accepted = bool(np.hypot(tx, ty) <= max_correction_m and abs(np.degrees(yaw)) <= max_correction_deg)
+    accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
     T_out = T if accepted else np.array(T_init, dtype=float)
     fitness, rmse = overlap_fitness(ego, pts_peer, T_out, gates[-1])
     return Refinement(T_out, fitness, rmse, accepted)
@@ -148,14 +171,14 @@ def _nearest_on_grid(index, xy, pts, range_m, resolution_m, gate):
 
 
 @njit(cache=True, nogil=True)
-def _normal_equations(p, xy, normals, nearest, gate, point_weight):
+def _normal_equations(p, xy, normals, nearest, huber, point_weight):
     """Gauss-Newton normal equations (H, g) of the pose increment (yaw, tx, ty) applied on the left, over the
     points p[i] with a match q = xy[nearest[i]]: rows are the point-to-line residual n.(p - q), Huber-weighted
-    (0.25 gate), plus weak point-to-point terms (weight point_weight^2) that pin the motion along the line."""
+    (threshold ``huber`` metres), plus weak point-to-point terms (weight point_weight^2) that pin the motion
+    along the line."""
     H = np.zeros((3, 3))
     g = np.zeros(3)
     pw2 = point_weight * point_weight
-    huber = 0.25 * gate
     for i in range(len(p)):
         j = nearest[i]
         if j < 0:

@@ -3,30 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 
 from .geometry import se2_params
-
-
-class FailureReason(str, Enum):
-    """Why an alignment did not succeed (``AlignResult.reason``)."""
-
-    too_few_points = "too_few_points"  # a cloud had fewer than config.min_points points
-    empty_image = "empty_image"  # a BV image has no lit pixels
-    no_keypoints = "no_keypoints"  # FAST found (almost) nothing to describe
-    too_few_matches = "too_few_matches"  # fewer descriptor matches than a rigid fit needs
-    too_few_inliers_bv = "too_few_inliers_bv"  # stage 1 below the success rule
-    ambiguous_bv = "ambiguous_bv"  # a distinct pose explains almost as many matches
-    inconsistent_overlap = "inconsistent_overlap"  # after refinement too few BV pixels coincide (alias)
-    no_boxes = "no_boxes"  # boxes were required but one side sent none
-    no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
-    too_few_inliers_box = "too_few_inliers_box"  # stage 2 below the success rule
-    box_correction_too_large = "box_correction_too_large"  # stage 2 disagrees with stage 1 by too much
-    # Service-level reasons (set by the service, never by the engine):
-    no_ego_frame = "no_ego_frame"
-    stale_ego_frame = "stale_ego_frame"
 
 
 @dataclass
@@ -42,8 +22,9 @@ class AlignResult:
     inliers_box: int = 0
     matches_bv: int = 0
     box_pairs: int = 0
+    ambiguity_bv: float = 1.0  # stage-1 RANSAC: a distinct runner-up's exclusive inliers / the winner's (1: no fit)
     confidence: float = 0.0
-    reason: str | None = None  # a FailureReason value when success is False
+    reason: str | None = None  # a verdict.FailureReason value when success is False
     notes: list[str] = field(default_factory=list)  # non-fatal remarks, e.g. "stage 2 skipped: no boxes"
     stage2_applied: bool = False
     refine_fitness: float = 0.0  # fraction of peer BV pixels landing within the finest ICP gate of an ego pixel
@@ -79,6 +60,7 @@ class AlignResult:
             "inliers_box": int(self.inliers_box),
             "matches_bv": int(self.matches_bv),
             "box_pairs": int(self.box_pairs),
+            "ambiguity_bv": float(self.ambiguity_bv),
             "confidence": float(self.confidence),
             "stage2_applied": bool(self.stage2_applied),
             "refine_fitness": float(self.refine_fitness),

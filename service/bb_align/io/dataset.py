@@ -27,6 +27,7 @@ from bb_align.engine.boxes import as_boxes
 
 # ---- poses -------------------------------------------------------------------------------------------------
 
+
 def x_to_world(pose) -> np.ndarray:
     """OpenCOOD's formula: ``[x, y, z, roll, yaw, pitch]`` (degrees) -> 4x4 T_world_x.
 
@@ -85,11 +86,16 @@ def parse_vehicle(obj: dict) -> np.ndarray:
 def vehicle_entry(box_world: np.ndarray) -> dict:
     """World box [x, y, z, l, w, h, yaw] -> yaml vehicle entry (z is the box centre; location on the ground)."""
     x, y, z, l, w, h, yaw = (float(v) for v in box_world)
-    return {"location": [x, y, z - h / 2], "center": [0.0, 0.0, h / 2], "extent": [l / 2, w / 2, h / 2],
-            "angle": [0.0, math.degrees(yaw), 0.0]}
+    return {
+        "location": [x, y, z - h / 2],
+        "center": [0.0, 0.0, h / 2],
+        "extent": [l / 2, w / 2, h / 2],
+        "angle": [0.0, math.degrees(yaw), 0.0],
+    }
 
 
 # ---- reading -----------------------------------------------------------------------------------------------
+
 
 @dataclass
 class AgentFrame:
@@ -158,8 +164,17 @@ def read_agent_frame(yaml_path: Path, scenario: str = "", agent: str = "") -> Ag
         raise ValueError(f"{yaml_path}: {exc}") from exc
     pcd = yaml_path.with_suffix(".pcd")
     known = {"lidar_pose", "vehicles", "detections", "detection_scores"}
-    return AgentFrame(scenario, agent, yaml_path.stem, pcd, T, vehicles, dets, scores,
-                      {k: v for k, v in meta.items() if k not in known})
+    return AgentFrame(
+        scenario,
+        agent,
+        yaml_path.stem,
+        pcd,
+        T,
+        vehicles,
+        dets,
+        scores,
+        {k: v for k, v in meta.items() if k not in known},
+    )
 
 
 def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
@@ -178,11 +193,13 @@ def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
             agents = stamps[ts]
             if len(agents) < min_agents:
                 continue
-            yield FrameGroup(scen.name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", scen.name, a)
-                                             for a in agents})
+            yield FrameGroup(
+                scen.name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", scen.name, a) for a in agents}
+            )
 
 
 # ---- writing -----------------------------------------------------------------------------------------------
+
 
 def write_pcd(path: str | Path, points: np.ndarray) -> None:
     """(N, 3) or (N, 4: x, y, z, intensity) -> binary PCD via pypcd4."""
@@ -195,10 +212,19 @@ def write_pcd(path: str | Path, points: np.ndarray) -> None:
     pc.save(Path(path))
 
 
-def write_agent_frame(root: str | Path, scenario: str, agent: str, timestamp: str, points: np.ndarray,
-                      T_world_sensor: np.ndarray, vehicles: dict, detections: np.ndarray | None = None,
-                      detection_scores: np.ndarray | None = None, extra: dict | None = None,
-                      pose_as_matrix: bool = False) -> Path:
+def write_agent_frame(
+    root: str | Path,
+    scenario: str,
+    agent: str,
+    timestamp: str,
+    points: np.ndarray,
+    T_world_sensor: np.ndarray,
+    vehicles: dict,
+    detections: np.ndarray | None = None,
+    detection_scores: np.ndarray | None = None,
+    extra: dict | None = None,
+    pose_as_matrix: bool = False,
+) -> Path:
     """Write ``<timestamp>.pcd`` and ``<timestamp>.yaml`` for one agent; returns the yaml path.
 
     ``vehicles`` maps id -> world box [x, y, z, l, w, h, yaw]. ``pose_as_matrix`` writes lidar_pose as a 4x4
@@ -208,8 +234,9 @@ def write_agent_frame(root: str | Path, scenario: str, agent: str, timestamp: st
     write_pcd(d / f"{timestamp}.pcd", points)
     T = np.asarray(T_world_sensor, dtype=float)
     meta: dict = {"lidar_pose": T.tolist() if pose_as_matrix else world_to_x_pose(T)}
-    meta["vehicles"] = {int(k) if str(k).lstrip("-").isdigit() else str(k): vehicle_entry(np.asarray(v))
-                        for k, v in vehicles.items()}
+    meta["vehicles"] = {
+        int(k) if str(k).lstrip("-").isdigit() else str(k): vehicle_entry(np.asarray(v)) for k, v in vehicles.items()
+    }
     if detections is not None:
         meta["detections"] = [[float(v) for v in row] for row in as_boxes(detections)]
         if detection_scores is not None:

@@ -23,13 +23,25 @@ def warp_to_ego(peer: BevImage, ego: BevImage, T_ego_peer: np.ndarray) -> np.nda
     xy_ego = ego.pixel_to_metre(np.stack([rr.ravel(), cc.ravel()], 1))
     xy_peer = xy_ego @ T_peer_ego[:2, :2].T + T_peer_ego[:2, 2]
     rc = peer.metre_to_pixel(xy_peer).astype(np.float32)
-    return cv2.remap(peer.image, rc[:, 1].reshape(h, w), rc[:, 0].reshape(h, w), cv2.INTER_NEAREST,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return cv2.remap(
+        peer.image,
+        rc[:, 1].reshape(h, w),
+        rc[:, 0].reshape(h, w),
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
 
 
-def plot_alignment(path: str | Path, ego: BevImage, peer: BevImage, result: AlignResult,
-                   boxes_ego: np.ndarray | None = None, boxes_peer: np.ndarray | None = None,
-                   title: str | None = None) -> Path:
+def plot_alignment(
+    path: str | Path,
+    ego: BevImage,
+    peer: BevImage,
+    result: AlignResult,
+    boxes_ego: np.ndarray | None = None,
+    boxes_peer: np.ndarray | None = None,
+    title: str | None = None,
+) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -40,7 +52,7 @@ def plot_alignment(path: str | Path, ego: BevImage, peer: BevImage, result: Alig
     h = max(ego.shape[0], peer.shape[0])
     canvas = np.zeros((h, ego.shape[1] + peer.shape[1]), np.uint8)
     canvas[: ego.shape[0], : ego.shape[1]] = ego.image
-    canvas[: peer.shape[0], ego.shape[1]:] = peer.image
+    canvas[: peer.shape[0], ego.shape[1] :] = peer.image
     axes[0].imshow(canvas > 0, cmap="gray_r", interpolation="nearest")
     if len(result.inlier_xy_ego):
         a = ego.metre_to_pixel(result.inlier_xy_ego)
@@ -57,16 +69,20 @@ def plot_alignment(path: str | Path, ego: BevImage, peer: BevImage, result: Alig
     rgb[(ego.image > 0) & (warped > 0)] = (30, 30, 30)
     axes[1].imshow(rgb, interpolation="nearest")
     T2 = result.T_box @ result.T_bv
-    for boxes, color in ((boxes_ego, "tab:red"), (None if boxes_peer is None else transform_boxes(T2, boxes_peer),
-                                                  "tab:green")):
+    for boxes, color in (
+        (boxes_ego, "tab:red"),
+        (None if boxes_peer is None else transform_boxes(T2, boxes_peer), "tab:green"),
+    ):
         if boxes is None or len(boxes) == 0:
             continue
         for corners in box_corners_bev(boxes):
             rc = ego.metre_to_pixel(np.vstack([corners, corners[:1]]))
             axes[1].plot(rc[:, 1], rc[:, 0], "-", lw=0.8, color=color)
     status = "success" if result.success else f"FAILED: {result.reason}"
-    axes[1].set_title(f"ego (red) + aligned peer (green), overlap black\n{status}; yaw {result.yaw_deg:.2f} deg, "
-                      f"t = ({result.tx:.2f}, {result.ty:.2f}) m, confidence {result.confidence:.2f}")
+    axes[1].set_title(
+        f"ego (red) + aligned peer (green), overlap black\n{status}; yaw {result.yaw_deg:.2f} deg, "
+        f"t = ({result.tx:.2f}, {result.ty:.2f}) m, confidence {result.confidence:.2f}"
+    )
     axes[1].axis("off")
     if title:
         fig.suptitle(title)

@@ -39,15 +39,25 @@ def _noisy(T_world_sensor: np.ndarray, rng) -> np.ndarray:
 def _row(result, truth: dict, sent: dict, received_at: float) -> dict:
     """One table row: the result against the truth of the exact ego and peer frames it used."""
     seq, peer, ego, ego_seq = result.peer_seq, result.peer_id, result.ego_id, result.ego_seq
-    row = {"seq": seq, "peer": peer, "ego_seq": ego_seq, "success": result.success, "reason": result.reason,
-           "inliers_bv": result.inliers_bv, "inliers_box": result.inliers_box,
-           "latency_ms": (received_at - sent[(peer, seq)]["t"]) * 1e3, "service_ms": result.latency_ms,
-           "bytes": result.bytes_received, "raw_points_bytes": result.raw_points_bytes,
-           "service_steps_ms": {
-               "queue_wait": result.timings_ms.get("queue_wait", 0.0),
-               "peer_prepare": sum(v for k, v in result.timings_ms.items() if k.startswith("peer_")),
-               "ego_features": result.timings_ms.get("ego_features", 0.0),
-               "align": result.timings_ms.get("align_total", 0.0)}}
+    row = {
+        "seq": seq,
+        "peer": peer,
+        "ego_seq": ego_seq,
+        "success": result.success,
+        "reason": result.reason,
+        "inliers_bv": result.inliers_bv,
+        "inliers_box": result.inliers_box,
+        "latency_ms": (received_at - sent[(peer, seq)]["t"]) * 1e3,
+        "service_ms": result.latency_ms,
+        "bytes": result.bytes_received,
+        "raw_points_bytes": result.raw_points_bytes,
+        "service_steps_ms": {
+            "queue_wait": result.timings_ms.get("queue_wait", 0.0),
+            "peer_prepare": sum(v for k, v in result.timings_ms.items() if k.startswith("peer_")),
+            "ego_features": result.timings_ms.get("ego_features", 0.0),
+            "align": result.timings_ms.get("align_total", 0.0),
+        },
+    }
     if ego_seq is not None and (ego, ego_seq) in sent:
         T_true = np.linalg.inv(truth[(ego_seq, ego)]) @ truth[(seq, peer)]
         T_gnss = np.linalg.inv(sent[(ego, ego_seq)]["reported"]) @ sent[(peer, seq)]["reported"]
@@ -59,19 +69,39 @@ def _row(result, truth: dict, sent: dict, received_at: float) -> dict:
 
 
 def _table(rows: list[dict], title: str, last: int = 18) -> Table:
-    t = Table(title=title, caption="pose = yaw deg, x m, y m of T_ego_peer; err = metres / degrees; "
-                                   "latency = publish -> result received")
-    for col in ("seq", "peer", "true pose", "recovered pose", "err", "GNSS err", "inliers", "status",
-                "latency ms", "bytes (vs raw)"):
+    t = Table(
+        title=title,
+        caption="pose = yaw deg, x m, y m of T_ego_peer; err = metres / degrees; latency = publish -> result received",
+    )
+    for col in (
+        "seq",
+        "peer",
+        "true pose",
+        "recovered pose",
+        "err",
+        "GNSS err",
+        "inliers",
+        "status",
+        "latency ms",
+        "bytes (vs raw)",
+    ):
         t.add_column(col, justify="left" if col in ("peer", "status") else "right")
     fmt3 = lambda v: "-" if v is None else f"{v[0]:6.1f} {v[1]:6.1f} {v[2]:6.1f}"  # noqa: E731
     fmt2 = lambda v: "-" if v is None else f"{v[0]:.2f}/{v[1]:.2f}"  # noqa: E731
     for r in rows[-last:]:
         ratio = f" ({r['bytes'] / r['raw_points_bytes']:.1%})" if r.get("raw_points_bytes") else ""
-        t.add_row(str(r["seq"]), r["peer"], fmt3(r.get("true")), fmt3(r.get("est")), fmt2(r.get("err")),
-                  fmt2(r.get("gnss_err")), f"{r['inliers_bv']}/{r['inliers_box']}",
-                  "ok" if r["success"] else f"[red]{r['reason']}[/red]", f"{r['latency_ms']:.0f}",
-                  f"{r['bytes']}{ratio}")
+        t.add_row(
+            str(r["seq"]),
+            r["peer"],
+            fmt3(r.get("true")),
+            fmt3(r.get("est")),
+            fmt2(r.get("err")),
+            fmt2(r.get("gnss_err")),
+            f"{r['inliers_bv']}/{r['inliers_box']}",
+            "ok" if r["success"] else f"[red]{r['reason']}[/red]",
+            f"{r['latency_ms']:.0f}",
+            f"{r['bytes']}{ratio}",
+        )
     return t
 
 
@@ -88,8 +118,12 @@ def plot_demo(rows: list[dict], path: Path) -> None:
         seq = [r["seq"] for r in rs]
         ax1.plot(seq, [r["err"][0] for r in rs], "o-", label=f"{peer} recovered")
         ax1.plot(seq, [r["gnss_err"][0] for r in rs], "x--", label=f"{peer} reported (GNSS) poses")
-        ax2.plot([r["seq"] for r in rows if r["peer"] == peer],
-                 [r["latency_ms"] for r in rows if r["peer"] == peer], "o-", label=peer)
+        ax2.plot(
+            [r["seq"] for r in rows if r["peer"] == peer],
+            [r["latency_ms"] for r in rows if r["peer"] == peer],
+            "o-",
+            label=peer,
+        )
     ax1.set_ylabel("translation error (m)")
     ax1.set_yscale("symlog", linthresh=0.1)
     ax1.legend(fontsize=8)
@@ -109,13 +143,23 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
     q = lambda a, p: float(np.percentile(a, p)) if len(a) else None  # noqa: E731
     raw = [r for r in rows if r.get("raw_points_bytes")]
     return {
-        "peer_frames_sent": n_sent, "results": len(rows), "success": len(ok),
-        "err_t_m_median": q(err_t, 50), "err_r_deg_median": q(err_r, 50),
-        "err_t_m_p90": q(err_t, 90), "err_r_deg_p90": q(err_r, 90),
-        "latency_ms_median": q(lat, 50), "latency_ms_p90": q(lat, 90), "latency_ms_max": q(lat, 100),
+        "peer_frames_sent": n_sent,
+        "results": len(rows),
+        "success": len(ok),
+        "err_t_m_median": q(err_t, 50),
+        "err_r_deg_median": q(err_r, 50),
+        "err_t_m_p90": q(err_t, 90),
+        "err_r_deg_p90": q(err_r, 90),
+        "latency_ms_median": q(lat, 50),
+        "latency_ms_p90": q(lat, 90),
+        "latency_ms_max": q(lat, 100),
         "service_latency_ms_median": q(svc, 50),
-        "service_steps_ms_median": {k: q(np.array([r["service_steps_ms"][k] for r in rows]), 50)
-                                    for k in ("queue_wait", "peer_prepare", "ego_features", "align")} if rows else {},
+        "service_steps_ms_median": {
+            k: q(np.array([r["service_steps_ms"][k] for r in rows]), 50)
+            for k in ("queue_wait", "peer_prepare", "ego_features", "align")
+        }
+        if rows
+        else {},
         "bytes_per_frame_mean": float(np.mean([r["bytes"] for r in rows])) if rows else None,
         "raw_points_bytes_mean": float(np.mean([r["raw_points_bytes"] for r in raw])) if raw else None,
         "ratio_vs_points_mean": float(np.mean([r["bytes"] / r["raw_points_bytes"] for r in raw])) if raw else None,
@@ -134,16 +178,42 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
             agent, name = frame.agents[aid], names[aid]
             truth[(i, name)] = agent.T_world_sensor
             reported[(i, name)] = _noisy(agent.T_world_sensor, rng)
-            msgs.append((aid, make_frame(agent.points, agent.boxes, vehicle_id=name, stamp=0.0, seq=i,
-                                         pose=reported[(i, name)], scores=np.clip(agent.scores, 0, 1), **bev)))
+            msgs.append(
+                (
+                    aid,
+                    make_frame(
+                        agent.points,
+                        agent.boxes,
+                        vehicle_id=name,
+                        stamp=0.0,
+                        seq=i,
+                        pose=reported[(i, name)],
+                        scores=np.clip(agent.scores, 0, 1),
+                        **bev,
+                    ),
+                )
+            )
         frames.append(msgs)
     return frames, truth, reported
 
 
-def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_frames: int = 10, seed: int = 0,
-             distance_m: float | None = 30.0, rate_hz: float = 0.0, timeout_s: float = 30.0,
-             prefix: str = "bbalign", range_m: float | None = None, json_out: Path | None = None,
-             plot: Path | None = None, console: Console | None = None, key: str | None = None) -> dict:
+def run_demo(
+    *,
+    connect: list[str],
+    ego_id: str = "ego",
+    n_agents: int = 2,
+    n_frames: int = 10,
+    seed: int = 0,
+    distance_m: float | None = 30.0,
+    rate_hz: float = 0.0,
+    timeout_s: float = 30.0,
+    prefix: str = "bbalign",
+    range_m: float | None = None,
+    json_out: Path | None = None,
+    plot: Path | None = None,
+    console: Console | None = None,
+    key: str | None = None,
+) -> dict:
     """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
     service's results against the truth. Every wait is bounded by timeout_s. ``key``: the fleet key, when the
     service requires signed frames."""
@@ -156,8 +226,14 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
     console = console or Console(width=max(Console().width, 170))
     scenario = Scenario(seed, n_agents, distance_m)
     names = {aid: (ego_id if aid == "0" else f"car{aid}") for aid in scenario.agent_ids}
-    frames, truth, reported = _encode_scene(scenario, names, n_frames, {} if range_m is None else
-                                            {"range_m": range_m}, np.random.default_rng([seed, 99]), make_frame)
+    frames, truth, reported = _encode_scene(
+        scenario,
+        names,
+        n_frames,
+        {} if range_m is None else {"range_m": range_m},
+        np.random.default_rng([seed, 99]),
+        make_frame,
+    )
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
     n_sent = 0
@@ -183,8 +259,9 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
             car.open()
         stream = cars["1"].poses(ego_id, "*")
         if not all(car.wait_for_subscriber(10.0) for car in cars.values()):
-            console.print(f"[red]no service subscribes to {prefix}/frames/* via {connect}; is `bb-align serve` "
-                          f"running?[/red]")
+            console.print(
+                f"[red]no service subscribes to {prefix}/frames/* via {connect}; is `bb-align serve` running?[/red]"
+            )
             return summarize(rows, 0)
         time.sleep(0.2)  # let the pose subscription reach the service too
         pending: set = set()
@@ -226,9 +303,11 @@ def run_demo(*, connect: list[str], ego_id: str = "ego", n_agents: int = 2, n_fr
 
 def _summary_text(s: dict) -> str:
     f = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
-    return (f"{s['results']}/{s['peer_frames_sent']} peer frames answered, {s['success']} successful; "
-            f"error median {f(s['err_t_m_median'], '.2f')} m / {f(s['err_r_deg_median'], '.2f')} deg; "
-            f"latency publish->result median {f(s['latency_ms_median'], '.0f')} ms, "
-            f"p90 {f(s['latency_ms_p90'], '.0f')} ms (service-side median "
-            f"{f(s['service_latency_ms_median'], '.0f')} ms); frame {f(s['bytes_per_frame_mean'], '.0f')} B vs raw "
-            f"points {f(s['raw_points_bytes_mean'], '.0f')} B ({f(s['ratio_vs_points_mean'], '.2%')})")
+    return (
+        f"{s['results']}/{s['peer_frames_sent']} peer frames answered, {s['success']} successful; "
+        f"error median {f(s['err_t_m_median'], '.2f')} m / {f(s['err_r_deg_median'], '.2f')} deg; "
+        f"latency publish->result median {f(s['latency_ms_median'], '.0f')} ms, "
+        f"p90 {f(s['latency_ms_p90'], '.0f')} ms (service-side median "
+        f"{f(s['service_latency_ms_median'], '.0f')} ms); frame {f(s['bytes_per_frame_mean'], '.0f')} B vs raw "
+        f"points {f(s['raw_points_bytes_mean'], '.0f')} B ({f(s['ratio_vs_points_mean'], '.2%')})"
+    )

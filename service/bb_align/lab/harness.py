@@ -1,11 +1,63 @@
-"""Waiting for a ``bb-align serve`` child process (the bench and soak harnesses start one) to be ready."""
+"""What the lab's drivers (bench, soak, demo) and the tests share: free loopback ports, a ``bb-align`` service in
+a child process (started, waited for, measured, stopped), and simulated cars' frames."""
 
 from __future__ import annotations
 
+import os
+import signal
+import socket
 import subprocess
+import sys
 import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+
+import numpy as np
+
+# The child process runs what `bb-align serve` runs (SIGTERM drains, exit 0); settings as JSON in argv, the fleet key
+# (if any) on stdin, never in argv or the environment.
+_CHILD = """
+import json, sys
+from bb_align.server.commands import run_server
+from bb_align.server.settings import Settings
+values = json.loads(sys.argv[1])
+key = sys.stdin.readline().strip()
+if key:
+    values["auth"] = {"mode": "hmac", "fleet_key": key}
+run_server(Settings.model_validate(values), sys.argv[2])
+"""
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def process_memory_mb(pid: int | None) -> dict[str, float | None]:
+    """Current and peak resident memory of a process (Linux /proc VmRSS, VmHWM), MB; None where unknown."""
+    out: dict[str, float | None] = {"rss_mb": None, "rss_peak_mb": None}
+    if pid is None:
+        return out
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            key = {"VmRSS:": "rss_mb", "VmHWM:": "rss_peak_mb"}.get(line.split(maxsplit=1)[0] if line else "")
+            if key:
+                out[key] = int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
+def process_cpu_seconds(pid: int | None) -> float | None:
+    """utime + stime of a process (Linux /proc), seconds."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, TypeError):
+        return None
 
 
 def log_tail(path: Path, n: int = 800) -> str:
@@ -15,8 +67,9 @@ def log_tail(path: Path, n: int = 800) -> str:
         return "(no log)"
 
 
-def wait_until_ready(proc: subprocess.Popen, rest_url: str, timeout_s: float, log_path: Path,
-                     stop: Callable[[], object]) -> None:
+def wait_until_ready(
+    proc: subprocess.Popen, rest_url: str, timeout_s: float, log_path: Path, stop: Callable[[], object]
+) -> None:
     """Poll ``rest_url``/readyz until it answers 200. RuntimeError (with the log's tail) when the process exits
     first, or, after calling ``stop``, when ``timeout_s`` passes."""
     import httpx
@@ -34,3 +87,114 @@ def wait_until_ready(proc: subprocess.Popen, rest_url: str, timeout_s: float, lo
             stop()
             raise RuntimeError(f"the service was not ready within {timeout_s} s: {log_tail(log_path)}")
         time.sleep(0.2)
+
+
+@dataclass
+class ServiceProcess:
+    """A service to drive: one this harness started (``proc``), or one already running (``pid`` only, or nothing)."""
+
+    rest: str
+    zenoh_endpoint: str
+    key: str | None  # the fleet key frames are signed with (None: the service does not authenticate)
+    proc: subprocess.Popen | None = None
+    pid: int | None = None
+    log_path: Path | None = None
+
+    def cpu_seconds(self) -> float | None:
+        return process_cpu_seconds(self.pid)
+
+    def memory_mb(self) -> dict[str, float | None]:
+        return process_memory_mb(self.pid)
+
+    def get(self, path: str) -> dict:
+        import httpx
+
+        return httpx.get(self.rest + path, timeout=10).json()
+
+    def stop(self, timeout_s: float = 60.0) -> int | None:
+        """SIGTERM (the service drains) and wait; the exit code, None if it had to be killed or was not ours."""
+        proc = self.proc
+        if proc is None:
+            return None
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+                return None
+        return proc.returncode
+
+
+def start_service(
+    settings, key: str | None, log_dir: Path, timeout_s: float = 90.0, log_level: str = "warning"
+) -> ServiceProcess:
+    """Run ``settings`` (a server Settings; REST port, Zenoh listen endpoint set) in a child process, signed
+    frames required when ``key`` is given; returns once /readyz answers."""
+    endpoint = settings.zenoh.listen[0] if settings.zenoh.enabled and settings.zenoh.listen else ""
+    log_path = Path(log_dir) / f"service-{settings.port}.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _CHILD, settings.model_dump_json(exclude={"auth"}), log_level],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.PIPE,
+        )
+    try:
+        proc.stdin.write(((key or "") + "\n").encode())
+        proc.stdin.close()
+    except OSError:
+        pass  # the child died early; reported below with its log
+    svc = ServiceProcess(f"http://127.0.0.1:{settings.port}", endpoint, key, proc, proc.pid, log_path)
+    wait_until_ready(proc, svc.rest, timeout_s, log_path, svc.stop)
+    return svc
+
+
+@dataclass
+class CarStream:
+    """One simulated car's frames (wire Frames; stamps and seqs set at publish time) and its true poses."""
+
+    vehicle_id: str
+    frames: list
+    T_world_sensor: list[np.ndarray]
+
+
+def simulated_cars(
+    n_peers: int,
+    n_frames: int,
+    seed: int,
+    *,
+    ego_id: str = "ego",
+    dt: float = 0.1,
+    sim_config=None,
+    bev_options: dict | None = None,
+    reported_pose: Callable[[np.ndarray, int, int], np.ndarray | None] | None = None,
+    progress: Callable[[Iterable, str], Iterable] | None = None,
+) -> list[CarStream]:
+    """The ego first (``ego_id``), then peers ``car1``..``carN``: ``n_frames`` consecutive simulated frames each.
+    ``reported_pose(T_world_sensor, car, frame)`` gives the pose a frame carries (default: the true pose)."""
+    from bb_align_client.encode import make_frame
+
+    from .sim import simulate_sequence
+
+    seq = simulate_sequence(seed, n_frames=n_frames, n_agents=1 + n_peers, dt=dt, config=sim_config)
+    ids = [ego_id] + [f"car{i}" for i in range(1, n_peers + 1)]
+    items = list(enumerate(ids))
+    cars = []
+    for a, vid in progress(items, "simulated cars") if progress else items:
+        agents = [f.agents[str(a)] for f in seq]
+        frames = [
+            make_frame(
+                ag.points,
+                ag.boxes,
+                vehicle_id=vid,
+                stamp=0.0,
+                seq=0,
+                pose=ag.T_world_sensor if reported_pose is None else reported_pose(ag.T_world_sensor, a, k),
+                **(bev_options or {}),
+            )
+            for k, ag in enumerate(agents)
+        ]
+        cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents]))
+    return cars

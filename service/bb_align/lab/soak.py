@@ -18,95 +18,48 @@ own counters (/v1/peers, /metrics) against what was sent:
 from __future__ import annotations
 
 import json
-import os
 import re
 import secrets
-import signal
-import socket
-import subprocess
-import sys
 import tempfile
 import time
 import zlib
 from collections import Counter
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import msgpack
 import numpy as np
 import typer
 
-from .harness import wait_until_ready
+from .harness import ServiceProcess, free_port, simulated_cars, start_service
 
 EGO_ID = "ego"
 PREFIX = "bbalign-soak"
-ATTACKS = ("garbage", "unsigned", "bad_mac", "replay", "nan_box", "png_bomb", "spoofed_id", "junk_sender",
-           "oversized")
+ATTACKS = ("garbage", "unsigned", "bad_mac", "replay", "nan_box", "png_bomb", "spoofed_id", "junk_sender", "oversized")
 # What the service must answer to each attack (bbalign_frames_rejected_total{error=...}).
-EXPECTED_ERROR = {"garbage": "undecodable", "unsigned": "unauthenticated", "bad_mac": "unauthenticated",
-                  "replay": "replayed", "nan_box": "invalid", "png_bomb": "invalid", "spoofed_id": "invalid",
-                  "junk_sender": "unauthenticated", "oversized": "too_large"}
+EXPECTED_ERROR = {
+    "garbage": "undecodable",
+    "unsigned": "unauthenticated",
+    "bad_mac": "unauthenticated",
+    "replay": "replayed",
+    "nan_box": "invalid",
+    "png_bomb": "invalid",
+    "spoofed_id": "invalid",
+    "junk_sender": "unauthenticated",
+    "oversized": "too_large",
+}
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def start_soak_service(workers: int, log_dir: Path, timeout_s: float = 90.0) -> ServiceProcess:
+    """The service (vehicle profile, a fresh fleet key) on free loopback ports, ready to take frames."""
+    from bb_align.server.settings import Settings
 
-
-def _rss_mb(pid: int | None) -> float | None:
-    if pid is None:
-        return None
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
-
-
-@dataclass
-class Target:
-    zenoh: str
-    rest: str
-    key: str
-    proc: subprocess.Popen | None = None
-    pid: int | None = None
-    log_path: Path | None = None
-
-
-def start_service(workers: int, log_dir: Path, timeout_s: float = 90.0) -> Target:
-    """``bb-align serve`` (vehicle profile, a fresh fleet key) on free loopback ports, ready to take frames."""
-    port, zport, key = _free_port(), _free_port(), secrets.token_hex(32)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")}
-    env.update(BBALIGN_AUTH__FLEET_KEY=key, BBALIGN_ZENOH__PREFIX=PREFIX)
-    log_path = log_dir / f"soak-service-{port}.log"
-    cmd = [sys.executable, "-c", "from bb_align.cli import app; app()", "serve", "--ego-id", EGO_ID, "--port",
-           str(port), "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--workers", str(workers),
-           "--log-level", "warning"]
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-    target = Target(f"tcp/127.0.0.1:{zport}", f"http://127.0.0.1:{port}", key, proc, proc.pid, log_path)
-    wait_until_ready(proc, target.rest, timeout_s, log_path, lambda: stop_service(target))
-    return target
-
-
-def stop_service(target: Target, timeout_s: float = 60.0) -> int | None:
-    """SIGTERM (graceful drain); the exit code (None if it had to be killed)."""
-    proc = target.proc
-    if proc is None:
-        return None
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-            return None
-    return proc.returncode
+    settings = Settings(
+        ego_id=EGO_ID,
+        port=free_port(),
+        workers=workers,
+        zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"], "prefix": PREFIX},
+    )
+    return start_service(settings, secrets.token_hex(32), log_dir, timeout_s)
 
 
 # ---- what the cars send ---------------------------------------------------------------------------------------
@@ -120,25 +73,6 @@ def _png_bomb(side: int) -> bytes:
     ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
     idat = zlib.compress(bytes(64 * side * (side + 1)), 9)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
-
-
-@dataclass
-class Car:
-    vehicle_id: str
-    frames: list  # bb_align.protocol.Frame templates; stamp and seq set at publish time
-
-
-def simulated_cars(n_peers: int, n_frames: int, seed: int) -> list[Car]:
-    from bb_align_client.encode import make_frame
-
-    from .sim import simulate_sequence
-
-    seq = simulate_sequence(seed, n_frames=n_frames, n_agents=1 + n_peers, dt=0.1)
-    cars = []
-    for a, vid in enumerate([EGO_ID] + [f"car{i}" for i in range(1, n_peers + 1)]):
-        cars.append(Car(vid, [make_frame(f.agents[str(a)].points, f.agents[str(a)].boxes, vehicle_id=vid,
-                                         stamp=0.0, pose=f.agents[str(a)].T_world_sensor) for f in seq]))
-    return cars
 
 
 class Sender:
@@ -173,7 +107,7 @@ class Sender:
             return vid, self.last_valid[vid]
         if kind == "nan_box":
             d = f.model_dump(mode="python")
-            d["boxes"] = (d["boxes"] or [[1.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.0]])
+            d["boxes"] = d["boxes"] or [[1.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.0]]
             d["boxes"][0][0] = float("nan")
             return vid, self._sign(msgpack.packb(d, use_bin_type=True), self.key)
         if kind == "png_bomb":
@@ -222,11 +156,27 @@ def _label_values(metrics: dict[str, float], prefix: str, label: str) -> dict[st
     return out
 
 
-def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10.0, attack_share: float = 0.3,
-             workers: int = 2, frames: int = 4, seed: int = 7, rss_growth_mb: float = 150.0,
-             warmup_s: float = 10.0, grace_s: float = 60.0, connect: str | None = None, rest: str | None = None,
-             key: str | None = None, pid: int | None = None, max_message_bytes: int = 4 * 1024 * 1024,
-             oversized_every_s: float = 5.0, log_dir: Path | None = None, progress: bool = True) -> dict:
+def run_soak(
+    *,
+    duration_s: float = 120.0,
+    n_peers: int = 8,
+    rate_hz: float = 10.0,
+    attack_share: float = 0.3,
+    workers: int = 2,
+    frames: int = 4,
+    seed: int = 7,
+    rss_growth_mb: float = 150.0,
+    warmup_s: float = 10.0,
+    grace_s: float = 60.0,
+    connect: str | None = None,
+    rest: str | None = None,
+    key: str | None = None,
+    pid: int | None = None,
+    max_message_bytes: int = 4 * 1024 * 1024,
+    oversized_every_s: float = 5.0,
+    log_dir: Path | None = None,
+    progress: bool = True,
+) -> dict:
     """The soak run; returns the report (``report["ok"]``: every check passed). Everything on loopback."""
     import httpx
     import zenoh
@@ -237,28 +187,32 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
     from bb_align_client.zenoh_peer import ArrivalLog
 
     rng = np.random.default_rng(seed)
-    cars = simulated_cars(n_peers, frames, seed)
+    cars = simulated_cars(n_peers, frames, seed, ego_id=EGO_ID)
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix="bbalign-soak-"))
     if connect is None:
-        target = start_service(workers, log_dir)
+        target = start_soak_service(workers, log_dir)
     else:
         if rest is None or key is None:
             raise ValueError("targeting a running service needs its REST address and fleet key")
-        target = Target(connect, rest, key, pid=pid)
+        target = ServiceProcess(rest, connect, key, pid=pid)
     sender = Sender(target.key, max_message_bytes, rng)
     results = ArrivalLog()
     sent_at: dict[tuple[str, int], float] = {}
     sent = Counter()  # kind -> messages ("valid", "valid_ego", attack kinds)
     valid_per_peer = Counter()
-    listener = zenoh.open(ZenohSettings(listen=[], connect=[target.zenoh], prefix=PREFIX).to_zenoh_config())
+    listener = zenoh.open(ZenohSettings(listen=[], connect=[target.zenoh_endpoint], prefix=PREFIX).to_zenoh_config())
     pubs = {}
     crash = None
     report: dict = {}
     try:
         sub = listener.declare_subscriber(poses_key(PREFIX, EGO_ID, "*"), results)
-        pubs = {c.vehicle_id: ZenohPeer(c.vehicle_id, connect=[target.zenoh], prefix=PREFIX,
-                                        block_when_congested=True).open() for c in cars}
-        raw = zenoh.open(ZenohSettings(listen=[], connect=[target.zenoh], prefix=PREFIX).to_zenoh_config())
+        pubs = {
+            c.vehicle_id: ZenohPeer(
+                c.vehicle_id, connect=[target.zenoh_endpoint], prefix=PREFIX, block_when_congested=True
+            ).open()
+            for c in cars
+        }
+        raw = zenoh.open(ZenohSettings(listen=[], connect=[target.zenoh_endpoint], prefix=PREFIX).to_zenoh_config())
         pubs["@raw"] = raw
         for p in list(pubs.values())[:-1]:
             p.wait_for_subscriber(10.0)
@@ -273,7 +227,7 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
             if delay > 0:
                 time.sleep(delay)
             if k == int(warmup_s * rate_hz):
-                rss_start = _rss_mb(target.pid)
+                rss_start = target.memory_mb()["rss_mb"]
             if target.proc is not None and target.proc.poll() is not None:
                 crash = f"the service exited with {target.proc.returncode} during the run"
                 break
@@ -315,13 +269,13 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
         metrics = _metrics(target.rest)
         peers = httpx.get(target.rest + "/v1/peers", timeout=10).json()
         ready = httpx.get(target.rest + "/readyz", timeout=10).status_code == 200
-        rss_end = _rss_mb(target.pid)
+        rss_end = target.memory_mb()["rss_mb"]
         sub.undeclare()
     finally:
         for p in pubs.values():
             p.close()
         listener.close()
-        exit_code = stop_service(target) if target.proc is not None else None
+        exit_code = target.stop()
 
     with results.lock:
         items = list(results.items)
@@ -342,44 +296,78 @@ def run_soak(*, duration_s: float = 120.0, n_peers: int = 8, rate_hz: float = 10
     accepted = sum(p["frames_accepted"] for p in peers.values())
     per_peer = {}
     for vid, p in peers.items():
-        per_peer[vid] = {"valid_sent": valid_per_peer[vid], "accepted": p["frames_accepted"],
-                         "results": p["results"], "dropped": p["frames_dropped"], "failed": p["failed"],
-                         "intake_dropped": p["intake_dropped"], "results_received": got[vid]}
+        per_peer[vid] = {
+            "valid_sent": valid_per_peer[vid],
+            "accepted": p["frames_accepted"],
+            "results": p["results"],
+            "dropped": p["frames_dropped"],
+            "failed": p["failed"],
+            "intake_dropped": p["intake_dropped"],
+            "results_received": got[vid],
+        }
     unverified_drops = dropped.get("(unverified)", 0.0)
-    q = (lambda a, pct: float(np.percentile(a, pct)) if len(a) else None)  # noqa: E731
+    q = lambda a, pct: float(np.percentile(a, pct)) if len(a) else None  # noqa: E731
     checks = {
         "no_crash": crash is None and ready,
         "exit_code_0_on_sigterm": exit_code == 0 if target.proc is not None else None,
         "every_valid_frame_answered_or_counted": all(
-            v["accepted"] == v["results"] + v["dropped"] for v in per_peer.values()),
+            v["accepted"] == v["results"] + v["dropped"] for v in per_peer.values()
+        ),
         "every_valid_frame_accepted_or_dropped_at_intake": all(
-            v["valid_sent"] == v["accepted"] + v["intake_dropped"] for v in per_peer.values())
-            and unverified_drops == 0,
+            v["valid_sent"] == v["accepted"] + v["intake_dropped"] for v in per_peer.values()
+        )
+        and unverified_drops == 0,
         "every_result_received": all(v["results"] == v["results_received"] for v in per_peer.values()),
         "every_attack_refused_with_the_right_error": all(
-            rejected.get(err, 0) >= n for err, n in expected_rejections.items())
-            and sum(rejected.values()) == attacks_sent,
+            rejected.get(err, 0) >= n for err, n in expected_rejections.items()
+        )
+        and sum(rejected.values()) == attacks_sent,
         "no_valid_frame_refused": sum(rejected.values()) == attacks_sent,
         "peers_tracked_bounded": metrics.get("bbalign_peers_tracked", 1e9) <= n_peers + 1,
-        "rss_growth_within_bound": None if rss_start is None or rss_end is None
+        "rss_growth_within_bound": None
+        if rss_start is None or rss_end is None
         else rss_end - rss_start <= rss_growth_mb,
     }
     report = {
-        "config": {"duration_s": duration_s, "warmup_s": warmup_s, "peers": n_peers, "rate_hz": rate_hz,
-                   "attack_share": attack_share, "workers": workers, "frames": frames, "seed": seed,
-                   "rss_growth_bound_mb": rss_growth_mb},
+        "config": {
+            "duration_s": duration_s,
+            "warmup_s": warmup_s,
+            "peers": n_peers,
+            "rate_hz": rate_hz,
+            "attack_share": attack_share,
+            "workers": workers,
+            "frames": frames,
+            "seed": seed,
+            "rss_growth_bound_mb": rss_growth_mb,
+        },
         "publish_s": publish_s,
-        "sent": {"total": sum(sent.values()), "valid_peer": sent["valid"], "valid_ego": sent["valid_ego"],
-                 "attacks": attacks_sent, "by_kind": dict(sent)},
-        "service": {"accepted_stream_frames": accepted, "rejected": rejected, "rejected_total": sum(rejected.values()),
-                    "dropped": dropped, "results_produced": sum(p["results"] for p in peers.values()),
-                    "results_received": sum(got.values()), "outcomes": dict(outcomes),
-                    "peers_tracked_end": metrics.get("bbalign_peers_tracked")},
+        "sent": {
+            "total": sum(sent.values()),
+            "valid_peer": sent["valid"],
+            "valid_ego": sent["valid_ego"],
+            "attacks": attacks_sent,
+            "by_kind": dict(sent),
+        },
+        "service": {
+            "accepted_stream_frames": accepted,
+            "rejected": rejected,
+            "rejected_total": sum(rejected.values()),
+            "dropped": dropped,
+            "results_produced": sum(p["results"] for p in peers.values()),
+            "results_received": sum(got.values()),
+            "outcomes": dict(outcomes),
+            "peers_tracked_end": metrics.get("bbalign_peers_tracked"),
+        },
         "per_peer": per_peer,
         "latency_ms": {"p50": q(latency, 50), "p99": q(latency, 99), "n": len(latency)},
-        "rss_mb": {"start": rss_start, "end": rss_end,
-                   "growth": None if rss_start is None or rss_end is None else rss_end - rss_start},
-        "exit_code": exit_code, "crash": crash, "checks": checks,
+        "rss_mb": {
+            "start": rss_start,
+            "end": rss_end,
+            "growth": None if rss_start is None or rss_end is None else rss_end - rss_start,
+        },
+        "exit_code": exit_code,
+        "crash": crash,
+        "checks": checks,
         "ok": all(v is not False for v in checks.values()),
         "service_log": str(target.log_path) if target.log_path else None,
     }
@@ -395,12 +383,13 @@ def soak(
     warmup: float = typer.Option(10.0, min=0, max=600, help="seconds before RSS is first read"),
     rss_growth_mb: float = typer.Option(150.0, min=0, help="largest RSS growth accepted, MB"),
     seed: int = typer.Option(7, help="scene and attack seed"),
-    connect: Optional[str] = typer.Option(None, help="target a running service's Zenoh endpoint (loopback)"),
-    rest: Optional[str] = typer.Option(None, help="... its REST address, e.g. http://127.0.0.1:8000"),
-    key: Optional[str] = typer.Option(None, envvar="BBALIGN_AUTH__FLEET_KEY", show_default=False,
-                                      help="... its fleet key"),
-    pid: Optional[int] = typer.Option(None, help="... its process id (for RSS)"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the report as JSON"),
+    connect: str | None = typer.Option(None, help="target a running service's Zenoh endpoint (loopback)"),
+    rest: str | None = typer.Option(None, help="... its REST address, e.g. http://127.0.0.1:8000"),
+    key: str | None = typer.Option(
+        None, envvar="BBALIGN_AUTH__FLEET_KEY", show_default=False, help="... its fleet key"
+    ),
+    pid: int | None = typer.Option(None, help="... its process id (for RSS)"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the report as JSON"),
 ) -> None:
     """Flood a service (started here, or --connect) from N simulated peers with valid and hostile frames over
     Zenoh on loopback, then account for every message (exit 1 when a check fails)."""
@@ -408,19 +397,32 @@ def soak(
         host = endpoint.split("//")[-1].split("/")[-1].rsplit(":", 1)[0]
         if host not in ("127.0.0.1", "localhost"):
             raise typer.BadParameter(f"the soak stays on loopback: {endpoint}")
-    report = run_soak(duration_s=duration, n_peers=peers, rate_hz=rate_hz, attack_share=attack_share,
-                      workers=workers, warmup_s=warmup, rss_growth_mb=rss_growth_mb, seed=seed, connect=connect,
-                      rest=rest, key=key, pid=pid)
+    report = run_soak(
+        duration_s=duration,
+        n_peers=peers,
+        rate_hz=rate_hz,
+        attack_share=attack_share,
+        workers=workers,
+        warmup_s=warmup,
+        rss_growth_mb=rss_growth_mb,
+        seed=seed,
+        connect=connect,
+        rest=rest,
+        key=key,
+        pid=pid,
+    )
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(report, indent=1))
     s, svc, lat, rss = report["sent"], report["service"], report["latency_ms"], report["rss_mb"]
     fmt = lambda v, spec=".0f": "-" if v is None else format(v, spec)  # noqa: E731
-    typer.echo(f"sent {s['total']} ({s['valid_peer']} valid peer frames, {s['valid_ego']} ego, {s['attacks']} "
-               f"attacks); accepted {svc['accepted_stream_frames']}, rejected {svc['rejected_total']} "
-               f"{svc['rejected']}, dropped {svc['dropped']}; results {svc['results_produced']} produced / "
-               f"{svc['results_received']} received; latency p50 {fmt(lat['p50'])} ms p99 {fmt(lat['p99'])} ms; "
-               f"RSS {fmt(rss['start'], '.1f')} -> {fmt(rss['end'], '.1f')} MB; exit code {report['exit_code']}")
+    typer.echo(
+        f"sent {s['total']} ({s['valid_peer']} valid peer frames, {s['valid_ego']} ego, {s['attacks']} "
+        f"attacks); accepted {svc['accepted_stream_frames']}, rejected {svc['rejected_total']} "
+        f"{svc['rejected']}, dropped {svc['dropped']}; results {svc['results_produced']} produced / "
+        f"{svc['results_received']} received; latency p50 {fmt(lat['p50'])} ms p99 {fmt(lat['p99'])} ms; "
+        f"RSS {fmt(rss['start'], '.1f')} -> {fmt(rss['end'], '.1f')} MB; exit code {report['exit_code']}"
+    )
     for name, ok in report["checks"].items():
         typer.echo(f"  {'ok  ' if ok else ('n/a ' if ok is None else 'FAIL')} {name}")
     if not report["ok"]:

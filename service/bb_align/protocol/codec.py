@@ -71,9 +71,15 @@ def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
     try:
         if encoding == MSGPACK:
             obj = msgpack.unpackb(
-                data, raw=False, strict_map_key=True, max_bin_len=limits.max_message_bytes,
-                max_str_len=limits.max_message_bytes, max_array_len=2 * limits.max_boxes + 64,
-                max_map_len=64, max_ext_len=0)
+                data,
+                raw=False,
+                strict_map_key=True,
+                max_bin_len=limits.max_message_bytes,
+                max_str_len=limits.max_message_bytes,
+                max_array_len=2 * limits.max_boxes + 64,
+                max_map_len=64,
+                max_ext_len=0,
+            )
         elif encoding == JSON:
             obj = json.loads(data)
         else:
@@ -107,10 +113,11 @@ def _precheck(obj: dict, limits: Limits, f) -> None:
             raise invalid(f(name), f"{len(v)} {name} exceed {limits.max_boxes}", limits.max_boxes)
 
 
-def _frame_from(obj: Any, limits: Limits, encoding: str, keyring: Keyring | None, now: float | None,
-                where: str = "") -> Frame:
+def _frame_from(
+    obj: Any, limits: Limits, encoding: str, keyring: Keyring | None, now: float | None, where: str = ""
+) -> Frame:
     """A decoded map (a Frame, or a Signed envelope holding one) -> a checked Frame."""
-    f = (lambda name: f"{where}.{name}" if where else name)  # noqa: E731
+    f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
     if not isinstance(obj, dict):
         raise invalid(where or "message", f"must be a map (a Frame or a Signed frame), got {type(obj).__name__}")
     bound_to = None
@@ -126,19 +133,30 @@ def _frame_from(obj: Any, limits: Limits, encoding: str, keyring: Keyring | None
         if _is_envelope(obj):
             raise invalid(f("payload"), "a signed payload must be a Frame, not another envelope")
     elif keyring is not None and keyring.required:
-        raise WireError(401, "unauthenticated", "frames must be signed (a Signed envelope with an HMAC-SHA256; "
-                        "see docs/security.md)", where or "message", "hmac-sha256")
+        raise WireError(
+            401,
+            "unauthenticated",
+            "frames must be signed (a Signed envelope with an HMAC-SHA256; see docs/security.md)",
+            where or "message",
+            "hmac-sha256",
+        )
     _precheck(obj, limits, f)
     frame: Frame = _model(Frame, obj, where)
     validate_frame(frame, limits, where, now=now)
     if bound_to is not None and frame.vehicle_id != bound_to:
-        raise WireError(403, "forbidden", f"signed with {bound_to!r}'s key but claims vehicle id "
-                        f"{frame.vehicle_id!r}", f("vehicle_id"), bound_to)
+        raise WireError(
+            403,
+            "forbidden",
+            f"signed with {bound_to!r}'s key but claims vehicle id {frame.vehicle_id!r}",
+            f("vehicle_id"),
+            bound_to,
+        )
     return frame
 
 
-def load_frame(data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None,
-               now: float | None = None) -> Frame:
+def load_frame(
+    data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None, now: float | None = None
+) -> Frame:
     """Untrusted bytes (a Frame or a Signed frame) -> a checked Frame (raises WireError, nothing else).
 
     ``keyring``: verify signatures (and refuse unsigned frames when it requires them); ``now``: the receiver's
@@ -146,8 +164,9 @@ def load_frame(data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring:
     return _frame_from(_unpack(data, encoding, limits), limits, encoding, keyring, now)
 
 
-def load_align_request(data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None,
-                       now: float | None = None) -> AlignRequest:
+def load_align_request(
+    data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None, now: float | None = None
+) -> AlignRequest:
     """Untrusted bytes -> an AlignRequest holding checked Frames (raises WireError)."""
     obj = _unpack(data, encoding, limits)
     extra = sorted(set(obj) - {"schema_version", "peer", "ego"})

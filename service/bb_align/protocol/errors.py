@@ -16,7 +16,7 @@ class WireError(ValueError):
         super().__init__(f"{field}: {detail}" if field else detail)
         self.status, self.error, self.detail, self.field, self.limit = status, error, detail, field, limit
 
-    def body(self) -> "ErrorBody":
+    def body(self) -> ErrorBody:
         from .models import ErrorBody  # the models raise WireError: imported here, not at the top
 
         return ErrorBody(error=self.error, detail=self.detail, field=self.field, limit=self.limit)

@@ -22,32 +22,52 @@ class Limits(BaseModel):
 
     max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="whole message (msgpack or JSON body)")
     max_image_px: int = Field(1024, ge=16, le=8192, description="BV image width/height, pixels")
-    max_png_ratio: float = Field(1032.0, gt=1, description="decoded / compressed image bytes (1032: the most "
-                                 "deflate can reach; a higher claim is not a real PNG)")
+    max_png_ratio: float = Field(
+        1032.0,
+        gt=1,
+        description="decoded / compressed image bytes (1032: the most "
+        "deflate can reach; a higher claim is not a real PNG)",
+    )
     max_png_chunks: int = Field(4096, ge=3, description="chunks in one PNG file")
     max_boxes: int = Field(256, ge=0, description="boxes per frame")
     max_box_size_m: float = Field(40.0, gt=0, description="box length/width/height")
     max_box_distance_m: float = Field(500.0, gt=0, description="|x|, |y|, |z| of a box centre")
     max_points: int = Field(20_000_000, ge=0, description="the sender's reported raw point count")
     max_stamp_s: float = Field(4_102_444_800.0, gt=0, description="stamps are seconds in [0, this] (2100-01-01)")
-    check_stamp_clock: bool = Field(True, description="refuse stamps far from the receiver's clock (False for "
-                                    "replays of recorded or simulated data on their own clock)")
-    max_stamp_age_s: float = Field(30.0, gt=0, description="a frame stamped this much before the receiver's clock "
-                                   "is refused")
-    max_stamp_lead_s: float = Field(2.0, ge=0, description="a frame stamped this much after the receiver's clock "
-                                    "is refused (clock offset between cars)")
+    check_stamp_clock: bool = Field(
+        True,
+        description="refuse stamps far from the receiver's clock (False for "
+        "replays of recorded or simulated data on their own clock)",
+    )
+    max_stamp_age_s: float = Field(
+        30.0, gt=0, description="a frame stamped this much before the receiver's clock is refused"
+    )
+    max_stamp_lead_s: float = Field(
+        2.0,
+        ge=0,
+        description="a frame stamped this much after the receiver's clock is refused (clock offset between cars)",
+    )
     max_pose_m: float = Field(1.0e7, gt=0, description="|x|, |y|, |z| of a reported pose")
-    max_peers: int = Field(64, ge=1, description="distinct senders tracked at once besides the ego (only "
-                           "authenticated, valid frames create one); when full, a new sender is refused (503) until "
-                           "an idle one is forgotten")
-    peer_idle_s: float = Field(60.0, gt=0, description="a sender silent this long is forgotten (queues, replay "
-                               "state, metrics labels, bandwidth tallies)")
+    max_peers: int = Field(
+        64,
+        ge=1,
+        description="distinct senders tracked at once besides the ego (only "
+        "authenticated, valid frames create one); when full, a new sender is refused (503) until "
+        "an idle one is forgotten",
+    )
+    peer_idle_s: float = Field(
+        60.0,
+        gt=0,
+        description="a sender silent this long is forgotten (queues, replay state, metrics labels, bandwidth tallies)",
+    )
     intake_queue: int = Field(64, ge=1, description="raw Zenoh messages waiting for the gate (oldest dropped)")
     intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes waiting for the gate")
 
     @model_validator(mode="after")
-    def _replay_window_covers_eviction(self) -> "Limits":
+    def _replay_window_covers_eviction(self) -> Limits:
         if self.check_stamp_clock and self.peer_idle_s < self.max_stamp_age_s:
-            raise ValueError(f"peer_idle_s ({self.peer_idle_s}) must be at least max_stamp_age_s "
-                             f"({self.max_stamp_age_s}): a forgotten peer's old frames must be too old to replay")
+            raise ValueError(
+                f"peer_idle_s ({self.peer_idle_s}) must be at least max_stamp_age_s "
+                f"({self.max_stamp_age_s}): a forgotten peer's old frames must be too old to replay"
+            )
         return self

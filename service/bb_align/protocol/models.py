@@ -52,8 +52,14 @@ PngBytes = Annotated[
     bytes,
     BeforeValidator(_b64_if_str),
     PlainSerializer(lambda b: base64.b64encode(b).decode("ascii"), return_type=str, when_used="json"),
-    WithJsonSchema({"type": "string", "contentEncoding": "base64", "contentMediaType": "image/png",
-                    "description": "PNG file, 8-bit greyscale; msgpack: bin, JSON: base64 string"}),
+    WithJsonSchema(
+        {
+            "type": "string",
+            "contentEncoding": "base64",
+            "contentMediaType": "image/png",
+            "description": "PNG file, 8-bit greyscale; msgpack: bin, JSON: base64 string",
+        }
+    ),
 ]
 
 
@@ -92,12 +98,18 @@ class Pose(_Wire):
         return T
 
     @classmethod
-    def from_matrix(cls, T: np.ndarray) -> "Pose":
+    def from_matrix(cls, T: np.ndarray) -> Pose:
         T = np.asarray(T, dtype=float)
         R = T[:3, :3]
         pitch = math.asin(float(np.clip(-R[2, 0], -1.0, 1.0)))
-        return cls(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3]),
-                   roll=math.atan2(R[2, 1], R[2, 2]), pitch=pitch, yaw=math.atan2(R[1, 0], R[0, 0]))
+        return cls(
+            x=float(T[0, 3]),
+            y=float(T[1, 3]),
+            z=float(T[2, 3]),
+            roll=math.atan2(R[2, 1], R[2, 2]),
+            pitch=pitch,
+            yaw=math.atan2(R[1, 0], R[0, 0]),
+        )
 
 
 class Frame(_Wire):
@@ -109,8 +121,11 @@ class Frame(_Wire):
     stamp: float = Field(ge=0, description="capture time, seconds (the cars' common clock)")
     png: PngBytes
     bev: BevMeta
-    boxes: list[Box] = Field(default_factory=list, description="rows [x, y, z, l, w, h, yaw], sensor frame, "
-                             "metres and radians; (x, y, z) is the box centre, l along the heading")
+    boxes: list[Box] = Field(
+        default_factory=list,
+        description="rows [x, y, z, l, w, h, yaw], sensor frame, "
+        "metres and radians; (x, y, z) is the box centre, l along the heading",
+    )
     scores: list[Annotated[float, Field(ge=0, le=1)]] | None = Field(None, description="one per box")
     pose: Pose | None = Field(None, description="reported T_world_sensor (GNSS/odometry); optional")
     num_points: int | None = Field(None, ge=0, description="points in the raw sweep (bandwidth accounting)")
@@ -134,19 +149,39 @@ class Frame(_Wire):
 
 class Signed(_Wire):
     """A signed frame: the frame's own encoded bytes (msgpack, or JSON inside a JSON envelope) with an
-    HMAC-SHA256 made with the key ``key_id`` names (bb_align.protocol.signatures): ``"fleet"`` or the sender's vehicle id."""
+    HMAC-SHA256 made with the key ``key_id`` names (bb_align.protocol.signatures): ``"fleet"`` or the sender's
+    vehicle id."""
 
     schema_version: Literal[1] = SCHEMA_VERSION
     key_id: str = Field(pattern=VEHICLE_ID_PATTERN, description=f"{FLEET_KEY_ID!r} or the sender's vehicle id")
     alg: Literal["hmac-sha256"] = "hmac-sha256"
-    mac: Annotated[bytes, BeforeValidator(_b64_if_str), Field(min_length=MAC_BYTES, max_length=MAC_BYTES),
-                   _B64_JSON, WithJsonSchema({"type": "string", "contentEncoding": "base64",
-                                              "description": "HMAC-SHA256(key, 'bb-align/frame/v1' 0x00 key_id 0x00 "
-                                                             "payload), 32 bytes; msgpack: bin, JSON: base64"})]
-    payload: Annotated[bytes, BeforeValidator(_b64_if_str), Field(min_length=1), _B64_JSON,
-                       WithJsonSchema({"type": "string", "contentEncoding": "base64",
-                                       "description": "the encoded Frame, in the envelope's own encoding; "
-                                                      "msgpack: bin, JSON: base64"})]
+    mac: Annotated[
+        bytes,
+        BeforeValidator(_b64_if_str),
+        Field(min_length=MAC_BYTES, max_length=MAC_BYTES),
+        _B64_JSON,
+        WithJsonSchema(
+            {
+                "type": "string",
+                "contentEncoding": "base64",
+                "description": "HMAC-SHA256(key, 'bb-align/frame/v1' 0x00 key_id 0x00 "
+                "payload), 32 bytes; msgpack: bin, JSON: base64",
+            }
+        ),
+    ]
+    payload: Annotated[
+        bytes,
+        BeforeValidator(_b64_if_str),
+        Field(min_length=1),
+        _B64_JSON,
+        WithJsonSchema(
+            {
+                "type": "string",
+                "contentEncoding": "base64",
+                "description": "the encoded Frame, in the envelope's own encoding; msgpack: bin, JSON: base64",
+            }
+        ),
+    ]
 
 
 class AlignRequest(_Wire):
@@ -170,12 +205,17 @@ class Result(_Wire):
     ego_stamp: float | None = None
     ego_skew_s: float | None = Field(None, description="peer_stamp - ego_stamp")
     success: bool
-    reason: str | None = Field(None, description="a bb_align.FailureReason value when success is false")
+    reason: str | None = Field(
+        None,
+        description="why not, when success is false: an engine reason (bb_align.engine.FailureReason, e.g. "
+        "too_few_inliers_bv) or a service reason (no_ego_frame, stale_ego_frame)",
+    )
     yaw_deg: float | None = Field(None, description="T_ego_peer's yaw, degrees CCW")
     tx: float | None = Field(None, description="T_ego_peer's x translation, metres")
     ty: float | None = Field(None, description="T_ego_peer's y translation, metres")
     T_ego_peer: list[Annotated[list[float], Field(min_length=4, max_length=4)]] | None = Field(
-        None, min_length=4, max_length=4, description="4x4 row-major, maps peer sensor points into the ego frame")
+        None, min_length=4, max_length=4, description="4x4 row-major, maps peer sensor points into the ego frame"
+    )
     inliers_bv: int = 0
     inliers_box: int = 0
     matches_bv: int = 0
@@ -197,13 +237,27 @@ class Result(_Wire):
 class ErrorBody(_Wire):
     """Why a message was refused (REST error responses, Zenoh query error replies)."""
 
-    error: Literal["too_large", "undecodable", "invalid", "unsupported_media_type", "unauthenticated",
-                   "forbidden", "replayed", "overloaded", "timeout", "unavailable"]
+    error: Literal[
+        "too_large",
+        "undecodable",
+        "invalid",
+        "unsupported_media_type",
+        "unauthenticated",
+        "forbidden",
+        "replayed",
+        "overloaded",
+        "timeout",
+        "unavailable",
+    ]
     detail: str
     field: str | None = Field(None, description="the offending field, dotted path")
     limit: float | int | str | None = Field(None, description="the limit that was exceeded")
 
 
 WIRE_MODELS: dict[str, type[BaseModel]] = {
-    "frame": Frame, "signed": Signed, "align_request": AlignRequest, "result": Result, "error": ErrorBody,
+    "frame": Frame,
+    "signed": Signed,
+    "align_request": AlignRequest,
+    "result": Result,
+    "error": ErrorBody,
 }

@@ -32,12 +32,12 @@ def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> 
     while pos < len(data):
         if pos + 12 > len(data):
             raise invalid(field, f"truncated PNG chunk at byte {pos}")
-        length, ctype = struct.unpack(">I4s", data[pos:pos + 8])
+        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
         end = pos + 12 + length
         if length > _MAX_CHUNK or end > len(data):
             raise invalid(field, f"PNG chunk {ctype!r} at byte {pos} runs past the end of the file")
-        body = data[pos + 8:pos + 8 + length]
-        if zlib.crc32(body, zlib.crc32(ctype)) != struct.unpack(">I", data[end - 4:end])[0]:
+        body = data[pos + 8 : pos + 8 + length]
+        if zlib.crc32(body, zlib.crc32(ctype)) != struct.unpack(">I", data[end - 4 : end])[0]:
             what = ctype.decode("latin-1") if ctype.isalpha() else repr(ctype)
             raise invalid(field, f"PNG {what} checksum mismatch")
         chunks += 1
@@ -71,14 +71,18 @@ def _check_ihdr(body: bytes, size_px: int, limits: Limits, field: str) -> tuple[
     if width > limits.max_image_px or height > limits.max_image_px:
         raise invalid(field, f"image {width}x{height} px exceeds {limits.max_image_px} px", limits.max_image_px)
     if depth != 8 or colour != 0:
-        raise invalid(field, f"PNG must be 8-bit greyscale (bit depth 8, colour type 0), got depth {depth}, "
-                              f"colour type {colour}")
+        raise invalid(
+            field, f"PNG must be 8-bit greyscale (bit depth 8, colour type 0), got depth {depth}, colour type {colour}"
+        )
     if compression != 0 or filtering != 0 or interlace != 0:
-        raise invalid(field, f"PNG compression, filter and interlace methods must be 0 (got {compression}, "
-                              f"{filtering}, {interlace})")
+        raise invalid(
+            field,
+            f"PNG compression, filter and interlace methods must be 0 (got {compression}, {filtering}, {interlace})",
+        )
     if (width, height) != (size_px, size_px):
-        raise invalid(field, f"image is {width}x{height} px but bev.range_m and bev.resolution_m imply "
-                              f"{size_px}x{size_px}")
+        raise invalid(
+            field, f"image is {width}x{height} px but bev.range_m and bev.resolution_m imply {size_px}x{size_px}"
+        )
     return width, height
 
 
@@ -87,19 +91,28 @@ def _check_image_data(idat: list[bytes], total: int, width: int, height: int, li
     if total == 0:
         raise invalid(field, "PNG has no image data (IDAT)")
     if expected / total > limits.max_png_ratio:
-        raise invalid(field, f"{total} bytes of image data cannot hold a {width}x{height} image (ratio "
-                              f"{expected / total:.0f} over {limits.max_png_ratio:g})", limits.max_png_ratio)
+        raise invalid(
+            field,
+            f"{total} bytes of image data cannot hold a {width}x{height} image (ratio "
+            f"{expected / total:.0f} over {limits.max_png_ratio:g})",
+            limits.max_png_ratio,
+        )
     stored_max = expected + 5 * (expected // 16383 + 1) + 6  # deflate's uncompressed blocks plus zlib framing
     if total > stored_max:
-        raise invalid(field, f"{total} bytes of image data for a {width}x{height} image, more than the "
-                              f"{stored_max} an uncompressed one takes", stored_max)
+        raise invalid(
+            field,
+            f"{total} bytes of image data for a {width}x{height} image, more than the "
+            f"{stored_max} an uncompressed one takes",
+            stored_max,
+        )
     inflater = zlib.decompressobj()
     try:
         raw = inflater.decompress(b"".join(idat), expected + 1)  # output bound: a bomb stops here
     except zlib.error as e:
         raise invalid(field, f"corrupt PNG image data: {e}") from None
     if len(raw) != expected or not inflater.eof or inflater.unconsumed_tail or inflater.unused_data:
-        raise invalid(field, f"PNG image data does not inflate to exactly the {expected} bytes its header "
-                              f"implies", expected)
-    if expected and int(np.frombuffer(raw, np.uint8)[::width + 1].max()) > 4:
+        raise invalid(
+            field, f"PNG image data does not inflate to exactly the {expected} bytes its header implies", expected
+        )
+    if expected and int(np.frombuffer(raw, np.uint8)[:: width + 1].max()) > 4:
         raise invalid(field, "PNG row filter types must be 0-4")

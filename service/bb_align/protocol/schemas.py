@@ -12,8 +12,11 @@ def json_schemas() -> dict[str, dict]:
     out = {}
     for name, cls in WIRE_MODELS.items():
         schema = cls.model_json_schema()
-        out[name] = {"$schema": "https://json-schema.org/draft/2020-12/schema",
-                     "$id": f"bb-align/wire/v{SCHEMA_VERSION}/{name}.schema.json", **schema}
+        out[name] = {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "$id": f"bb-align/wire/v{SCHEMA_VERSION}/{name}.schema.json",
+            **schema,
+        }
     return out
 
 

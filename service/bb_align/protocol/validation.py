@@ -21,16 +21,22 @@ def validate_frame(frame: Frame, limits: Limits, where: str = "", now: float | N
 
     Field-level rules (types, ranges, finite numbers, id format, schema version) are already enforced by the
     models; this adds the limits that depend on settings, on the receiver's clock and on the image content."""
-    f = (lambda name: f"{where}.{name}" if where else name)  # noqa: E731
+    f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
     if frame.stamp > limits.max_stamp_s:
         raise invalid(f("stamp"), f"stamp {frame.stamp} s is beyond {limits.max_stamp_s} s", limits.max_stamp_s)
     if now is not None and limits.check_stamp_clock:
         if frame.stamp < now - limits.max_stamp_age_s:
-            raise invalid(f("stamp"), f"stamp is {now - frame.stamp:.3f} s before the receiver's clock, more than "
-                                       f"max_stamp_age_s", limits.max_stamp_age_s)
+            raise invalid(
+                f("stamp"),
+                f"stamp is {now - frame.stamp:.3f} s before the receiver's clock, more than max_stamp_age_s",
+                limits.max_stamp_age_s,
+            )
         if frame.stamp > now + limits.max_stamp_lead_s:
-            raise invalid(f("stamp"), f"stamp is {frame.stamp - now:.3f} s after the receiver's clock, more than "
-                                       f"max_stamp_lead_s", limits.max_stamp_lead_s)
+            raise invalid(
+                f("stamp"),
+                f"stamp is {frame.stamp - now:.3f} s after the receiver's clock, more than max_stamp_lead_s",
+                limits.max_stamp_lead_s,
+            )
     if frame.num_points is not None and frame.num_points > limits.max_points:
         raise invalid(f("num_points"), f"{frame.num_points} points exceed {limits.max_points}", limits.max_points)
     n = image_size_px(BevConfig(range_m=frame.bev.range_m, resolution_m=frame.bev.resolution_m))
@@ -53,13 +59,13 @@ def _check_boxes(frame: Frame, limits: Limits, f) -> None:
     big = np.abs(b[:, :3]) > limits.max_box_distance_m
     if big.any():
         i = int(np.argwhere(big)[0, 0])
-        raise invalid(f(f"boxes.{i}"), f"box centre beyond {limits.max_box_distance_m} m",
-                       limits.max_box_distance_m)
+        raise invalid(f(f"boxes.{i}"), f"box centre beyond {limits.max_box_distance_m} m", limits.max_box_distance_m)
     bad = (b[:, 3:6] <= 0) | (b[:, 3:6] > limits.max_box_size_m)
     if bad.any():
         i = int(np.argwhere(bad)[0, 0])
-        raise invalid(f(f"boxes.{i}"), f"box sizes l, w, h must be in (0, {limits.max_box_size_m}] m",
-                       limits.max_box_size_m)
+        raise invalid(
+            f(f"boxes.{i}"), f"box sizes l, w, h must be in (0, {limits.max_box_size_m}] m", limits.max_box_size_m
+        )
     spin = np.abs(b[:, 6]) > math.tau
     if spin.any():
         i = int(np.argwhere(spin)[0, 0])

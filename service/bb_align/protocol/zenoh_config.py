@@ -30,8 +30,11 @@ class ZenohTls(BaseModel):
     verify_name_on_connect: bool = Field(True, description="the server certificate must name the endpoint host")
 
     def insert_into(self, cfg) -> None:
-        keys = {"root_ca_certificate": self.root_ca_certificate, "listen_certificate": self.certificate,
-                "listen_private_key": self.private_key}
+        keys = {
+            "root_ca_certificate": self.root_ca_certificate,
+            "listen_certificate": self.certificate,
+            "listen_private_key": self.private_key,
+        }
         if self.mtls:
             keys.update(connect_certificate=self.certificate, connect_private_key=self.private_key)
         for k, v in keys.items():
@@ -48,16 +51,25 @@ class ZenohSettings(BaseModel):
 
     enabled: bool = Field(True, description="False: REST only (no Zenoh session is opened)")
     mode: Literal["peer", "client", "router"] = "peer"
-    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
-                              description="endpoints to listen on, e.g. tcp/127.0.0.1:7447 or tls/host:7447")
+    listen: list[str] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        description="endpoints to listen on, e.g. tcp/127.0.0.1:7447 or tls/host:7447",
+    )
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to (routers or peers)")
     multicast_scouting: bool = Field(False, description="find peers by UDP multicast (off: explicit endpoints)")
-    prefix: str = Field("bbalign", pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$",
-                        description="first key-expression chunk(s): <prefix>/frames/<vehicle_id>, ...")
+    prefix: str = Field(
+        "bbalign",
+        pattern=r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$",
+        description="first key-expression chunk(s): <prefix>/frames/<vehicle_id>, ...",
+    )
     tls: ZenohTls = Field(default_factory=ZenohTls, description="certificates for tls/ endpoints")
-    max_message_bytes: int | None = Field(None, ge=1024, description="backstop: Zenoh drops messages far larger "
-                                          "than this (its reassembly limit is set to this + 64 KiB) while "
-                                          "reassembling them (None: Zenoh's default, 1 GiB)")
+    max_message_bytes: int | None = Field(
+        None,
+        ge=1024,
+        description="backstop: Zenoh drops messages far larger "
+        "than this (its reassembly limit is set to this + 64 KiB) while "
+        "reassembling them (None: Zenoh's default, 1 GiB)",
+    )
 
     @field_validator("listen", "connect")
     @classmethod
@@ -80,8 +92,9 @@ class ZenohSettings(BaseModel):
         cfg.insert_json5("connect/exit_on_failure", "false")
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         if self.max_message_bytes is not None:
-            cfg.insert_json5("transport/link/rx/max_message_size",
-                             json.dumps(self.max_message_bytes + _ZENOH_FRAME_OVERHEAD))
+            cfg.insert_json5(
+                "transport/link/rx/max_message_size", json.dumps(self.max_message_bytes + _ZENOH_FRAME_OVERHEAD)
+            )
         if any(e.startswith(("tls/", "quic/")) for e in self.listen + self.connect) or self.tls.mtls:
             self.tls.insert_into(cfg)
         return cfg

@@ -65,11 +65,17 @@ class Readiness(BaseModel):
 
 
 def _errors(*codes: int) -> dict:
-    text = {400: "Undecodable body", 401: "Missing or wrong bearer token, or an unsigned or wrongly signed frame",
-            403: "Frame signed with another vehicle's key", 409: "Replayed frame: (stamp, seq) not newer than the "
-            "last accepted from that sender", 413: "Body too large", 415: "Unsupported media type",
-            422: "Invalid field (named in `field`, with the `limit`)", 503: "Overloaded or shutting down",
-            504: "No result within request_timeout_s"}
+    text = {
+        400: "Undecodable body",
+        401: "Missing or wrong bearer token, or an unsigned or wrongly signed frame",
+        403: "Frame signed with another vehicle's key",
+        409: "Replayed frame: (stamp, seq) not newer than the last accepted from that sender",
+        413: "Body too large",
+        415: "Unsupported media type",
+        422: "Invalid field (named in `field`, with the `limit`)",
+        503: "Overloaded or shutting down",
+        504: "No result within request_timeout_s",
+    }
     return {c: {"model": ErrorBody, "description": text[c]} for c in codes}
 
 
@@ -82,8 +88,9 @@ def _bearer(token: str | None):
             return
         given = request.headers.get("authorization", "").encode("latin-1", "replace")
         if not hmac.compare_digest(given, expected):
-            e = WireError(401, "unauthenticated", "send 'Authorization: Bearer <token>' (auth.rest_token)",
-                          "authorization")
+            e = WireError(
+                401, "unauthenticated", "send 'Authorization: Bearer <token>' (auth.rest_token)", "authorization"
+            )
             e.counted = True  # a refused caller, not a refused frame
             raise e
 
@@ -94,8 +101,13 @@ def _binary_body(model: type[BaseModel], description: str, alt: type[BaseModel] 
     ref = {"$ref": _REF.format(model=model.__name__)}
     if alt is not None:
         ref = {"oneOf": [ref, {"$ref": _REF.format(model=alt.__name__)}]}
-    return {"requestBody": {"required": True, "description": description, "content": {
-        MSGPACK: {"schema": ref}, JSON: {"schema": ref}}}}
+    return {
+        "requestBody": {
+            "required": True,
+            "description": description,
+            "content": {MSGPACK: {"schema": ref}, JSON: {"schema": ref}},
+        }
+    }
 
 
 def _error(e: WireError) -> JSONResponse:
@@ -108,12 +120,16 @@ async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
     """The raw body and its encoding; 415 for other media types, 413 past the limit (read no further)."""
     media = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media not in _MEDIA_TYPES:
-        raise WireError(415, "unsupported_media_type", f"send {MSGPACK} or {JSON}, not {media or 'nothing'}",
-                        "content-type", ", ".join(sorted(_MEDIA_TYPES)))
+        raise WireError(
+            415,
+            "unsupported_media_type",
+            f"send {MSGPACK} or {JSON}, not {media or 'nothing'}",
+            "content-type",
+            ", ".join(sorted(_MEDIA_TYPES)),
+        )
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > max_bytes:
-        raise WireError(413, "too_large", f"{declared} bytes exceed the limit of {max_bytes} bytes", "body",
-                        max_bytes)
+        raise WireError(413, "too_large", f"{declared} bytes exceed the limit of {max_bytes} bytes", "body", max_bytes)
     chunks, size = [], 0
     async for chunk in request.stream():
         size += len(chunk)
@@ -152,9 +168,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if link is not None:
                 await asyncio.to_thread(link.close)
 
-    app = FastAPI(title="bb-align", version=__version__, lifespan=lifespan,
-                  description="Ego-side V2V pose recovery (BB-Align): peers' BV images and boxes in, T_ego_peer "
-                              "out. Wire format: proto_schemas/WIRE.md.")
+    app = FastAPI(
+        title="bb-align",
+        version=__version__,
+        lifespan=lifespan,
+        description="Ego-side V2V pose recovery (BB-Align): peers' BV images and boxes in, T_ego_peer "
+        "out. Wire format: proto_schemas/WIRE.md.",
+    )
     app.state.settings = settings
     app.state.service = service
     app.state.link = None
@@ -169,25 +189,42 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             service.metrics.rejected.labels("rest", e.error).inc()
         return _error(e)
 
-    @app.post("/v1/align", response_model=Result, summary="Align a peer frame now and return T_ego_peer",
-              responses={200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
-                         **_errors(400, 401, 403, 409, 413, 415, 422, 503, 504)},
-              dependencies=guard,
-              openapi_extra=_binary_body(AlignRequest, "An AlignRequest: `peer` and optionally `ego` (else the "
-                                         "cached ego frame nearest in time to the peer's stamp)."))
+    @app.post(
+        "/v1/align",
+        response_model=Result,
+        summary="Align a peer frame now and return T_ego_peer",
+        responses={
+            200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
+            **_errors(400, 401, 403, 409, 413, 415, 422, 503, 504),
+        },
+        dependencies=guard,
+        openapi_extra=_binary_body(
+            AlignRequest,
+            "An AlignRequest: `peer` and optionally `ego` (else the "
+            "cached ego frame nearest in time to the peer's stamp).",
+        ),
+    )
     async def align(request: Request) -> Response:
         received = time.perf_counter()
         data, encoding = await _read_body(request, limits.max_message_bytes)
         req = await asyncio.to_thread(load_align_request, data, limits, encoding, keyring=keyring, now=time.time())
         future: concurrent.futures.Future = concurrent.futures.Future()
-        accepted = service.submit_request(future.set_result, frame=req.peer, ego=req.ego, nbytes=len(data),
-                                          encoding=encoding, door="rest", received=received)
+        accepted = service.submit_request(
+            future.set_result,
+            frame=req.peer,
+            ego=req.ego,
+            nbytes=len(data),
+            encoding=encoding,
+            door="rest",
+            received=received,
+        )
         if not accepted:
-            raise WireError(503, "overloaded", "the request queue is full, retry later", "requests",
-                            settings.max_pending_requests)
+            raise WireError(
+                503, "overloaded", "the request queue is full, retry later", "requests", settings.max_pending_requests
+            )
         try:
             outcome = await asyncio.wait_for(asyncio.wrap_future(future), settings.request_timeout_s)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise WireError(504, "timeout", f"no result within {settings.request_timeout_s} s") from None
         if isinstance(outcome, WireError):
             raise outcome
@@ -197,12 +234,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise outcome
         return _result_response(request, outcome)
 
-    @app.post("/v1/frames", response_model=Accepted, status_code=202,
-              summary="Hand in an ego or peer frame, as if it came over Zenoh",
-              responses=_errors(400, 401, 403, 409, 413, 415, 422, 503), dependencies=guard,
-              openapi_extra=_binary_body(Frame, "A Frame or a Signed frame (required when authentication is on). "
-                                         "The ego id's frames fill the ego cache; others are aligned and their "
-                                         "results published on Zenoh and listed by /v1/peers.", Signed))
+    @app.post(
+        "/v1/frames",
+        response_model=Accepted,
+        status_code=202,
+        summary="Hand in an ego or peer frame, as if it came over Zenoh",
+        responses=_errors(400, 401, 403, 409, 413, 415, 422, 503),
+        dependencies=guard,
+        openapi_extra=_binary_body(
+            Frame,
+            "A Frame or a Signed frame (required when authentication is on). "
+            "The ego id's frames fill the ego cache; others are aligned and their "
+            "results published on Zenoh and listed by /v1/peers.",
+            Signed,
+        ),
+    )
     async def post_frame(request: Request) -> Accepted:
         received = time.perf_counter()
         data, encoding = await _read_body(request, limits.max_message_bytes)
@@ -212,13 +258,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         kind = "ego" if frame.vehicle_id == settings.ego_id else "peer"
         return Accepted(accepted=True, kind=kind, vehicle_id=frame.vehicle_id, seq=frame.seq)
 
-    @app.get("/v1/peers", response_model=dict[str, PeerStatus], summary="Each peer's last result and bandwidth",
-             responses=_errors(401), dependencies=guard)
+    @app.get(
+        "/v1/peers",
+        response_model=dict[str, PeerStatus],
+        summary="Each peer's last result and bandwidth",
+        responses=_errors(401),
+        dependencies=guard,
+    )
     async def peers() -> dict[str, PeerStatus]:
         return service.peers()
 
-    @app.get("/v1/bandwidth", response_model=BandwidthReport, summary="Bytes received per peer and in total",
-             responses=_errors(401), dependencies=guard)
+    @app.get(
+        "/v1/bandwidth",
+        response_model=BandwidthReport,
+        summary="Bytes received per peer and in total",
+        responses=_errors(401),
+        dependencies=guard,
+    )
     async def bandwidth() -> BandwidthReport:
         return service.meter.report()
 
@@ -226,26 +282,39 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def healthz() -> Health:
         return Health(status="ok")
 
-    @app.get("/readyz", response_model=Readiness, summary="Workers running and Zenoh open",
-             responses={503: {"model": Readiness, "description": "Not ready"}})
+    @app.get(
+        "/readyz",
+        response_model=Readiness,
+        summary="Workers running and Zenoh open",
+        responses={503: {"model": Readiness, "description": "Not ready"}},
+    )
     async def readyz() -> JSONResponse:
         link = app.state.link
         zenoh_ok = None if not settings.zenoh.enabled else bool(link is not None and link.is_open)
-        r = Readiness(ready=service.running and zenoh_ok is not False, workers_running=service.running,
-                      zenoh=zenoh_ok, ego_frames=len(service.cache))
+        r = Readiness(
+            ready=service.running and zenoh_ok is not False,
+            workers_running=service.running,
+            zenoh=zenoh_ok,
+            ego_frames=len(service.cache),
+        )
         return JSONResponse(r.model_dump(), status_code=200 if r.ready else 503)
 
-    @app.get("/metrics", summary="Prometheus metrics", response_class=Response, dependencies=guard,
-             responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors(401)})
+    @app.get(
+        "/metrics",
+        summary="Prometheus metrics",
+        response_class=Response,
+        dependencies=guard,
+        responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors(401)},
+    )
     async def metrics() -> Response:
         return Response(service.metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
 
     def openapi() -> dict:
         if app.openapi_schema is None:
-            schema = get_openapi(title=app.title, version=app.version, description=app.description,
-                                 routes=app.routes)
-            _, defs = models_json_schema([(AlignRequest, "validation"), (Frame, "validation"),
-                                          (Signed, "validation")], ref_template=_REF)
+            schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+            _, defs = models_json_schema(
+                [(AlignRequest, "validation"), (Frame, "validation"), (Signed, "validation")], ref_template=_REF
+            )
             schema.setdefault("components", {}).setdefault("schemas", {}).update(defs["$defs"])
             app.openapi_schema = schema
         return app.openapi_schema

@@ -36,7 +36,7 @@ class FrameBytes:
     raw_bev: int  # H x W bytes
 
     @classmethod
-    def of(cls, frame: Frame, total: int, encoding: str = MSGPACK) -> "FrameBytes":
+    def of(cls, frame: Frame, total: int, encoding: str = MSGPACK) -> FrameBytes:
         box_part = [frame.boxes, frame.scores] if frame.scores is not None else frame.boxes
         if encoding == MSGPACK:
             png = len(frame.png)
@@ -104,7 +104,9 @@ class _Tally:
             self.window.popleft()
         in_window = sum(n for _, n in self.window)
         return PeerBandwidth(
-            messages=self.messages, bytes=self.bytes, kbit_s=in_window * 8 / 1000 / window_s,
+            messages=self.messages,
+            bytes=self.bytes,
+            kbit_s=in_window * 8 / 1000 / window_s,
             frames_decoded=self.frames,
             bytes_per_frame=self.frame_bytes / self.frames if self.frames else None,
             by_part=BytesByPart(png=self.png, boxes=self.boxes, header=self.header),
@@ -153,5 +155,7 @@ class BandwidthMeter:
         now = self._clock()
         with self._lock:
             return BandwidthReport(
-                window_s=self.window_s, total=self._total.report(now, self.window_s),
-                peers={p: t.report(now, self.window_s) for p, t in sorted(self._peers.items())})
+                window_s=self.window_s,
+                total=self._total.report(now, self.window_s),
+                peers={p: t.report(now, self.window_s) for p, t in sorted(self._peers.items())},
+            )

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Callable
+from collections.abc import Callable
 
 from bb_align.engine.bev import BevImage
-from bb_align.engine.pipeline import PreparedFrame
+from bb_align.engine.frame import PreparedFrame
 from bb_align.protocol import Frame
 
 
@@ -32,7 +32,7 @@ class EgoEntry:
     def ready(self) -> bool:
         return self._prepared is not None
 
-    def features(self, prepare: Callable[["EgoEntry"], PreparedFrame]) -> PreparedFrame:
+    def features(self, prepare: Callable[[EgoEntry], PreparedFrame]) -> PreparedFrame:
         """The entry's features, computed by the first caller; concurrent callers wait for that result."""
         with self._lock:
             if self._prepared is None:

@@ -1,27 +1,31 @@
-"""``bb-align serve``, ``bb-align demo`` and ``bb-align wire-schemas`` (registered into the main CLI)."""
+"""``bb-align serve`` and ``bb-align wire-schemas`` (registered into the main CLI)."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
 
 def serve(
-    ego_id: Optional[str] = typer.Option(None, help="vehicle id of this car's own frames [env BBALIGN_EGO_ID]"),
-    host: Optional[str] = typer.Option(None, help="REST bind address [127.0.0.1]"),
-    port: Optional[int] = typer.Option(None, help="REST port [8000]"),
-    zenoh_listen: Optional[List[str]] = typer.Option(None, "--zenoh-listen", metavar="ENDPOINT",
-                                                     help="Zenoh endpoint to listen on (repeatable) "
-                                                          "[tcp/127.0.0.1:7447]"),
-    zenoh_connect: Optional[List[str]] = typer.Option(None, "--zenoh-connect", metavar="ENDPOINT",
-                                                      help="Zenoh router/peer to connect to (repeatable)"),
-    zenoh_mode: Optional[str] = typer.Option(None, help="peer | client | router [peer]"),
+    ego_id: str | None = typer.Option(None, help="vehicle id of this car's own frames [env BBALIGN_EGO_ID]"),
+    host: str | None = typer.Option(None, help="REST bind address [127.0.0.1]"),
+    port: int | None = typer.Option(None, help="REST port [8000]"),
+    zenoh_listen: list[str] | None = typer.Option(
+        None, "--zenoh-listen", metavar="ENDPOINT", help="Zenoh endpoint to listen on (repeatable) [tcp/127.0.0.1:7447]"
+    ),
+    zenoh_connect: list[str] | None = typer.Option(
+        None, "--zenoh-connect", metavar="ENDPOINT", help="Zenoh router/peer to connect to (repeatable)"
+    ),
+    zenoh_mode: str | None = typer.Option(None, help="peer | client | router [peer]"),
     no_zenoh: bool = typer.Option(False, "--no-zenoh", help="REST only"),
-    workers: Optional[int] = typer.Option(None, help="engine worker threads [2]"),
-    demo: bool = typer.Option(False, "--demo", help="the embedded demo profile: authentication OFF "
-                              "(= BBALIGN_PROFILE=demo); otherwise frames must be signed (BBALIGN_AUTH__FLEET_KEY)"),
+    workers: int | None = typer.Option(None, help="engine worker threads [2]"),
+    demo: bool = typer.Option(
+        False,
+        "--demo",
+        help="the embedded demo profile: authentication OFF "
+        "(= BBALIGN_PROFILE=demo); otherwise frames must be signed (BBALIGN_AUTH__FLEET_KEY)",
+    ),
     log_level: str = typer.Option("info", help="uvicorn log level"),
 ) -> None:
     """Run the ego-side service: REST and Zenoh doors, ego-frame cache, engine workers (env: BBALIGN_*).
@@ -35,8 +39,9 @@ def serve(
     zenoh = {k: v for k, v in (("listen", zenoh_listen), ("connect", zenoh_connect), ("mode", zenoh_mode)) if v}
     if no_zenoh:
         zenoh["enabled"] = False
-    given = {k: v for k, v in (("ego_id", ego_id), ("host", host), ("port", port), ("workers", workers)) if v
-             is not None}
+    given = {
+        k: v for k, v in (("ego_id", ego_id), ("host", host), ("port", port), ("workers", workers)) if v is not None
+    }
     if demo:
         given["profile"] = "demo"
     try:
@@ -54,20 +59,25 @@ def serve(
 def banner(settings) -> str:
     """Where the service listens, and loudly what is not secured."""
     z, a = settings.zenoh, settings.auth
-    lines = [f"bb-align serve: ego id {settings.ego_id!r}, profile {settings.profile!r}",
-             f"  REST    http://{settings.host}:{settings.port}  (docs /docs, /metrics, /readyz)"
-             + ("; bearer token required" if a.rest_token is not None else "")]
+    lines = [
+        f"bb-align serve: ego id {settings.ego_id!r}, profile {settings.profile!r}",
+        f"  REST    http://{settings.host}:{settings.port}  (docs /docs, /metrics, /readyz)"
+        + ("; bearer token required" if a.rest_token is not None else ""),
+    ]
     if z.enabled:
         p = z.prefix
-        lines += [f"  Zenoh   {z.mode} listening on {', '.join(z.listen) or 'nothing'}; connect "
-                  f"{', '.join(z.connect) or 'nothing'}; multicast scouting {'on' if z.multicast_scouting else 'off'}",
-                  f"  keys    {p}/frames/<vehicle_id> in, {p}/poses/{settings.ego_id}/<peer_id> out, "
-                  f"queryable {p}/align/{settings.ego_id}"]
+        lines += [
+            f"  Zenoh   {z.mode} listening on {', '.join(z.listen) or 'nothing'}; connect "
+            f"{', '.join(z.connect) or 'nothing'}; multicast scouting {'on' if z.multicast_scouting else 'off'}",
+            f"  keys    {p}/frames/<vehicle_id> in, {p}/poses/{settings.ego_id}/<peer_id> out, "
+            f"queryable {p}/align/{settings.ego_id}",
+        ]
     else:
         lines.append("  Zenoh   disabled")
     if a.mode == "hmac":
         keys = (["fleet key"] if a.fleet_key is not None else []) + [f"{len(a.peer_keys)} peer key(s)"] * bool(
-            a.peer_keys)
+            a.peer_keys
+        )
         lines.append(f"  auth    frames must be signed (HMAC-SHA256: {', '.join(keys)}); replays refused")
     for warning in settings.security_warnings():
         lines.append(f"  !!! {warning}")
@@ -85,36 +95,14 @@ def run_server(settings, log_level: str = "info") -> None:
             super().handle_exit(sig, frame)
             self._captured_signals.clear()
 
-    config = uvicorn.Config(create_app(settings), host=settings.host, port=settings.port, log_level=log_level,
-                            timeout_graceful_shutdown=int(settings.shutdown_timeout_s))
+    config = uvicorn.Config(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        log_level=log_level,
+        timeout_graceful_shutdown=int(settings.shutdown_timeout_s),
+    )
     _Server(config).run()
-
-
-def demo(
-    connect: List[str] = typer.Option(["tcp/127.0.0.1:7447"], "--connect", metavar="ENDPOINT",
-                                      help="the service's Zenoh endpoint (repeatable)"),
-    ego_id: str = typer.Option("ego", help="the service's ego id (the simulated agent 0 publishes under it)"),
-    agents: int = typer.Option(2, min=2, max=8, help="cars in the scene (agent 0 is the ego)"),
-    frames: int = typer.Option(10, min=1, max=500, help="frames to drive"),
-    seed: int = typer.Option(0, help="scene seed"),
-    distance_m: Optional[float] = typer.Option(30.0, help="spacing between the cars (None: drawn)"),
-    rate_hz: float = typer.Option(0.0, min=0, help="publish rate; 0: wait for each frame's results first"),
-    timeout_s: float = typer.Option(30.0, min=0.1, help="longest wait for one frame's results"),
-    prefix: str = typer.Option("bbalign", help="Zenoh key prefix"),
-    range_m: Optional[float] = typer.Option(None, help="BV half width sent by the cars (default: engine's)"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="also write every row and the summary as JSON"),
-    plot: Optional[Path] = typer.Option(None, help="write a PNG of the errors and latencies per frame"),
-    key: Optional[str] = typer.Option(None, envvar="BBALIGN_AUTH__FLEET_KEY", show_default=False,
-                                      help="fleet key to sign the frames with (a service not in --demo needs it)"),
-) -> None:
-    """Drive a simulated N-car scene through a running service over Zenoh; table of true vs recovered poses."""
-    from bb_align.lab.demo import run_demo
-
-    summary = run_demo(connect=connect, ego_id=ego_id, n_agents=agents, n_frames=frames, seed=seed,
-                       distance_m=distance_m, rate_hz=rate_hz, timeout_s=timeout_s, prefix=prefix,
-                       range_m=range_m, json_out=json_out, plot=plot, key=key)
-    if summary["results"] == 0:
-        raise typer.Exit(1)
 
 
 def wire_schemas(
@@ -128,9 +116,5 @@ def wire_schemas(
 
 
 def register(app: typer.Typer) -> None:
-    from bb_align.lab.soak import soak
-
     app.command()(serve)
-    app.command()(demo)
     app.command("wire-schemas")(wire_schemas)
-    app.command()(soak)

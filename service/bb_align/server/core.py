@@ -22,12 +22,14 @@ import dataclasses
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
+from enum import Enum
 
 import numpy as np
 
-from bb_align.engine.pipeline import Aligner, PreparedFrame
-from bb_align.engine.result import AlignResult, FailureReason
+from bb_align.engine.frame import PreparedFrame
+from bb_align.engine.pipeline import Aligner
+from bb_align.engine.result import AlignResult
 from bb_align.protocol import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, to_json
 
 from .bandwidth import BandwidthMeter, FrameBytes
@@ -38,6 +40,16 @@ from .scheduler import Intake, Job, Scheduler
 from .settings import Settings
 
 log = logging.getLogger("bb_align.server")
+
+
+class ServiceReason(str, Enum):
+    """Why the service could not align a peer frame at all (Result.reason; the engine's own reasons are
+    bb_align.engine.FailureReason values)."""
+
+    no_ego_frame = "no_ego_frame"  # no ego frame cached yet
+    stale_ego_frame = "stale_ego_frame"  # no cached ego frame within max_ego_skew_s of the peer frame
+
+
 _EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
 UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
 STREAM, REQUEST = "stream", "request"  # replay channels
@@ -97,14 +109,25 @@ class AlignService:
         self.cache = EgoCache(settings.ego_cache_size)
         self.keyring = settings.auth.keyring()
         # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
-        self.scheduler = Scheduler(settings.peer_queue_depth, settings.max_pending_requests,
-                                   priority=frozenset({settings.ego_id}))
+        self.scheduler = Scheduler(
+            settings.peer_queue_depth, settings.max_pending_requests, priority=frozenset({settings.ego_id})
+        )
         self.intake = Intake(limits.intake_queue, limits.intake_bytes)
         self.meter = BandwidthMeter(settings.bandwidth_window_s)
-        self.peer_table = PeerTable(limits.max_peers, limits.peer_idle_s, reserved=settings.ego_id,
-                                    refuse_replays=self.keyring.required, on_evict=self._forget)
-        self.metrics = Metrics(self.meter.report, lambda: len(self.cache), self.scheduler.pending,
-                               lambda: len(self.peer_table), lambda: len(self.intake))
+        self.peer_table = PeerTable(
+            limits.max_peers,
+            limits.peer_idle_s,
+            reserved=settings.ego_id,
+            refuse_replays=self.keyring.required,
+            on_evict=self._forget,
+        )
+        self.metrics = Metrics(
+            self.meter.report,
+            lambda: len(self.cache),
+            self.scheduler.pending,
+            lambda: len(self.peer_table),
+            lambda: len(self.intake),
+        )
         self.publishers: list[Callable[[Result], None]] = []
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
@@ -159,19 +182,29 @@ class AlignService:
         trusted); cheap enough for a Zenoh callback. False when the intake is closed."""
         return self._to_intake(Job(sender, time.perf_counter(), door, data=data, nbytes=len(data)))
 
-    def submit_query(self, reply: Callable[[object], None], data: bytes, door: str = "zenoh",
-                     refused: WireError | None = None) -> bool:
+    def submit_query(
+        self, reply: Callable[[object], None], data: bytes, door: str = "zenoh", refused: WireError | None = None
+    ) -> bool:
         """A raw query payload to align and answer through ``reply`` (called once, with a Result or an
         exception); ``refused``: the door already knows the answer is this error."""
-        job = Job("", time.perf_counter(), door, data=data, nbytes=len(data), reply=reply,
-                  meta={"refused": refused} if refused is not None else {})
+        job = Job(
+            "",
+            time.perf_counter(),
+            door,
+            data=data,
+            nbytes=len(data),
+            reply=reply,
+            meta={"refused": refused} if refused is not None else {},
+        )
         return self._to_intake(job)
 
-    def submit_frame(self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest",
-                     received: float | None = None) -> bool:
+    def submit_frame(
+        self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest", received: float | None = None
+    ) -> bool:
         """A checked stream frame (REST /v1/frames). Raises WireError when its sender is refused."""
-        job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, encoding=encoding,
-                  nbytes=nbytes)
+        job = Job(
+            frame.vehicle_id, received or time.perf_counter(), door, frame=frame, encoding=encoding, nbytes=nbytes
+        )
         try:
             self._admit(job, STREAM)
         except WireError as e:
@@ -179,13 +212,28 @@ class AlignService:
             raise
         return self._accept_stream(job)
 
-    def submit_request(self, reply: Callable[[object], None], *, frame: Frame, ego: Frame | None = None,
-                       nbytes: int = 0, encoding: str = MSGPACK, door: str = "rest",
-                       received: float | None = None) -> bool:
+    def submit_request(
+        self,
+        reply: Callable[[object], None],
+        *,
+        frame: Frame,
+        ego: Frame | None = None,
+        nbytes: int = 0,
+        encoding: str = MSGPACK,
+        door: str = "rest",
+        received: float | None = None,
+    ) -> bool:
         """A checked frame (REST /v1/align) to align and answer through ``reply``. Raises WireError when its
         sender is refused; False when the request queue is full (the caller answers 'overloaded')."""
-        job = Job(frame.vehicle_id, received or time.perf_counter(), door, frame=frame, ego=ego,
-                  encoding=encoding, reply=reply)
+        job = Job(
+            frame.vehicle_id,
+            received or time.perf_counter(),
+            door,
+            frame=frame,
+            ego=ego,
+            encoding=encoding,
+            reply=reply,
+        )
         job.nbytes = len(_encode(frame, encoding))  # the peer frame alone, as it would go on the air
         try:
             self._admit(job, REQUEST)
@@ -202,8 +250,16 @@ class AlignService:
                     _answer(job, Unavailable("the service is shutting down"))
                 return False
             if old.reply is not None:
-                _answer(old, WireError(503, "overloaded", "the intake queue is full, retry later", "intake",
-                                       self.settings.limits.intake_queue))
+                _answer(
+                    old,
+                    WireError(
+                        503,
+                        "overloaded",
+                        "the intake queue is full, retry later",
+                        "intake",
+                        self.settings.limits.intake_queue,
+                    ),
+                )
                 self.metrics.rejected.labels(old.door, "overloaded").inc()
             elif old.sender in self.peer_table:
                 self._count_drop(old.sender, "intake_dropped")
@@ -230,16 +286,28 @@ class AlignService:
                 job.data = None
                 if job.reply is None:
                     if job.frame.vehicle_id != job.sender:
-                        raise WireError(422, "invalid", f"vehicle_id {job.frame.vehicle_id!r} differs from the "
-                                        f"key's {job.sender!r}", "vehicle_id")
+                        raise WireError(
+                            422,
+                            "invalid",
+                            f"vehicle_id {job.frame.vehicle_id!r} differs from the key's {job.sender!r}",
+                            "vehicle_id",
+                        )
                     self._admit(job, STREAM)
                     self._accept_stream(job)
                 else:
                     job.sender = job.frame.vehicle_id
                     self._admit(job, REQUEST)
                     if not self._queue_request(job):
-                        _answer(job, WireError(503, "overloaded", "the request queue is full, retry later",
-                                               "requests", self.settings.max_pending_requests))
+                        _answer(
+                            job,
+                            WireError(
+                                503,
+                                "overloaded",
+                                "the request queue is full, retry later",
+                                "requests",
+                                self.settings.max_pending_requests,
+                            ),
+                        )
             except WireError as e:
                 self._refused(job, e)
                 if job.reply is not None:
@@ -275,11 +343,13 @@ class AlignService:
         except WireError:
             self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "failed", e.status.failed + 1))
             raise
-        self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "frames_accepted",
-                                                                    e.status.frames_accepted + 1))
+        self.peer_table.update(
+            frame.vehicle_id, lambda e: setattr(e.status, "frames_accepted", e.status.frames_accepted + 1)
+        )
         # Features of the newest ego frame, computed when a worker is free (or by the first peer needing them).
-        self.scheduler.put_frame(Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features",
-                                     meta={"entry": entry}), depth=1)
+        self.scheduler.put_frame(
+            Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features", meta={"entry": entry}), depth=1
+        )
         return True
 
     def _queue_frame(self, job: Job) -> bool:
@@ -287,8 +357,7 @@ class AlignService:
         if dropped is job:  # closed
             self._count_drop(job.sender)
             return False
-        self.peer_table.update(job.sender, lambda e: setattr(e.status, "frames_accepted",
-                                                              e.status.frames_accepted + 1))
+        self.peer_table.update(job.sender, lambda e: setattr(e.status, "frames_accepted", e.status.frames_accepted + 1))
         if dropped is not None:
             self._count_drop(dropped.sender)
         return True
@@ -358,9 +427,19 @@ class AlignService:
         """The result of a stream frame whose processing raised: success=False, never a pose."""
         f = job.frame
         reason = "invalid_frame" if isinstance(error, WireError) else "internal_error"
-        return self._finish(job, Result(ego_id=self.settings.ego_id, peer_id=f.vehicle_id, peer_seq=f.seq,
-                                        peer_stamp=f.stamp, success=False, reason=reason,
-                                        notes=[f"{type(error).__name__}: {error}"[:300]], bytes_received=job.nbytes))
+        return self._finish(
+            job,
+            Result(
+                ego_id=self.settings.ego_id,
+                peer_id=f.vehicle_id,
+                peer_seq=f.seq,
+                peer_stamp=f.stamp,
+                success=False,
+                reason=reason,
+                notes=[f"{type(error).__name__}: {error}"[:300]],
+                bytes_received=job.nbytes,
+            ),
+        )
 
     def _prepare_entry(self, entry) -> PreparedFrame:
         return self.aligner.warm(self._prepare(entry.frame, "prepare_ego", entry.bev))
@@ -370,8 +449,9 @@ class AlignService:
         bev = bev if bev is not None else frame.bev_image(self.settings.limits)
         t_png = (time.perf_counter() - t0) * 1e3
         prepared = self.aligner.prepare(bev, frame.boxes_array())
-        prepared = dataclasses.replace(prepared, num_points=frame.num_points,
-                                       timings_ms={"decode_png": t_png, **prepared.timings_ms})
+        prepared = dataclasses.replace(
+            prepared, num_points=frame.num_points, timings_ms={"decode_png": t_png, **prepared.timings_ms}
+        )
         self.metrics.engine.labels(step).observe(time.perf_counter() - t0)
         return prepared
 
@@ -381,9 +461,15 @@ class AlignService:
         fb = FrameBytes.of(peer, job.nbytes, job.encoding)
         self.meter.record_frame(peer.vehicle_id, fb)
         timings = {"queue_wait": (time.perf_counter() - job.received) * 1e3}
-        base = dict(ego_id=s.ego_id, peer_id=peer.vehicle_id, peer_seq=peer.seq, peer_stamp=peer.stamp,
-                    bytes_received=fb.total, raw_points_bytes=fb.raw_points,
-                    ratio_vs_points=fb.total / fb.raw_points if fb.raw_points else None)
+        base = dict(
+            ego_id=s.ego_id,
+            peer_id=peer.vehicle_id,
+            peer_seq=peer.seq,
+            peer_stamp=peer.stamp,
+            bytes_received=fb.total,
+            raw_points_bytes=fb.raw_points,
+            ratio_vs_points=fb.total / fb.raw_points if fb.raw_points else None,
+        )
 
         newest_ego = max(self.cache.stamps(), default=None)
         if job.ego is None and newest_ego is not None and newest_ego >= peer.stamp:
@@ -417,14 +503,24 @@ class AlignService:
         s = self.settings
         entry = self.cache.nearest(peer.stamp)
         if entry is None:
-            return self._finish(job, Result(**base, success=False, reason=FailureReason.no_ego_frame.value,
-                                            timings_ms=timings))
+            return self._finish(
+                job, Result(**base, success=False, reason=ServiceReason.no_ego_frame.value, timings_ms=timings)
+            )
         skew = peer.stamp - entry.stamp
         if abs(skew) > s.max_ego_skew_s:
-            return self._finish(job, Result(
-                **base, ego_seq=entry.frame.seq, ego_stamp=entry.stamp, ego_skew_s=skew, success=False,
-                reason=FailureReason.stale_ego_frame.value, timings_ms=timings,
-                notes=[f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s"]))
+            return self._finish(
+                job,
+                Result(
+                    **base,
+                    ego_seq=entry.frame.seq,
+                    ego_stamp=entry.stamp,
+                    ego_skew_s=skew,
+                    success=False,
+                    reason=ServiceReason.stale_ego_frame.value,
+                    timings_ms=timings,
+                    notes=[f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s"],
+                ),
+            )
         if not wait:
             return entry.frame, None
         if not entry.ready and s.prefer_prepared_ego:
@@ -466,8 +562,21 @@ def _encode(frame: Frame, encoding: str) -> bytes:
 
 def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[str, float]) -> Result:
     T = np.asarray(res.T_ego_peer, dtype=float)
-    return Result(**base, success=res.success, reason=res.reason, yaw_deg=res.yaw_deg, tx=res.tx, ty=res.ty,
-                  T_ego_peer=T.tolist(), inliers_bv=res.inliers_bv, inliers_box=res.inliers_box,
-                  matches_bv=res.matches_bv, box_pairs=res.box_pairs, confidence=res.confidence,
-                  stage2_applied=res.stage2_applied, prior_used=prior_used, notes=list(res.notes),
-                  timings_ms={k: float(v) for k, v in timings.items()})
+    return Result(
+        **base,
+        success=res.success,
+        reason=res.reason,
+        yaw_deg=res.yaw_deg,
+        tx=res.tx,
+        ty=res.ty,
+        T_ego_peer=T.tolist(),
+        inliers_bv=res.inliers_bv,
+        inliers_box=res.inliers_box,
+        matches_bv=res.matches_bv,
+        box_pairs=res.box_pairs,
+        confidence=res.confidence,
+        stage2_applied=res.stage2_applied,
+        prior_used=prior_used,
+        notes=list(res.notes),
+        timings_ms={k: float(v) for k, v in timings.items()},
+    )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -22,12 +22,11 @@ class _BandwidthCollector:
         rep = self._report()
         msgs = CounterMetricFamily("bbalign_messages", "Messages received per peer", labels=["peer"])
         byts = CounterMetricFamily("bbalign_bytes_received", "Bytes received per peer", labels=["peer"])
-        parts = CounterMetricFamily("bbalign_frame_bytes", "Bytes of decoded frames by part",
-                                    labels=["peer", "part"])
-        rate = GaugeMetricFamily("bbalign_bandwidth_kbit_s", "Receive rate over the sliding window",
-                                 labels=["peer"])
-        ratio = GaugeMetricFamily("bbalign_ratio_vs_points", "Frame bytes / raw point bytes (16 B/point)",
-                                  labels=["peer"])
+        parts = CounterMetricFamily("bbalign_frame_bytes", "Bytes of decoded frames by part", labels=["peer", "part"])
+        rate = GaugeMetricFamily("bbalign_bandwidth_kbit_s", "Receive rate over the sliding window", labels=["peer"])
+        ratio = GaugeMetricFamily(
+            "bbalign_ratio_vs_points", "Frame bytes / raw point bytes (16 B/point)", labels=["peer"]
+        )
         for peer, bw in rep.peers.items():
             msgs.add_metric([peer], bw.messages)
             byts.add_metric([peer], bw.bytes)
@@ -40,27 +39,49 @@ class _BandwidthCollector:
 
 
 class Metrics:
-    def __init__(self, bandwidth: Callable[[], BandwidthReport], ego_frames: Callable[[], int],
-                 queued: Callable[[], int], peers: Callable[[], int] = lambda: 0,
-                 intake: Callable[[], int] = lambda: 0):
+    def __init__(
+        self,
+        bandwidth: Callable[[], BandwidthReport],
+        ego_frames: Callable[[], int],
+        queued: Callable[[], int],
+        peers: Callable[[], int] = lambda: 0,
+        intake: Callable[[], int] = lambda: 0,
+    ):
         self.registry = r = CollectorRegistry(auto_describe=True)
         self.frames = Counter("bbalign_frames_received", "Frames received", ["door", "kind"], registry=r)
-        self.dropped = Counter("bbalign_frames_dropped", "Frames never run: replaced by a newer one (latest-only "
-                               "queues), pushed out of the full intake, or queued at shutdown; peer "
-                               "'(unverified)': before the gate checked them", ["peer"], registry=r)
-        self.rejected = Counter("bbalign_frames_rejected", "Messages refused, by error (too_large, undecodable, "
-                                "invalid, unauthenticated, forbidden, replayed, overloaded, ...)",
-                                ["door", "error"], registry=r)
-        self.alignments = Counter("bbalign_alignments", "Alignments run, by outcome (success or reason)",
-                                  ["peer", "outcome"], registry=r)
-        self.latency = Histogram("bbalign_result_latency_seconds", "Message received -> result ready",
-                                 ["door"], buckets=_LATENCY_BUCKETS, registry=r)
-        self.engine = Histogram("bbalign_engine_seconds", "Engine time by step", ["step"],
-                                buckets=_LATENCY_BUCKETS, registry=r)
+        self.dropped = Counter(
+            "bbalign_frames_dropped",
+            "Frames never run: replaced by a newer one (latest-only "
+            "queues), pushed out of the full intake, or queued at shutdown; peer "
+            "'(unverified)': before the gate checked them",
+            ["peer"],
+            registry=r,
+        )
+        self.rejected = Counter(
+            "bbalign_frames_rejected",
+            "Messages refused, by error (too_large, undecodable, "
+            "invalid, unauthenticated, forbidden, replayed, overloaded, ...)",
+            ["door", "error"],
+            registry=r,
+        )
+        self.alignments = Counter(
+            "bbalign_alignments", "Alignments run, by outcome (success or reason)", ["peer", "outcome"], registry=r
+        )
+        self.latency = Histogram(
+            "bbalign_result_latency_seconds",
+            "Message received -> result ready",
+            ["door"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.engine = Histogram(
+            "bbalign_engine_seconds", "Engine time by step", ["step"], buckets=_LATENCY_BUCKETS, registry=r
+        )
         Gauge("bbalign_ego_cache_frames", "Ego frames in the cache", registry=r).set_function(ego_frames)
         Gauge("bbalign_queued_jobs", "Frames and requests waiting for a worker", registry=r).set_function(queued)
-        Gauge("bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)",
-              registry=r).set_function(peers)
+        Gauge(
+            "bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)", registry=r
+        ).set_function(peers)
         Gauge("bbalign_intake_messages", "Raw messages waiting for the gate", registry=r).set_function(intake)
         r.register(_BandwidthCollector(bandwidth))
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from pydantic import BaseModel, Field
 
@@ -25,13 +25,20 @@ from .bandwidth import PeerBandwidth
 class PeerStatus(BaseModel):
     last_result: Result | None = None
     frames_accepted: int = Field(0, description="stream frames that passed the validator and were queued")
-    frames_dropped: int = Field(0, description="accepted stream frames replaced by a newer one (latest-only) "
-                                "or still queued at shutdown")
-    intake_dropped: int = Field(0, description="messages pushed out of the full intake before the gate "
-                                "checked them (while this sender was tracked)")
+    frames_dropped: int = Field(
+        0, description="accepted stream frames replaced by a newer one (latest-only) or still queued at shutdown"
+    )
+    intake_dropped: int = Field(
+        0,
+        description="messages pushed out of the full intake before the gate "
+        "checked them (while this sender was tracked)",
+    )
     results: int = Field(0, description="results produced for this sender's frames (streams and requests)")
-    failed: int = Field(0, description="accepted frames whose processing raised (logged; their result says "
-                        "invalid_frame or internal_error)")
+    failed: int = Field(
+        0,
+        description="accepted frames whose processing raised (logged; their result says "
+        "invalid_frame or internal_error)",
+    )
     bandwidth: PeerBandwidth | None = None
 
 
@@ -44,8 +51,16 @@ class _Entry:
 
 
 class PeerTable:
-    def __init__(self, max_peers: int, idle_s: float, *, reserved: str, refuse_replays: bool,
-                 on_evict: Callable[[str, _Entry], None] = lambda vid, entry: None, clock=time.monotonic):
+    def __init__(
+        self,
+        max_peers: int,
+        idle_s: float,
+        *,
+        reserved: str,
+        refuse_replays: bool,
+        on_evict: Callable[[str, _Entry], None] = lambda vid, entry: None,
+        clock=time.monotonic,
+    ):
         self.max_peers, self.idle_s, self.reserved = max_peers, idle_s, reserved
         self.refuse_replays = refuse_replays
         self._on_evict = on_evict
@@ -63,16 +78,26 @@ class PeerTable:
                 evicted = self._evict_idle(now)
                 if frame.vehicle_id != self.reserved and self._count() >= self.max_peers:
                     self._notify(evicted)
-                    raise WireError(503, "overloaded", f"already tracking {self.max_peers} peers, none idle for "
-                                    f"{self.idle_s} s", "vehicle_id", self.max_peers)
+                    raise WireError(
+                        503,
+                        "overloaded",
+                        f"already tracking {self.max_peers} peers, none idle for {self.idle_s} s",
+                        "vehicle_id",
+                        self.max_peers,
+                    )
                 entry = self._entries[frame.vehicle_id] = _Entry(now)
             key = (frame.stamp, frame.seq)
             newest = entry.newest.get(channel)
             if self.refuse_replays and newest is not None and key <= newest:
                 self._notify(evicted)
-                raise WireError(409, "replayed", f"(stamp, seq) = ({frame.stamp}, {frame.seq}) is not newer than "
-                                f"the last accepted from {frame.vehicle_id!r} ({newest[0]}, {newest[1]})",
-                                "stamp", newest[0])
+                raise WireError(
+                    409,
+                    "replayed",
+                    f"(stamp, seq) = ({frame.stamp}, {frame.seq}) is not newer than "
+                    f"the last accepted from {frame.vehicle_id!r} ({newest[0]}, {newest[1]})",
+                    "stamp",
+                    newest[0],
+                )
             entry.newest[channel] = max(key, newest) if newest is not None else key
             entry.last_seen = now
         self._notify(evicted)

@@ -34,10 +34,13 @@ class AuthSettings(BaseModel):
 
     mode: Literal["hmac", "off"] = Field("hmac", description="hmac: every frame must be signed; off: no checks")
     fleet_key: SecretStr | None = Field(None, description=f"key shared by the fleet (key id {FLEET_KEY_ID!r})")
-    peer_keys: dict[str, SecretStr] = Field(default_factory=dict, description="vehicle id -> its own key; a frame "
-                                            "signed with one must carry that vehicle id")
-    rest_token: SecretStr | None = Field(None, description="REST: every /v1 call and /metrics need "
-                                         "'Authorization: Bearer <token>'")
+    peer_keys: dict[str, SecretStr] = Field(
+        default_factory=dict,
+        description="vehicle id -> its own key; a frame signed with one must carry that vehicle id",
+    )
+    rest_token: SecretStr | None = Field(
+        None, description="REST: every /v1 call and /metrics need 'Authorization: Bearer <token>'"
+    )
 
     @field_validator("fleet_key", "rest_token")
     @classmethod
@@ -74,7 +77,8 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="BBALIGN_", env_nested_delimiter="__", extra="forbid")
 
     profile: Literal["vehicle", "demo"] = Field(
-        "vehicle", description="demo: the embedded demo (authentication off, loopback); vehicle: secure defaults")
+        "vehicle", description="demo: the embedded demo (authentication off, loopback); vehicle: secure defaults"
+    )
     ego_id: str = Field("ego", pattern=VEHICLE_ID_PATTERN, description="vehicle id of this car's own frames")
     host: str = Field("127.0.0.1", description="REST bind address (loopback by default)")
     port: int = Field(8000, ge=0, le=65535, description="REST port (0: any free port)")
@@ -82,26 +86,32 @@ class Settings(BaseSettings):
     auth: AuthSettings = Field(default_factory=AuthSettings)
     align: AlignConfig = Field(default_factory=AlignConfig)
     use_pose_prior: bool = Field(
-        True, description="when both frames carry a reported pose, gate descriptor matches by it (align.prior "
-        "tolerances, 10 m / 10 deg by default); a wrong report then fails the alignment instead of biasing it")
+        True,
+        description="when both frames carry a reported pose, gate descriptor matches by it (align.prior "
+        "tolerances, 10 m / 10 deg by default); a wrong report then fails the alignment instead of biasing it",
+    )
     limits: Limits = Field(default_factory=Limits)
     ego_cache_size: int = Field(10, ge=1, le=1000, description="K: last ego frames kept with their features")
     prefer_prepared_ego: bool = Field(
-        False, description="align against an ego frame whose features are ready when one is within "
+        False,
+        description="align against an ego frame whose features are ready when one is within "
         "max_ego_skew_s, rather than preparing the nearest (about halves the ego work at 10 Hz under load; the "
-        "result names the ego frame used). Off: the nearest ego frame in time, always")
+        "result names the ego frame used). Off: the nearest ego frame in time, always",
+    )
     max_ego_skew_s: float = Field(0.15, ge=0, description="a peer frame needs an ego frame this close in time")
     workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
-    peer_queue_depth: int = Field(1, ge=1, le=64,
-                                  description="frames waiting per peer; older ones are dropped (1 = latest only)")
-    max_pending_requests: int = Field(8, ge=1, le=1024,
-                                      description="REST /v1/align and Zenoh queries waiting for a worker")
+    peer_queue_depth: int = Field(
+        1, ge=1, le=64, description="frames waiting per peer; older ones are dropped (1 = latest only)"
+    )
+    max_pending_requests: int = Field(
+        8, ge=1, le=1024, description="REST /v1/align and Zenoh queries waiting for a worker"
+    )
     request_timeout_s: float = Field(30.0, gt=0, description="REST /v1/align gives up (504) after this")
     shutdown_timeout_s: float = Field(30.0, gt=0, description="SIGTERM: longest wait for in-flight work")
     bandwidth_window_s: float = Field(5.0, gt=0, description="sliding window of the kbit/s rates")
 
     @model_validator(mode="after")
-    def _demo_profile_turns_auth_off(self) -> "Settings":
+    def _demo_profile_turns_auth_off(self) -> Settings:
         if self.profile == "demo":
             self.auth = self.auth.model_copy(update={"mode": "off"})
         if self.zenoh.max_message_bytes is None:  # Zenoh's own reassembly limit backs up the door's size check
@@ -111,9 +121,11 @@ class Settings(BaseSettings):
     def startup_problem(self) -> str | None:
         """Why the service must not start with these settings (None: fine)."""
         if self.auth.mode == "hmac" and not self.auth.has_keys:
-            return ("authentication is on (auth.mode='hmac') but no key is configured: set "
-                    "BBALIGN_AUTH__FLEET_KEY (or BBALIGN_AUTH__PEER_KEYS), or run the embedded demo without "
-                    "authentication (bb-align serve --demo, BBALIGN_PROFILE=demo)")
+            return (
+                "authentication is on (auth.mode='hmac') but no key is configured: set "
+                "BBALIGN_AUTH__FLEET_KEY (or BBALIGN_AUTH__PEER_KEYS), or run the embedded demo without "
+                "authentication (bb-align serve --demo, BBALIGN_PROFILE=demo)"
+            )
         return None
 
     def security_warnings(self) -> list[str]:
@@ -129,8 +141,15 @@ class Settings(BaseSettings):
             out.append("NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION: " + ", ".join(exposed))
         if self.host not in ("127.0.0.1", "localhost", "::1") and self.auth.rest_token is None:
             out.append("REST is reachable beyond loopback without a bearer token (auth.rest_token)")
-        plain = [e for e in self.zenoh.listen + self.zenoh.connect if not _loopback_endpoint(e)
-                 and not e.startswith(("tls/", "quic/"))] if self.zenoh.enabled else []
+        plain = (
+            [
+                e
+                for e in self.zenoh.listen + self.zenoh.connect
+                if not _loopback_endpoint(e) and not e.startswith(("tls/", "quic/"))
+            ]
+            if self.zenoh.enabled
+            else []
+        )
         if plain:
             out.append("Zenoh traffic beyond loopback is not encrypted (use tls/ endpoints): " + ", ".join(plain))
         return out

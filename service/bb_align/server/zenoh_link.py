@@ -78,11 +78,13 @@ class ZenohLink:
     def _on_query(self, query: zenoh.Query) -> None:
         payload = query.payload
         size, limit = (len(payload) if payload is not None else 0), self.settings.limits.max_message_bytes
-        refused = WireError(413, "too_large", f"{size} bytes exceed the limit of {limit} bytes", "message",
-                            limit) if size > limit else None  # answered by the gate, never copied
+        refused = (
+            WireError(413, "too_large", f"{size} bytes exceed the limit of {limit} bytes", "message", limit)
+            if size > limit
+            else None
+        )  # answered by the gate, never copied
         data = payload.to_bytes() if payload is not None and refused is None else b""
-        self.service.submit_query(lambda outcome: self._reply(query, outcome), data, door="zenoh",
-                                  refused=refused)
+        self.service.submit_query(lambda outcome: self._reply(query, outcome), data, door="zenoh", refused=refused)
 
     # ---- worker side -----------------------------------------------------------------------------------------
     def _reply(self, query: zenoh.Query, outcome: object) -> None:

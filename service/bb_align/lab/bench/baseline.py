@@ -40,10 +40,8 @@ from bb_align.engine.geometry import kabsch_2d, se2, se2_params, se3_from_se2
 from bb_align.engine.loggabor import fft_shape
 
 RANSAC_ITERATIONS = 10_000  # the reference's fixed count
-BOX_MIN_SAMPLE_DIST_M = 1.0  # two corners closer than this do not define a rotation
 # box.apply = "auto": a box correction this large is checked by refining again from it, and kept when the lit
 # pixels then overlap better by this much (the engine's rule, docs/engine.md).
-BOX_VERIFY_M, BOX_VERIFY_DEG, BOX_BETTER_FITNESS = 0.2, 0.2, 0.01
 # An even J puts every sample of the unrotated window (and of the quarter turn) exactly half-way between two
 # pixels. OpenCV's nearest-neighbour warp rounds such ties to even; a tiny bias sends them to the higher pixel
 # (round half up, floor(x + 0.5)), so the window stays symmetric about the keypoint.
@@ -105,8 +103,9 @@ def fast_keypoints(image: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
     """(K, 2) int (row, col) FAST corners, all of them, strongest first."""
     pad = descriptor_radius(cfg)
     padded = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    fast = cv2.FastFeatureDetector_create(threshold=cfg.fast_threshold, nonmaxSuppression=True,
-                                          type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16)
+    fast = cv2.FastFeatureDetector_create(
+        threshold=cfg.fast_threshold, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
+    )
     h, w = image.shape
     kept = []
     for kp in sorted(fast.detect(padded, None), key=lambda k: -k.response):
@@ -117,8 +116,9 @@ def fast_keypoints(image: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
 
 
 # ---- BVFT descriptors ------------------------------------------------------------------------------------------
-def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig,
-                     n_orient: int = 12) -> np.ndarray:
+def bvft_descriptors(
+    mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: FeatureConfig, n_orient: int = 12
+) -> np.ndarray:
     """(K, D) float32 unit descriptors (all-zero for an empty patch), one keypoint at a time."""
     radius = descriptor_radius(cfg)
     side = 2 * radius  # 138 px: rows/cols kp - radius .. kp + radius - 1, the keypoint at index `radius`
@@ -152,10 +152,20 @@ def bvft_descriptors(mim: np.ndarray, amp: np.ndarray, rc: np.ndarray, cfg: Feat
         # pixel o of the crop samples keypoint + R (o - (J - 1)/2), symmetric about the keypoint.
         a = (max(m, 1) - 1) * np.pi / n_orient
         ca, sa = np.cos(a), np.sin(a)
-        M = np.array([[ca, sa, radius - centre * (ca + sa) + _TIE_BIAS_PX],   # src col = radius + ca*qc + sa*qr
-                      [-sa, ca, radius - centre * (ca - sa) + _TIE_BIAS_PX]])  # src row = radius + ca*qr - sa*qc
-        rotated = cv2.warpAffine(patch, M, (side, side), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        M = np.array(
+            [
+                [ca, sa, radius - centre * (ca + sa) + _TIE_BIAS_PX],  # src col = radius + ca*qc + sa*qr
+                [-sa, ca, radius - centre * (ca - sa) + _TIE_BIAS_PX],
+            ]
+        )  # src row = radius + ca*qr - sa*qc
+        rotated = cv2.warpAffine(
+            patch,
+            M,
+            (side, side),
+            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
         window = rotated[crop : crop + J, crop : crop + J].astype(np.int64)
 
         # Shift the values so that m becomes 1, then a count histogram per grid cell.
@@ -182,8 +192,9 @@ def flip_180(desc: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
 
 
 # ---- matching --------------------------------------------------------------------------------------------------
-def nn_match(query: np.ndarray, train: np.ndarray, *, mutual: bool = False,
-             ratio: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def nn_match(
+    query: np.ndarray, train: np.ndarray, *, mutual: bool = False, ratio: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Brute-force L2 nearest neighbour of each non-empty query descriptor, one query at a time."""
     i_q, i_t = [], []
     if len(query) == 0 or len(train) == 0:
@@ -204,8 +215,15 @@ def nn_match(query: np.ndarray, train: np.ndarray, *, mutual: bool = False,
 
 
 # ---- RANSAC ----------------------------------------------------------------------------------------------------
-def fixed_ransac(src: np.ndarray, dst: np.ndarray, *, threshold: float, min_sample_dist: float,
-                 iterations: int = RANSAC_ITERATIONS, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+def fixed_ransac(
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    threshold: float,
+    min_sample_dist: float,
+    iterations: int = RANSAC_ITERATIONS,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """dst ~ T @ src by 2-point rigid RANSAC, ``iterations`` one at a time, then a Kabsch refit on the inliers.
     Returns (T 3x3, inlier mask) or None when no valid sample exists."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
@@ -247,8 +265,7 @@ class Refined:
     fitness: float  # fraction of the peer points within the finest gate of an ego lit pixel, under T
 
 
-def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineConfig, seed: int = 0,
-                k: int = 8, point_weight: float = 0.1) -> Refined:
+def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineConfig, seed: int = 0) -> Refined:
     """Point-to-line ICP of the peer's lit pixels onto the ego's, from T_init; the ego's KD-tree and normals
     are rebuilt on every call."""
     T_init = np.array(T_init, dtype=float)
@@ -264,9 +281,9 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
         d, _ = tree.query(pts @ T[:2, :2].T + T[:2, 2], distance_upper_bound=cfg.gates_m[-1])
         return float(np.isfinite(d).mean())
 
-    if len(xy_ego) < 10 or len(pts) < 10:
+    if len(xy_ego) < cfg.min_points or len(pts) < cfg.min_points:
         return Refined(T_init, False, fitness(T_init))
-    _, nn = tree.query(xy_ego, k=min(k, len(xy_ego)))
+    _, nn = tree.query(xy_ego, k=min(cfg.normal_neighbours, len(xy_ego)))
     nb = xy_ego[nn] - xy_ego[nn].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
     normals = np.linalg.eigh(cov)[1][:, :, 0]  # eigenvector of the smallest eigenvalue: across the line
@@ -276,21 +293,22 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
             p = pts @ T[:2, :2].T + T[:2, 2]
             d, j = tree.query(p, distance_upper_bound=gate)
             ok = np.isfinite(d)
-            if ok.sum() < 10:
+            if ok.sum() < cfg.min_points:
                 return Refined(T_init, False, fitness(T_init))
             p, q, nrm = p[ok], xy_ego[j[ok]], normals[j[ok]]
             r_line = ((p - q) * nrm).sum(1)
-            w = 1.0 / np.maximum(1.0, np.abs(r_line) / (0.25 * gate))  # Huber
+            w = 1.0 / np.maximum(1.0, np.abs(r_line) / (cfg.huber_fraction * gate))  # Huber
             # Unknowns (dyaw, dtx, dty) of a small motion applied after T; d p / d yaw = (-p_y, p_x).
             J_line = np.column_stack([nrm[:, 1] * p[:, 0] - nrm[:, 0] * p[:, 1], nrm[:, 0], nrm[:, 1]])
             J_x = np.column_stack([-p[:, 1], np.ones(len(p)), np.zeros(len(p))])
             J_y = np.column_stack([p[:, 0], np.zeros(len(p)), np.ones(len(p))])
-            H = (J_line * w[:, None]).T @ J_line + point_weight**2 * (J_x.T @ J_x + J_y.T @ J_y)
-            g = (J_line * (w * r_line)[:, None]).T.sum(1) + point_weight**2 * (
-                J_x.T @ (p[:, 0] - q[:, 0]) + J_y.T @ (p[:, 1] - q[:, 1]))
+            H = (J_line * w[:, None]).T @ J_line + cfg.point_weight**2 * (J_x.T @ J_x + J_y.T @ J_y)
+            g = (J_line * (w * r_line)[:, None]).T.sum(1) + cfg.point_weight**2 * (
+                J_x.T @ (p[:, 0] - q[:, 0]) + J_y.T @ (p[:, 1] - q[:, 1])
+            )
             delta = np.linalg.solve(H, -g)
             T = se2(*delta) @ T
-            if abs(delta[0]) < 2e-5 and np.abs(delta[1:]).max() < 2e-3:  # 0.001 deg and 2 mm: converged
+            if abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
@@ -307,8 +325,9 @@ def _box_corners(box: np.ndarray) -> np.ndarray:
     return np.array([(x + c * a - s * b, y + s * a + c * b) for a, b in local])
 
 
-def box_stage(boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray, cfg: BoxConfig,
-              seed: int = 0) -> tuple[np.ndarray, int, int]:
+def box_stage(
+    boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray, cfg: BoxConfig, seed: int = 0
+) -> tuple[np.ndarray, int, int]:
     """(T_box 3x3, corner inliers, box pairs): peer boxes moved by T_bv, paired one-to-one with the ego's
     (centres within the gate), corners paired by the best cyclic shift, rigid RANSAC on the corner pairs."""
     yaw_bv = se2_params(T_bv)[0]
@@ -330,8 +349,14 @@ def box_stage(boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray, c
         shift = min(range(4), key=lambda k: np.linalg.norm(np.roll(cp, -k, axis=0) - ce, axis=1).sum())
         src.append(np.roll(cp, -shift, axis=0))
         dst.append(ce)
-    fit = fixed_ransac(np.concatenate(src), np.concatenate(dst), threshold=cfg.inlier_threshold_m,
-                       min_sample_dist=BOX_MIN_SAMPLE_DIST_M, iterations=cfg.max_iterations, seed=seed)
+    fit = fixed_ransac(
+        np.concatenate(src),
+        np.concatenate(dst),
+        threshold=cfg.ransac.inlier_threshold_m,
+        min_sample_dist=cfg.ransac.min_sample_dist_m,
+        iterations=cfg.ransac.max_iterations,
+        seed=seed,
+    )
     if fit is None:
         return np.eye(3), 0, len(pairs)
     return fit[0], int(fit[1].sum()), len(pairs)
@@ -372,8 +397,10 @@ class BaselineAligner:
     def prepare(self, bev: BevImage, boxes=None) -> BaselineFeatures:
         cfg = self.config
         if abs(bev.resolution_m - cfg.bev.resolution_m) > 1e-9:
-            raise ValueError(f"bev.resolution_m {bev.resolution_m} differs from the configured "
-                             f"{cfg.bev.resolution_m}; the baseline does not resample")
+            raise ValueError(
+                f"bev.resolution_m {bev.resolution_m} differs from the configured "
+                f"{cfg.bev.resolution_m}; the baseline does not resample"
+            )
         timings: dict[str, float] = {}
         with _timed(timings, "mim"):
             mim, amp = log_gabor_mim(bev.image, cfg.mim)
@@ -387,7 +414,7 @@ class BaselineAligner:
 
     def align(self, ego: BaselineFeatures, peer: BaselineFeatures) -> BaselineResult:
         cfg = self.config
-        m, rule = cfg.match, cfg.success
+        m, rule, seed = cfg.match, cfg.success, cfg.seed
         timings: dict[str, float] = {}
         T_bv, T_box = np.eye(3), np.eye(3)
         res = BaselineResult(False, None, np.eye(4), T_bv, timings_ms=timings)
@@ -407,8 +434,14 @@ class BaselineAligner:
             i_ego = i_ego % len(ego.descriptors)
         res.matches_bv = len(i_peer)
         with _timed(timings, "ransac"):
-            fit = fixed_ransac(peer.keypoints_xy[i_peer], ego.keypoints_xy[i_ego], threshold=m.inlier_threshold_m,
-                               min_sample_dist=m.min_sample_dist_m, iterations=self.ransac_iterations, seed=m.seed)
+            fit = fixed_ransac(
+                peer.keypoints_xy[i_peer],
+                ego.keypoints_xy[i_ego],
+                threshold=cfg.ransac.inlier_threshold_m,
+                min_sample_dist=cfg.ransac.min_sample_dist_m,
+                iterations=self.ransac_iterations,
+                seed=seed,
+            )
         if fit is None:
             return finish("too_few_matches")
         T_bv, inliers = fit
@@ -418,16 +451,19 @@ class BaselineAligner:
         ref = None
         if cfg.refine.enabled:
             with _timed(timings, "refine"):
-                ref = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=m.seed)
+                ref = refine_pose(ego.bev, peer.bev, T_bv, cfg.refine, seed=seed)
             T_bv = ref.T
             if ref.fitness < rule.min_refine_fitness:
                 return finish("inconsistent_overlap")
         if len(ego.boxes) == 0 or len(peer.boxes) == 0:
             return finish("no_boxes" if rule.require_boxes else None)
         with _timed(timings, "boxes"):
-            T_fit, res.inliers_box, pairs = box_stage(ego.boxes, peer.boxes, T_bv, cfg.box, seed=m.seed)
-        failure = "no_box_overlap" if pairs == 0 else (
-            "too_few_inliers_box" if res.inliers_box <= rule.min_inliers_box else None)
+            T_fit, res.inliers_box, pairs = box_stage(ego.boxes, peer.boxes, T_bv, cfg.box, seed=seed)
+        failure = (
+            "no_box_overlap"
+            if pairs == 0
+            else ("too_few_inliers_box" if res.inliers_box <= rule.min_inliers_box else None)
+        )
         if failure is not None:
             strong = rule.strong_inliers_bv
             return finish(None if strong is not None and res.inliers_bv > strong else failure)
@@ -437,9 +473,11 @@ class BaselineAligner:
         refined = ref is not None and ref.accepted
         if cfg.box.apply == "always" or not refined:
             T_box = T_fit
-        elif cfg.box.apply == "auto" and (np.hypot(tx, ty) >= BOX_VERIFY_M or abs(np.degrees(yaw)) >= BOX_VERIFY_DEG):
+        elif cfg.box.apply == "auto" and (
+            np.hypot(tx, ty) > cfg.box.recheck_m or abs(np.degrees(yaw)) > cfg.box.recheck_deg
+        ):
             # A large box correction: refine again from the box-corrected pose, keep it if the images agree more.
-            alt = refine_pose(ego.bev, peer.bev, T_fit @ T_bv, cfg.refine, seed=m.seed)
-            if alt.accepted and alt.fitness > ref.fitness + BOX_BETTER_FITNESS:
+            alt = refine_pose(ego.bev, peer.bev, T_fit @ T_bv, cfg.refine, seed=seed)
+            if alt.accepted and alt.fitness > ref.fitness + cfg.box.recheck_min_gain:
                 T_box = alt.T @ np.linalg.inv(T_bv)
         return finish(None)

@@ -1,5 +1,5 @@
-"""The benchmark report as Markdown tables (``bb-align bench --markdown OUT``), for docs/performance.md and the
-README."""
+"""The benchmark report as Markdown tables: what ``bb-align bench`` prints, and writes with ``--markdown OUT`` (for
+docs/performance.md and the README)."""
 
 from __future__ import annotations
 
@@ -42,53 +42,85 @@ def report_markdown(report: dict) -> str:
     ]
     for key, title in ((HOT, "peer frame vs cached ego frame"), (COLD, "cold pair (both prepared)")):
         e, b = report["stages"][key]["engine"], report["stages"][key]["baseline"]
-        out.append(f"| {title} | {_ms(e['total']['p50'])} ms | {_ms(e['total']['p90'])} ms | "
-                   f"{_ms(e['total_cpu']['p50'])} ms | {_ms(b['total']['p50'])} ms | {_x(report['speedup'][key])} |")
-    out += ["", "Per stage, p50 ms (the hot path's stages are the peer's; the cold pair's add both frames):", "",
-            "| stage | engine hot | baseline hot | ratio | engine cold | baseline cold | ratio |",
-            "|---|---:|---:|---:|---:|---:|---:|"]
+        out.append(
+            f"| {title} | {_ms(e['total']['p50'])} ms | {_ms(e['total']['p90'])} ms | "
+            f"{_ms(e['total_cpu']['p50'])} ms | {_ms(b['total']['p50'])} ms | {_x(report['speedup'][key])} |"
+        )
+    out += [
+        "",
+        "Per stage, p50 ms (the hot path's stages are the peer's; the cold pair's add both frames):",
+        "",
+        "| stage | engine hot | baseline hot | ratio | engine cold | baseline cold | ratio |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
     hot, cold = report["stages"][HOT], report["stages"][COLD]
     for name in hot["engine"]:
         if name == "total_cpu":
             continue
         row = [name]
         for st in (hot, cold):
-            row += [_ms(st["engine"][name]["p50"]), _ms(st["baseline"].get(name, {}).get("p50")),
-                    _x(st["speedup_p50"].get(name))]
+            row += [
+                _ms(st["engine"][name]["p50"]),
+                _ms(st["baseline"].get(name, {}).get("p50")),
+                _x(st["speedup_p50"].get(name)),
+            ]
         out.append("| " + " | ".join(row) + " |")
     acc = report["accuracy"]
-    out += ["", "| accuracy (vs simulator truth) | succeeded | median error | max error (succeeded) |",
-            "|---|---:|---:|---:|"]
+    out += [
+        "",
+        "| accuracy (vs simulator truth) | succeeded | median error | max error (succeeded) |",
+        "|---|---:|---:|---:|",
+    ]
     for name in ("engine", "baseline"):
         s = acc[name]
-        err = (f"{s['t_err_median_m']:.3f} m / {s['r_err_median_deg']:.3f} deg" if "t_err_median_m" in s else "-")
-        mx = (f"{s['t_err_max_m']:.3f} m / {s['r_err_max_deg']:.3f} deg" if "t_err_max_m" in s else "-")
+        err = f"{s['t_err_median_m']:.3f} m / {s['r_err_median_deg']:.3f} deg" if "t_err_median_m" in s else "-"
+        mx = f"{s['t_err_max_m']:.3f} m / {s['r_err_max_deg']:.3f} deg" if "t_err_max_m" in s else "-"
         out.append(f"| {name} | {s['success']}/{s['pairs']} | {err} | {mx} |")
-    out.append(f"\nEngine and baseline agree on {acc['agree']}/{len(acc['pairs'])} pairs (same success, poses within "
-               f"{acc['tolerance']['t_m']} m and {acc['tolerance']['r_deg']} deg).")
+    out.append(
+        f"\nEngine and baseline agree on {acc['agree']}/{len(acc['pairs'])} pairs (same success, poses within "
+        f"{acc['tolerance']['t_m']} m and {acc['tolerance']['r_deg']} deg)."
+    )
     feat = report["features"]
-    out.append(f"The engine's MIM equals the complex128 baseline's on "
-               f"{100 * feat['mim_equal_fraction_of_lit']['median']:.2f}% of lit pixels (median image, worst "
-               f"{100 * feat['mim_equal_fraction_of_lit']['min']:.2f}%); keypoints per ego image: engine "
-               f"{_kp(feat, 'engine')}, baseline {_kp(feat, 'baseline')}.")
+    out.append(
+        f"The engine's MIM equals the complex128 baseline's on "
+        f"{100 * feat['mim_equal_fraction_of_lit']['median']:.2f}% of lit pixels (median image, worst "
+        f"{100 * feat['mim_equal_fraction_of_lit']['min']:.2f}%); keypoints per ego image: engine "
+        f"{_kp(feat, 'engine')}, baseline {_kp(feat, 'baseline')}."
+    )
     mem = report["memory"]
-    out.append(f"Memory: tracemalloc peak per call, engine {mem['engine_tracemalloc_peak_mb'][HOT]:.1f} MB (hot) / "
-               f"{mem['engine_tracemalloc_peak_mb'][COLD]:.1f} MB (cold), baseline "
-               f"{mem['baseline_tracemalloc_peak_mb'][HOT]:.1f} / {mem['baseline_tracemalloc_peak_mb'][COLD]:.1f} MB; "
-               f"bench process RSS peak {mem['process_engine_runs']['rss_peak_mb']:.0f} MB during the engine "
-               f"runs, {mem['process_baseline_runs']['rss_peak_mb']:.0f} MB during the baseline runs (interpreter, "
-               f"libraries and workload included: {mem['process_before']['rss_mb'] or 0:.0f} MB before them).")
+    out.append(
+        f"Memory: tracemalloc peak per call, engine {mem['engine_tracemalloc_peak_mb'][HOT]:.1f} MB (hot) / "
+        f"{mem['engine_tracemalloc_peak_mb'][COLD]:.1f} MB (cold), baseline "
+        f"{mem['baseline_tracemalloc_peak_mb'][HOT]:.1f} / {mem['baseline_tracemalloc_peak_mb'][COLD]:.1f} MB; "
+        f"bench process RSS peak {mem['process_engine_runs']['rss_peak_mb']:.0f} MB during the engine "
+        f"runs, {mem['process_baseline_runs']['rss_peak_mb']:.0f} MB during the baseline runs (interpreter, "
+        f"libraries and workload included: {mem['process_before']['rss_mb'] or 0:.0f} MB before them)."
+    )
     service = report.get("service")
     if service and service.get("runs"):
-        out += ["", f"Service over Zenoh on loopback ({service['workers']} workers, every car at "
-                f"{service['rate_hz']:g} Hz, {service['seconds']:g} s measured after {service['warmup_s']:g} s, "
-                f"{service.get('poses', 'reported poses')}):", "",
-                "| peers | offered /s | results /s | aligned | dropped | latency p50 | latency p99 | service CPU | "
-                "service RSS peak | sustained |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        out += [
+            "",
+            f"Service over Zenoh on loopback ({service['workers']} workers, every car at "
+            f"{service['rate_hz']:g} Hz, {service['seconds']:g} s measured after {service['warmup_s']:g} s, "
+            f"{service.get('poses', 'reported poses')}):",
+            "",
+            "| peers | offered /s | results /s | aligned | dropped | latency p50 | latency p99 | service CPU | "
+            "service RSS peak | sustained |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        ]
         for n, r in sorted(service["runs"].items(), key=lambda kv: int(kv[0])):
-            out.append(f"| {n} | {r['offered_fps']:.0f} | {r['results_fps']:.1f} | "
-                       f"{100 * r['success_fraction']:.0f}% | {r['dropped']} ({100 * r['drop_fraction']:.0f}%) | "
-                       f"{_ms(r['latency_ms']['p50'])} ms | "
-                       f"{_ms(r['latency_ms']['p99'])} ms | {r['service_cpu_cores'] or 0:.2f} cores | "
-                       f"{r['service_memory']['rss_peak_mb'] or 0:.0f} MB | {'yes' if r['sustained'] else 'no'} |")
+            out.append(
+                f"| {n} | {r['offered_fps']:.0f} | {r['results_fps']:.1f} | "
+                f"{100 * r['success_fraction']:.0f}% | {r['dropped']} ({100 * r['drop_fraction']:.0f}%) | "
+                f"{_ms(r['latency_ms']['p50'])} ms | "
+                f"{_ms(r['latency_ms']['p99'])} ms | {r['service_cpu_cores'] or 0:.2f} cores | "
+                f"{r['service_memory']['rss_peak_mb'] or 0:.0f} MB | {'yes' if r['sustained'] else 'no'} |"
+            )
+    if service and (service.get("error") or service.get("errors")):
+        problems = (
+            [service["error"]]
+            if service.get("error")
+            else [f"{n} peer(s): {e.splitlines()[-1] if e.strip() else e}" for n, e in service["errors"].items()]
+        )
+        out += ["", "Service: not measured: " + "; ".join(problems)]
     return "\n".join(out) + "\n"

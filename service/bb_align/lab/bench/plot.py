@@ -24,8 +24,7 @@ def plot_report(report: dict, path: str | Path) -> Path:
     fig, axes = plt.subplots(1, n_panels, figsize=(6.2 * n_panels, 4.8))
     for ax, key in zip(axes, (HOT, COLD)):
         eng, base = report["stages"][key]["engine"], report["stages"][key]["baseline"]
-        names = [k for k in eng if k in base and k != "total_cpu"
-                 and (eng[k]["p50"] > 0.005 or base[k]["p50"] > 0.005)]
+        names = [k for k in eng if k in base and k != "total_cpu" and (eng[k]["p50"] > 0.005 or base[k]["p50"] > 0.005)]
         x = np.arange(len(names))
         e = [max(eng[k]["p50"], 1e-3) for k in names]
         b = [max(base[k]["p50"], 1e-3) for k in names]
@@ -34,13 +33,13 @@ def plot_report(report: dict, path: str | Path) -> Path:
         for xi, k in zip(x, names):
             r = report["stages"][key]["speedup_p50"].get(k)
             if r:
-                ax.text(xi, max(e[xi], b[xi]) * 1.3, f"{r:.0f}x" if r >= 10 else f"{r:.1f}x", ha="center",
-                        fontsize=7)
+                ax.text(xi, max(e[xi], b[xi]) * 1.3, f"{r:.0f}x" if r >= 10 else f"{r:.1f}x", ha="center", fontsize=7)
         ax.set_yscale("log")
         ax.set_xticks(x, names, rotation=40, ha="right", fontsize=8)
         ax.set_ylabel("p50 wall time per call (ms)")
-        ax.set_title(f"{_TITLES[key]}\nengine {eng['total']['p50']:.1f} ms, baseline {base['total']['p50']:.0f} ms",
-                     fontsize=9)
+        ax.set_title(
+            f"{_TITLES[key]}\nengine {eng['total']['p50']:.1f} ms, baseline {base['total']['p50']:.0f} ms", fontsize=9
+        )
         ax.grid(axis="y", alpha=0.3, which="both")
         ax.legend(fontsize=8)
     if runs:
@@ -66,8 +65,11 @@ def plot_report(report: dict, path: str | Path) -> Path:
         ax.set_title(f"service over Zenoh, peers at {service.get('rate_hz', 10):g} Hz", fontsize=9)
     commit = (report.get("git") or {}).get("commit") or "?"
     load = report.get("load_avg", {}).get("start", [float("nan")])[0]
-    fig.suptitle(f"bb-align bench  ({report['workload']['pairs']} pairs, {report['runs']} runs, "
-                 f"commit {commit[:10]}, load {load:.2f})", fontsize=10)
+    fig.suptitle(
+        f"bb-align bench  ({report['workload']['pairs']} pairs, {report['runs']} runs, "
+        f"commit {commit[:10]}, load {load:.2f})",
+        fontsize=10,
+    )
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)

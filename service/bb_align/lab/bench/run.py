@@ -20,9 +20,9 @@ import subprocess
 import sys
 import time
 import tracemalloc
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -99,7 +99,7 @@ class EngineRunner:
         cfg = self.config
         ego = self.aligner.prepare(BevImage.from_png(pair.ego_png, **pair.bev_meta), pair.boxes_ego, keep_maps=True)
         ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
-        ego.cloud(cfg.refine.min_pixel_value)
+        ego.cloud(cfg.refine)
         return ego
 
     def hot(self, pair: BenchPair, ego) -> tuple[Sample, Outcome]:
@@ -137,13 +137,25 @@ class BaselineRunner(EngineRunner):
 
 
 def _outcome(res) -> Outcome:
-    return Outcome(bool(res.success), res.reason, np.asarray(res.T_ego_peer, dtype=float), int(res.inliers_bv),
-                   int(res.inliers_box))
+    return Outcome(
+        bool(res.success),
+        res.reason,
+        np.asarray(res.T_ego_peer, dtype=float),
+        int(res.inliers_bv),
+        int(res.inliers_box),
+    )
 
 
 # ---- measuring ------------------------------------------------------------------------------------------------
-def measure(runner: EngineRunner, pairs: list[BenchPair], *, runs: int, warmup: int,
-            progress: Callable[[Iterable], Iterable] | None = None, label: str = "") -> Measurements:
+def measure(
+    runner: EngineRunner,
+    pairs: list[BenchPair],
+    *,
+    runs: int,
+    warmup: int,
+    progress: Callable[[Iterable], Iterable] | None = None,
+    label: str = "",
+) -> Measurements:
     """``warmup`` + ``runs`` passes over all pairs, each pass timing the hot path then the cold pair per pair."""
     out = Measurements()
     egos = []
@@ -152,7 +164,7 @@ def measure(runner: EngineRunner, pairs: list[BenchPair], *, runs: int, warmup: 
         egos.append(runner.prepare_ego(p))
         out.ego_prepare_ms.append((time.perf_counter() - t_ego) * 1e3)
     steps = [(i, k) for i in range(warmup + runs) for k in range(len(pairs))]
-    for i, k in (progress(steps, label) if progress else steps):
+    for i, k in progress(steps, label) if progress else steps:
         pair = pairs[k]
         hot, outcome = runner.hot(pair, egos[k])
         cold, _ = runner.cold(pair)
@@ -177,8 +189,12 @@ def percentiles(values: Iterable[float]) -> dict[str, float]:
     v = np.asarray(list(values), dtype=float)
     if len(v) == 0:
         return {"p50": float("nan"), "p90": float("nan"), "mean": float("nan"), "n": 0}
-    return {"p50": float(np.percentile(v, 50)), "p90": float(np.percentile(v, 90)), "mean": float(v.mean()),
-            "n": int(len(v))}
+    return {
+        "p50": float(np.percentile(v, 50)),
+        "p90": float(np.percentile(v, 90)),
+        "mean": float(v.mean()),
+        "n": int(len(v)),
+    }
 
 
 def stage_table(samples: list[Sample]) -> dict[str, dict[str, float]]:
@@ -202,11 +218,22 @@ def accuracy(pairs: list[BenchPair], engine: dict[str, Outcome], baseline: dict[
     rows = []
     for p in pairs:
         e, b = engine[p.name], baseline[p.name]
-        row = {"pair": p.name, "distance_m": p.distance_m,
-               "engine": {"success": e.success, "reason": e.reason, "inliers_bv": e.inliers_bv,
-                          "inliers_box": e.inliers_box},
-               "baseline": {"success": b.success, "reason": b.reason, "inliers_bv": b.inliers_bv,
-                            "inliers_box": b.inliers_box}}
+        row = {
+            "pair": p.name,
+            "distance_m": p.distance_m,
+            "engine": {
+                "success": e.success,
+                "reason": e.reason,
+                "inliers_bv": e.inliers_bv,
+                "inliers_box": e.inliers_box,
+            },
+            "baseline": {
+                "success": b.success,
+                "reason": b.reason,
+                "inliers_bv": b.inliers_bv,
+                "inliers_box": b.inliers_box,
+            },
+        }
         if p.T_ego_peer is not None:
             for name, o in (("engine", e), ("baseline", b)):
                 t_err, r_err = pose_error(o.T_ego_peer, p.T_ego_peer)
@@ -222,13 +249,22 @@ def accuracy(pairs: list[BenchPair], engine: dict[str, Outcome], baseline: dict[
         if ok and "t_err_m" in ok[0]:
             t = np.array([r["t_err_m"] for r in ok])
             r_ = np.array([r["r_err_deg"] for r in ok])
-            s.update(t_err_median_m=float(np.median(t)), t_err_max_m=float(t.max()),
-                     r_err_median_deg=float(np.median(r_)), r_err_max_deg=float(r_.max()),
-                     under_1m_1deg=int(((t < 1.0) & (r_ < 1.0)).sum()))
+            s.update(
+                t_err_median_m=float(np.median(t)),
+                t_err_max_m=float(t.max()),
+                r_err_median_deg=float(np.median(r_)),
+                r_err_max_deg=float(r_.max()),
+                under_1m_1deg=int(((t < 1.0) & (r_ < 1.0)).sum()),
+            )
         return s
 
-    return {"tolerance": {"t_m": AGREE_T_M, "r_deg": AGREE_R_DEG}, "engine": summary("engine"),
-            "baseline": summary("baseline"), "agree": int(sum(r["agree"] for r in rows)), "pairs": rows}
+    return {
+        "tolerance": {"t_m": AGREE_T_M, "r_deg": AGREE_R_DEG},
+        "engine": summary("engine"),
+        "baseline": summary("baseline"),
+        "agree": int(sum(r["agree"] for r in rows)),
+        "pairs": rows,
+    }
 
 
 def feature_agreement(engine: list, baseline: list) -> dict:
@@ -238,11 +274,15 @@ def feature_agreement(engine: list, baseline: list) -> dict:
     for e, b in zip(engine, baseline):
         lit = (e.mim > 0) | (b.mim > 0)
         agree.append(float(np.mean(e.mim[lit] == b.mim[lit])) if lit.any() else 1.0)
-    return {"mim_equal_fraction_of_lit": {"min": float(np.min(agree)), "median": float(np.median(agree))},
-            "keypoints_per_image": {"engine": float(np.mean([len(e.keypoints_rc) for e in engine])),
-                                    "engine_max": int(max(len(e.keypoints_rc) for e in engine)),
-                                    "baseline": float(np.mean([len(b.keypoints_rc) for b in baseline])),
-                                    "baseline_max": int(max(len(b.keypoints_rc) for b in baseline))}}
+    return {
+        "mim_equal_fraction_of_lit": {"min": float(np.min(agree)), "median": float(np.median(agree))},
+        "keypoints_per_image": {
+            "engine": float(np.mean([len(e.keypoints_rc) for e in engine])),
+            "engine_max": int(max(len(e.keypoints_rc) for e in engine)),
+            "baseline": float(np.mean([len(b.keypoints_rc) for b in baseline])),
+            "baseline_max": int(max(len(b.keypoints_rc) for b in baseline)),
+        },
+    }
 
 
 # ---- environment ----------------------------------------------------------------------------------------------
@@ -250,10 +290,17 @@ def git_commit(repo: Path | None = None) -> dict:
     """HEAD of the repository holding this package, and whether the engine sources differ from it."""
     repo = repo or Path(__file__).resolve().parents[3]
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
-                              timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "service", "client"], cwd=repo,
-                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "service", "client"],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "dirty": None}
     return {"commit": head, "dirty": bool(dirty), "dirty_files": dirty.splitlines()[:50]}
@@ -275,12 +322,21 @@ def machine_info() -> dict:
                 break
     except OSError:
         pass
-    threads = {k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-               if k in os.environ}
-    return {"cpu_count": os.cpu_count(), "cpus_usable": affinity, "cpu_model": cpu_model,
-            "cv2_threads": cv2.getNumThreads(), "thread_env": threads, "python": platform.python_version(),
-            "platform": platform.platform(), "numpy": np.__version__, "scipy": scipy.__version__,
-            "opencv": cv2.__version__}
+    threads = {
+        k: os.environ[k] for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS") if k in os.environ
+    }
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": affinity,
+        "cpu_model": cpu_model,
+        "cv2_threads": cv2.getNumThreads(),
+        "thread_env": threads,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+    }
 
 
 def reset_peak_rss() -> bool:
@@ -295,8 +351,11 @@ def reset_peak_rss() -> bool:
 def rss_mb(since_reset: bool = False) -> dict:
     """Current and peak resident memory of this process, MB (the peak since the last reset_peak_rss when
     ``since_reset``; since the process started otherwise)."""
-    out = {"rss_mb": None, "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-           "peak_since": "reset" if since_reset else "process start"}
+    out = {
+        "rss_mb": None,
+        "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "peak_since": "reset" if since_reset else "process start",
+    }
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
             if line.startswith("VmRSS:"):
@@ -309,8 +368,15 @@ def rss_mb(since_reset: bool = False) -> dict:
 
 
 # ---- the whole benchmark --------------------------------------------------------------------------------------
-def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup: int = 1, baseline_runs: int = 1,
-                  progress: Callable[[Iterable, str], Iterable] | None = None) -> dict:
+def run_benchmark(
+    workload: Workload,
+    config: AlignConfig,
+    *,
+    runs: int,
+    warmup: int = 1,
+    baseline_runs: int = 1,
+    progress: Callable[[Iterable, str], Iterable] | None = None,
+) -> dict:
     """Engine and baseline on the workload -> the report (a JSON-able dict; see docs/performance.md)."""
     if not workload.pairs:
         raise ValueError("the workload has no pairs")
@@ -320,17 +386,25 @@ def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup:
     t_start = time.time()
     memory_before = rss_mb()
     reset = reset_peak_rss()
-    engine = measure(EngineRunner(config), workload.pairs, runs=runs, warmup=warmup, progress=progress,
-                     label="engine")
+    engine = measure(EngineRunner(config), workload.pairs, runs=runs, warmup=warmup, progress=progress, label="engine")
     memory_engine = rss_mb(since_reset=reset)
     reset = reset_peak_rss()
-    base = measure(BaselineRunner(config), workload.pairs, runs=baseline_runs, warmup=0, progress=progress,
-                   label="baseline")
+    base = measure(
+        BaselineRunner(config), workload.pairs, runs=baseline_runs, warmup=0, progress=progress, label="baseline"
+    )
     memory_baseline = rss_mb(since_reset=reset)
 
-    report: dict = {"schema": 1, "started_unix": t_start, "git": git_commit(), "machine": machine_info(),
-                    "workload": workload.describe(), "config": config.model_dump(mode="json"),
-                    "runs": runs, "warmup_passes": warmup, "baseline_runs": baseline_runs}
+    report: dict = {
+        "schema": 1,
+        "started_unix": t_start,
+        "git": git_commit(),
+        "machine": machine_info(),
+        "workload": workload.describe(),
+        "config": config.model_dump(mode="json"),
+        "runs": runs,
+        "warmup_passes": warmup,
+        "baseline_runs": baseline_runs,
+    }
     stages, totals = {}, {}
     for path in PATHS:
         eng_t, base_t = stage_table(engine.samples[path]), stage_table(base.samples[path])
@@ -339,25 +413,39 @@ def run_benchmark(workload: Workload, config: AlignConfig, *, runs: int, warmup:
         totals[path] = (eng_t["total"], base_t["total"])
     hot_e, hot_b = totals[HOT]
     cold_e, cold_b = totals[COLD]
-    report.update({
-        "peer_vs_cached_ego_ms_p50": hot_e["p50"], "peer_vs_cached_ego_ms_p90": hot_e["p90"],
-        "cold_pair_ms_p50": cold_e["p50"], "cold_pair_ms_p90": cold_e["p90"],
-        "peer_vs_cached_ego_cpu_ms_p50": stages[HOT]["engine"]["total_cpu"]["p50"],
-        "cold_pair_cpu_ms_p50": stages[COLD]["engine"]["total_cpu"]["p50"],
-        "ego_frame_prepare_ms_p50": percentiles(engine.ego_prepare_ms)["p50"],
-        "baseline": {"peer_vs_cached_ego_ms_p50": hot_b["p50"], "peer_vs_cached_ego_ms_p90": hot_b["p90"],
-                     "cold_pair_ms_p50": cold_b["p50"], "cold_pair_ms_p90": cold_b["p90"],
-                     "ego_frame_prepare_ms_p50": percentiles(base.ego_prepare_ms)["p50"]},
-        "speedup": {HOT: _ratio(hot_b["p50"], hot_e["p50"]), COLD: _ratio(cold_b["p50"], cold_e["p50"])},
-        "speedup_cpu": {p: _ratio(stages[p]["baseline"]["total_cpu"]["p50"], stages[p]["engine"]["total_cpu"]["p50"])
-                        for p in PATHS},
-        "stages": stages,
-        "memory": {"engine_tracemalloc_peak_mb": engine.peak_mb, "baseline_tracemalloc_peak_mb": base.peak_mb,
-                   "process_before": memory_before, "process_engine_runs": memory_engine,
-                   "process_baseline_runs": memory_baseline},
-        "accuracy": accuracy(workload.pairs, engine.outcomes, base.outcomes),
-        "features": feature_agreement(engine.ego_features, base.ego_features),
-    })
+    report.update(
+        {
+            "peer_vs_cached_ego_ms_p50": hot_e["p50"],
+            "peer_vs_cached_ego_ms_p90": hot_e["p90"],
+            "cold_pair_ms_p50": cold_e["p50"],
+            "cold_pair_ms_p90": cold_e["p90"],
+            "peer_vs_cached_ego_cpu_ms_p50": stages[HOT]["engine"]["total_cpu"]["p50"],
+            "cold_pair_cpu_ms_p50": stages[COLD]["engine"]["total_cpu"]["p50"],
+            "ego_frame_prepare_ms_p50": percentiles(engine.ego_prepare_ms)["p50"],
+            "baseline": {
+                "peer_vs_cached_ego_ms_p50": hot_b["p50"],
+                "peer_vs_cached_ego_ms_p90": hot_b["p90"],
+                "cold_pair_ms_p50": cold_b["p50"],
+                "cold_pair_ms_p90": cold_b["p90"],
+                "ego_frame_prepare_ms_p50": percentiles(base.ego_prepare_ms)["p50"],
+            },
+            "speedup": {HOT: _ratio(hot_b["p50"], hot_e["p50"]), COLD: _ratio(cold_b["p50"], cold_e["p50"])},
+            "speedup_cpu": {
+                p: _ratio(stages[p]["baseline"]["total_cpu"]["p50"], stages[p]["engine"]["total_cpu"]["p50"])
+                for p in PATHS
+            },
+            "stages": stages,
+            "memory": {
+                "engine_tracemalloc_peak_mb": engine.peak_mb,
+                "baseline_tracemalloc_peak_mb": base.peak_mb,
+                "process_before": memory_before,
+                "process_engine_runs": memory_engine,
+                "process_baseline_runs": memory_baseline,
+            },
+            "accuracy": accuracy(workload.pairs, engine.outcomes, base.outcomes),
+            "features": feature_agreement(engine.ego_features, base.ego_features),
+        }
+    )
     report["targets"] = {
         "peer_vs_cached_ego_ms_p50_max": TARGET_HOT_P50_MS,
         "peer_vs_cached_ego_met": bool(hot_e["p50"] <= TARGET_HOT_P50_MS),

@@ -9,16 +9,11 @@ scouting is off. Each peer count runs in a fresh service process, which is alway
 from __future__ import annotations
 
 import json
-import os
 import secrets
-import socket
-import subprocess
-import sys
 import time
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -26,31 +21,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from bb_align.engine.config import AlignConfig
 from bb_align.engine.geometry import pose_error, se2, se3_from_se2
 
-from ..harness import wait_until_ready
+from ..harness import CarStream, ServiceProcess, free_port, simulated_cars, start_service
 
 EGO_ID = "ego"
 PREFIX = "bbalign-bench"
+
+
 # The service child: explicit settings only (no BBALIGN_* environment), uvicorn on loopback. A fresh fleet key
 # for this run comes on stdin (never on the command line) when the service authenticates frames.
-_CHILD = """
-import json, sys, uvicorn
-from bb_align.server import create_app
-from bb_align.server.settings import Settings
-values = json.loads(sys.argv[1])
-key = sys.stdin.readline().strip()
-if key:
-    values["auth"] = {"mode": "hmac", "fleet_key": key}
-settings = Settings.model_validate(values)
-uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
-"""
-
-
-def _service_authenticates() -> bool:
-    from bb_align.server.settings import Settings
-
-    return "auth" in Settings.model_fields
-
-
 class ServiceBenchConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -70,41 +48,26 @@ class ServiceBenchConfig(BaseModel):
     startup_timeout_s: float = Field(90.0, gt=0)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-# ---- the cars' frames -----------------------------------------------------------------------------------------
-@dataclass
-class CarStream:
-    vehicle_id: str
-    frames: list  # bb_align.protocol.Frame, stamps and seqs rewritten at publish time
-    T_world_sensor: list[np.ndarray]
-
-
-def simulated_cars(cfg: ServiceBenchConfig, n_peers: int, config: AlignConfig,
-                   progress: Callable[[Iterable, str], Iterable] | None = None) -> list[CarStream]:
+def simulated_streams(
+    cfg: ServiceBenchConfig,
+    n_peers: int,
+    config: AlignConfig,
+    progress: Callable[[Iterable, str], Iterable] | None = None,
+) -> list[CarStream]:
     """Ego first, then ``n_peers`` peers 10-40 m away, ``cfg.frames`` consecutive simulated frames each."""
-    from bb_align_client.encode import make_frame
+    from ..sim import SimConfig
 
-    from ..sim import SimConfig, simulate_sequence
-
-    sim_cfg = SimConfig(min_distance_m=cfg.min_distance_m, max_distance_m=cfg.max_distance_m)
-    seq = simulate_sequence(cfg.seed, n_frames=cfg.frames, n_agents=1 + n_peers, dt=1.0 / cfg.rate_hz,
-                            config=sim_cfg)
-    ids = [EGO_ID] + [f"car{i}" for i in range(1, n_peers + 1)]
-    cars = []
-    items = list(enumerate(ids))
-    for a, vid in (progress(items, "service frames") if progress else items):
-        agents = [f.agents[str(a)] for f in seq]
-        frames = [make_frame(ag.points, ag.boxes, vehicle_id=vid, stamp=0.0, seq=0,
-                             pose=reported_pose(ag.T_world_sensor, cfg, a, k) if cfg.send_pose else None,
-                             range_m=config.bev.range_m, resolution_m=config.bev.resolution_m)
-                  for k, ag in enumerate(agents)]
-        cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents]))
-    return cars
+    return simulated_cars(
+        n_peers,
+        cfg.frames,
+        cfg.seed,
+        ego_id=EGO_ID,
+        dt=1.0 / cfg.rate_hz,
+        sim_config=SimConfig(min_distance_m=cfg.min_distance_m, max_distance_m=cfg.max_distance_m),
+        bev_options={"range_m": config.bev.range_m, "resolution_m": config.bev.resolution_m},
+        reported_pose=(lambda T, car, k: reported_pose(T, cfg, car, k)) if cfg.send_pose else (lambda T, car, k: None),
+        progress=progress,
+    )
 
 
 def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int, frame: int) -> np.ndarray:
@@ -116,70 +79,25 @@ def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int,
 
 
 # ---- the service process --------------------------------------------------------------------------------------
-@dataclass
-class ServiceProcess:
-    proc: subprocess.Popen
-    rest: str
-    zenoh_endpoint: str
-    log_path: Path
-    key: str | None  # the fleet key frames are signed with (None: the service does not authenticate)
-
-    def cpu_seconds(self) -> float | None:
-        """utime + stime of the service process (Linux /proc), seconds."""
-        try:
-            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-        except (OSError, ValueError, IndexError):
-            return None
-
-    def rss_mb(self) -> dict[str, float | None]:
-        """Current and peak resident memory of the service process (Linux /proc VmRSS, VmHWM), MB."""
-        out: dict[str, float | None] = {"rss_mb": None, "rss_peak_mb": None}
-        try:
-            for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-                key = {"VmRSS:": "rss_mb", "VmHWM:": "rss_peak_mb"}.get(line.split(maxsplit=1)[0] if line else "")
-                if key:
-                    out[key] = int(line.split()[1]) / 1024.0
-        except (OSError, ValueError, IndexError):
-            pass
-        return out
-
-    def get(self, path: str) -> dict:
-        import httpx
-
-        return httpx.get(self.rest + path, timeout=10).json()
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(45)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-
-
-def start_service(cfg: ServiceBenchConfig, config: AlignConfig, log_dir: Path) -> ServiceProcess:
+def start_bench_service(cfg: ServiceBenchConfig, config: AlignConfig, log_dir: Path) -> ServiceProcess:
     from bb_align.server.settings import Settings
 
-    port, zport = free_port(), free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    settings = Settings(ego_id=EGO_ID, host="127.0.0.1", port=port, workers=cfg.workers, align=config,
-                        zenoh={"enabled": True, "mode": "peer", "listen": [endpoint], "connect": [],
-                               "multicast_scouting": False, "prefix": PREFIX})
-    key = secrets.token_hex(32) if _service_authenticates() else None
-    log_path = log_dir / f"service-{port}.log"
-    with open(log_path, "wb") as log:
-        proc = subprocess.Popen([sys.executable, "-c", _CHILD, settings.model_dump_json(exclude={"auth"})],
-                                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.PIPE)
-    try:
-        proc.stdin.write(((key or "") + "\n").encode())
-        proc.stdin.close()
-    except OSError:
-        pass  # the child died early; reported below with its log
-    svc = ServiceProcess(proc, f"http://127.0.0.1:{port}", endpoint, log_path, key)
-    wait_until_ready(proc, svc.rest, cfg.startup_timeout_s, log_path, svc.stop)
-    return svc
+    settings = Settings(
+        ego_id=EGO_ID,
+        host="127.0.0.1",
+        port=free_port(),
+        workers=cfg.workers,
+        align=config,
+        zenoh={
+            "enabled": True,
+            "mode": "peer",
+            "listen": [f"tcp/127.0.0.1:{free_port()}"],
+            "connect": [],
+            "multicast_scouting": False,
+            "prefix": PREFIX,
+        },
+    )
+    return start_service(settings, secrets.token_hex(32), log_dir, cfg.startup_timeout_s)
 
 
 # ---- one load run ---------------------------------------------------------------------------------------------
@@ -204,14 +122,18 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
     streams = cars[: 1 + n_peers]
     received = ArrivalLog()
     sent: dict[tuple[str, int], tuple[float, int]] = {}  # (peer id, seq) -> (publish time, frame index)
-    listener = zenoh.open(ZenohSettings(listen=[], connect=[svc.zenoh_endpoint], multicast_scouting=False,
-                                        prefix=PREFIX).to_zenoh_config())
+    listener = zenoh.open(
+        ZenohSettings(
+            listen=[], connect=[svc.zenoh_endpoint], multicast_scouting=False, prefix=PREFIX
+        ).to_zenoh_config()
+    )
     senders = []
     try:
         sub = listener.declare_subscriber(poses_key(PREFIX, EGO_ID, "*"), received)
         signing = {"key": svc.key} if svc.key else {}
-        senders = [ZenohPeer(c.vehicle_id, connect=[svc.zenoh_endpoint], prefix=PREFIX, **signing).open()
-                   for c in streams]
+        senders = [
+            ZenohPeer(c.vehicle_id, connect=[svc.zenoh_endpoint], prefix=PREFIX, **signing).open() for c in streams
+        ]
         time.sleep(0.5)  # sessions connected before the first frame
         t_base = time.time()
         t0 = time.perf_counter()
@@ -246,7 +168,7 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
             time.sleep(0.05)
         sub.undeclare()
         peers_status = svc.get("/v1/peers")
-        memory = svc.rss_mb()
+        memory = svc.memory_mb()
     finally:
         for s in senders:
             s.close()
@@ -298,8 +220,10 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         "latency_ms_second_half_p50": lat_second,
         "service_latency_ms": _pct([r.latency_ms for _, r, _ in results if r.latency_ms is not None]),
         "queue_wait_ms": _pct([r.timings_ms.get("queue_wait", 0.0) for _, r, _ in results]),
-        "service_timings_ms_p50": {k: float(np.median([r.timings_ms.get(k, 0.0) for _, r, _ in results]))
-                                   for k in sorted({k for _, r, _ in results for k in r.timings_ms})},
+        "service_timings_ms_p50": {
+            k: float(np.median([r.timings_ms.get(k, 0.0) for _, r, _ in results]))
+            for k in sorted({k for _, r, _ in results for k in r.timings_ms})
+        },
         "success_fraction": float(np.mean([r.success for _, r, _ in results])) if results else 0.0,
         "outcomes": dict(Counter("success" if r.success else str(r.reason) for _, r, _ in results)),
         "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
@@ -322,27 +246,40 @@ def _keys(items):
         yield r.peer_id, r.peer_seq
 
 
-def measure_service(cfg: ServiceBenchConfig, config: AlignConfig,
-                    progress: Callable[[Iterable, str], Iterable] | None = None,
-                    log_dir: Path | None = None) -> dict:
+def measure_service(
+    cfg: ServiceBenchConfig,
+    config: AlignConfig,
+    progress: Callable[[Iterable, str], Iterable] | None = None,
+    log_dir: Path | None = None,
+) -> dict:
     """One fresh service process per peer count; the report's ``service`` section (or an ``error``)."""
     import tempfile
 
-    pose = (f"reported poses with {cfg.pose_sigma_m:g} m / {cfg.pose_sigma_deg:g} deg noise" if cfg.send_pose
-            else "no reported poses")
-    out: dict = {"transport": "zenoh tcp/127.0.0.1 (multicast scouting off)", "poses": pose, "rate_hz": cfg.rate_hz,
-                 "seconds": cfg.seconds, "warmup_s": cfg.warmup_s, "workers": cfg.workers,
-                 "config": json.loads(cfg.model_dump_json()), "runs": {}}
+    pose = (
+        f"reported poses with {cfg.pose_sigma_m:g} m / {cfg.pose_sigma_deg:g} deg noise"
+        if cfg.send_pose
+        else "no reported poses"
+    )
+    out: dict = {
+        "transport": "zenoh tcp/127.0.0.1 (multicast scouting off)",
+        "poses": pose,
+        "rate_hz": cfg.rate_hz,
+        "seconds": cfg.seconds,
+        "warmup_s": cfg.warmup_s,
+        "workers": cfg.workers,
+        "config": json.loads(cfg.model_dump_json()),
+        "runs": {},
+    }
     try:
-        cars = simulated_cars(cfg, max(cfg.peer_counts), config, progress)
+        cars = simulated_streams(cfg, max(cfg.peer_counts), config, progress)
     except Exception as e:  # report, do not lose the engine numbers already measured
         return {**out, "error": f"building the frames failed: {type(e).__name__}: {e}"}
     with tempfile.TemporaryDirectory(prefix="bbalign-bench-") as tmp:
         logs = Path(log_dir or tmp)
-        for n in (progress(cfg.peer_counts, "service runs") if progress else cfg.peer_counts):
+        for n in progress(cfg.peer_counts, "service runs") if progress else cfg.peer_counts:
             svc = None
             try:
-                svc = start_service(cfg, config, logs)
+                svc = start_bench_service(cfg, config, logs)
                 out["runs"][str(n)] = run_load(svc, cars, n, cfg)
             except Exception as e:
                 out.setdefault("errors", {})[str(n)] = f"{type(e).__name__}: {e}"

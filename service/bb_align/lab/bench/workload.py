@@ -9,9 +9,9 @@ scans in the OPV2V / V2V4Real folder layout instead (``bb_align.io.dataset``).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 
@@ -68,22 +68,39 @@ class Workload:
         }
 
 
-def make_pair(name: str, pts_ego: np.ndarray, pts_peer: np.ndarray, boxes_ego, boxes_peer,
-              T_ego_peer: np.ndarray | None, config: AlignConfig) -> BenchPair:
+def make_pair(
+    name: str,
+    pts_ego: np.ndarray,
+    pts_peer: np.ndarray,
+    boxes_ego,
+    boxes_peer,
+    T_ego_peer: np.ndarray | None,
+    config: AlignConfig,
+) -> BenchPair:
     """Two clouds (each in its own sensor frame) -> the PNG BV images a car would send, at config.bev."""
     bev_ego, bev_peer = make_bev(pts_ego, config.bev), make_bev(pts_peer, config.bev)
     T = None if T_ego_peer is None else np.asarray(T_ego_peer, dtype=float)
     return BenchPair(
-        name=name, ego_png=bev_ego.to_png(), peer_png=bev_peer.to_png(), bev_meta=bev_ego.meta(),
-        boxes_ego=as_boxes(boxes_ego), boxes_peer=as_boxes(boxes_peer), T_ego_peer=T,
+        name=name,
+        ego_png=bev_ego.to_png(),
+        peer_png=bev_peer.to_png(),
+        bev_meta=bev_ego.meta(),
+        boxes_ego=as_boxes(boxes_ego),
+        boxes_peer=as_boxes(boxes_peer),
+        T_ego_peer=T,
         distance_m=float(np.hypot(*T[:2, 3])) if T is not None else float("nan"),
         num_points=(int(len(pts_ego)), int(len(pts_peer))),
     )
 
 
-def sim_workload(config: AlignConfig | None = None, *, quick: bool = False, seeds: Iterable[int] | None = None,
-                 distances_m: Iterable[float] | None = None,
-                 progress: Callable[[Iterable], Iterable] | None = None) -> Workload:
+def sim_workload(
+    config: AlignConfig | None = None,
+    *,
+    quick: bool = False,
+    seeds: Iterable[int] | None = None,
+    distances_m: Iterable[float] | None = None,
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> Workload:
     """Simulated pairs: for each seed (a street) and spacing, frame 0 of a two-car sequence; agent "0" is the ego.
     ``progress`` wraps the iteration (e.g. tqdm)."""
     from ..sim import simulate_sequence
@@ -93,7 +110,7 @@ def sim_workload(config: AlignConfig | None = None, *, quick: bool = False, seed
     distances = tuple(distances_m if distances_m is not None else (QUICK_DISTANCES_M if quick else SIM_DISTANCES_M))
     jobs = [(s, d) for s in seeds for d in distances]
     pairs = []
-    for seed, dist in (progress(jobs) if progress else jobs):
+    for seed, dist in progress(jobs) if progress else jobs:
         # A street may not offer the wanted spacing (the simulator then places the peer elsewhere): take the
         # next seed of a fixed sequence, so the workload stays deterministic and every spacing is present.
         for attempt in range(SIM_RETRIES):
@@ -104,12 +121,21 @@ def sim_workload(config: AlignConfig | None = None, *, quick: bool = False, seed
             if abs(np.hypot(*T_true[:2, 3]) - dist) <= SIM_SPACING_TOLERANCE_M:
                 break
         else:
-            raise RuntimeError(f"the simulator did not place two cars {dist:g} m apart for seeds {seed} + "
-                               f"{SIM_RETRY_STRIDE} k, k < {SIM_RETRIES}")
-        pairs.append(make_pair(f"sim-s{s}-d{dist:g}", ego.points, peer.points, ego.boxes, peer.boxes, T_true,
-                               config))
-    return Workload(pairs, "sim", {"seeds": list(seeds), "spacings_m": list(distances),
-                                   "range_m": config.bev.range_m, "resolution_m": config.bev.resolution_m})
+            raise RuntimeError(
+                f"the simulator did not place two cars {dist:g} m apart for seeds {seed} + "
+                f"{SIM_RETRY_STRIDE} k, k < {SIM_RETRIES}"
+            )
+        pairs.append(make_pair(f"sim-s{s}-d{dist:g}", ego.points, peer.points, ego.boxes, peer.boxes, T_true, config))
+    return Workload(
+        pairs,
+        "sim",
+        {
+            "seeds": list(seeds),
+            "spacings_m": list(distances),
+            "range_m": config.bev.range_m,
+            "resolution_m": config.bev.resolution_m,
+        },
+    )
 
 
 def _sensor_boxes(agent, config: AlignConfig) -> np.ndarray:
@@ -129,8 +155,13 @@ def _sensor_boxes(agent, config: AlignConfig) -> np.ndarray:
     return out[keep]
 
 
-def data_workload(root: str | Path, config: AlignConfig | None = None, *, max_pairs: int = 12,
-                  progress: Callable[[Iterable], Iterable] | None = None) -> Workload:
+def data_workload(
+    root: str | Path,
+    config: AlignConfig | None = None,
+    *,
+    max_pairs: int = 12,
+    progress: Callable[[Iterable], Iterable] | None = None,
+) -> Workload:
     """Real scans in the OPV2V / V2V4Real layout (ROOT/<scenario>/<agent>/<timestamp>.pcd + .yaml): the ego
     against each peer of the first frame groups, up to ``max_pairs`` pairs."""
     from bb_align.io.dataset import iter_frames
@@ -144,10 +175,18 @@ def data_workload(root: str | Path, config: AlignConfig | None = None, *, max_pa
     if not groups:
         raise ValueError(f"--data {root}: no scenario with two agents at one timestamp (OPV2V/V2V4Real layout)")
     pairs = []
-    for group, peer in (progress(groups[:max_pairs]) if progress else groups[:max_pairs]):
+    for group, peer in progress(groups[:max_pairs]) if progress else groups[:max_pairs]:
         ego = group.ego
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
-        pairs.append(make_pair(f"{group.scenario}/{group.timestamp}/{ego.agent}-{peer.agent}", ego.load_points(),
-                               peer.load_points(), _sensor_boxes(ego, config), _sensor_boxes(peer, config),
-                               T_true, config))
+        pairs.append(
+            make_pair(
+                f"{group.scenario}/{group.timestamp}/{ego.agent}-{peer.agent}",
+                ego.load_points(),
+                peer.load_points(),
+                _sensor_boxes(ego, config),
+                _sensor_boxes(peer, config),
+                T_true,
+                config,
+            )
+        )
     return Workload(pairs, f"data:{root}", {"range_m": config.bev.range_m, "resolution_m": config.bev.resolution_m})

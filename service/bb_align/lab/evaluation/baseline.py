@@ -46,7 +46,7 @@ def graph_match(boxes_ego, boxes_peer, config: GraphMatchConfig | None = None) -
         return fail
     dl = np.abs(e[:, None, 3] - p[None, :, 3])
     dw = np.abs(e[:, None, 4] - p[None, :, 4])
-    node = np.exp(-(dl ** 2 + dw ** 2) / (2 * 0.5 ** 2))
+    node = np.exp(-(dl**2 + dw**2) / (2 * 0.5**2))
     ii, aa = np.nonzero((dl < cfg.size_gate_m) & (dw < cfg.size_gate_m))
     if len(ii) > cfg.max_candidates:
         best = np.argsort(-node[ii, aa])[: cfg.max_candidates]
@@ -60,7 +60,7 @@ def graph_match(boxes_ego, boxes_peer, config: GraphMatchConfig | None = None) -
     rel_p = p[aa, 6][:, None] - p[aa, 6][None, :]
     dh = np.abs(wrap_angle(2 * (rel_e - rel_p))) / 2  # modulo 180 degrees
     sigma_h = np.radians(cfg.heading_sigma_deg)
-    M = np.exp(-edge ** 2 / (2 * cfg.edge_sigma_m ** 2)) * np.exp(-dh ** 2 / (2 * sigma_h ** 2))
+    M = np.exp(-(edge**2) / (2 * cfg.edge_sigma_m**2)) * np.exp(-(dh**2) / (2 * sigma_h**2))
     M[np.abs(edge) > 3 * cfg.edge_sigma_m] = 0.0
     M[(ii[:, None] == ii[None, :]) | (aa[:, None] == aa[None, :])] = 0.0  # one-to-one
     np.fill_diagonal(M, node[ii, aa])

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -15,10 +14,20 @@ from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS
 
 def _git_commit() -> str | None:
     try:
-        out = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True, timeout=5,
-                             cwd=Path(__file__).resolve().parent)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "service"],
-                               capture_output=True, text=True, timeout=5, cwd=Path(__file__).resolve().parent)
+        out = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", "service"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+        )
         if out.returncode != 0:
             return None
         return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
@@ -44,8 +53,10 @@ def _fmt(v, pct=False):
 
 def _print_summary(s: dict) -> None:
     echo = typer.echo
-    echo(f"pairs {s['pairs']}  success {_fmt(s['success_rate'], True)}  <1m&1deg {_fmt(s['frac_under_1m_1deg'], True)}"
-         f"  median t {_fmt(s['median_t_err_m'])} m  median r {_fmt(s['median_r_err_deg'])} deg")
+    echo(
+        f"pairs {s['pairs']}  success {_fmt(s['success_rate'], True)}  <1m&1deg {_fmt(s['frac_under_1m_1deg'], True)}"
+        f"  median t {_fmt(s['median_t_err_m'])} m  median r {_fmt(s['median_r_err_deg'])} deg"
+    )
     w = s["within_70m"]
     if w.get("pairs"):
         echo(f"within 70 m: {w['pairs']} pairs, <1m&1deg {_fmt(w['frac_under_1m_1deg'], True)}")
@@ -55,10 +66,16 @@ def _print_summary(s: dict) -> None:
             continue
         s1 = s["stage1_only"]["by_distance"][k]
         g = s["baseline_graph_matching"]["by_distance"][k]
-        echo(f"{k:>8} m {b['pairs']:6d}  {_fmt(b['success_rate'], True)}   {_fmt(b['frac_under_1m_1deg'], True)}"
-             f"   |     {_fmt(s1['frac_under_1m_1deg'], True)}      |    {_fmt(g['frac_under_1m_1deg'], True)}")
-    echo("late-fusion AP@0.5 / AP@0.7 (all ranges): " + ", ".join(
-        f"{pose} {_fmt(v['all']['ap@0.5'])} / {_fmt(v['all']['ap@0.7'])}" for pose, v in s["detection_ap"].items()))
+        echo(
+            f"{k:>8} m {b['pairs']:6d}  {_fmt(b['success_rate'], True)}   {_fmt(b['frac_under_1m_1deg'], True)}"
+            f"   |     {_fmt(s1['frac_under_1m_1deg'], True)}      |    {_fmt(g['frac_under_1m_1deg'], True)}"
+        )
+    echo(
+        "late-fusion AP@0.5 / AP@0.7 (all ranges): "
+        + ", ".join(
+            f"{pose} {_fmt(v['all']['ap@0.5'])} / {_fmt(v['all']['ap@0.7'])}" for pose, v in s["detection_ap"].items()
+        )
+    )
     echo("failures: " + ", ".join(f"{k} {v}" for k, v in s["failure_reasons"].items()))
 
 
@@ -73,9 +90,12 @@ def register(app: typer.Typer) -> None:
         min_distance: float = typer.Option(4.0, "--min-distance", min=0, help="closest spacing, metres"),
         max_distance: float = typer.Option(100.0, "--max-distance", min=1, max=300, help="farthest spacing, m"),
         distortion: bool = typer.Option(True, "--distortion/--no-distortion", help="self-motion distortion"),
-        fleet: str = typer.Option(",".join(DEFAULT_FLEET), "--fleet",
-                                  help=f"LiDAR models the cars draw from, all different while possible "
-                                       f"(comma list of {', '.join(SENSOR_MODELS)}; one name: every car the same)"),
+        fleet: str = typer.Option(
+            ",".join(DEFAULT_FLEET),
+            "--fleet",
+            help=f"LiDAR models the cars draw from, all different while possible "
+            f"(comma list of {', '.join(SENSOR_MODELS)}; one name: every car the same)",
+        ),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
     ) -> None:
         """Simulate V2V LiDAR scenarios (heterogeneous sensors, distortion, detections) into OUT_DIR."""
@@ -88,21 +108,21 @@ def register(app: typer.Typer) -> None:
         unknown = [m for m in models if m not in SENSOR_MODELS]
         if not models or unknown:
             raise typer.BadParameter(f"--fleet: unknown model(s) {unknown}; choose from {', '.join(SENSOR_MODELS)}")
-        cfg = SimConfig(min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion,
-                        fleet=models)
-        names = write_benchmark(out_dir, scenarios, seed=seed, frames=frames, n_agents=agents, config=cfg,
-                                workers=workers)
+        cfg = SimConfig(min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion, fleet=models)
+        names = write_benchmark(
+            out_dir, scenarios, seed=seed, frames=frames, n_agents=agents, config=cfg, workers=workers
+        )
         typer.echo(f"wrote {len(names)} scenarios x {frames} frame(s) x {agents} agents to {out_dir}")
 
     @app.command("eval")
     def eval_cmd(
         root: Path = typer.Argument(..., exists=True, file_okay=False, help="dataset root (OPV2V/V2V4Real layout)"),
-        json_out: Optional[Path] = typer.Option(None, "--json", help="write the summary JSON here"),
-        plots: Optional[Path] = typer.Option(None, "--plots", file_okay=False, help="write PNG figures here"),
-        records_out: Optional[Path] = typer.Option(None, "--records", help="write every pair's record (JSON lines)"),
+        json_out: Path | None = typer.Option(None, "--json", help="write the summary JSON here"),
+        plots: Path | None = typer.Option(None, "--plots", file_okay=False, help="write PNG figures here"),
+        records_out: Path | None = typer.Option(None, "--records", help="write every pair's record (JSON lines)"),
         pose_noise: str = typer.Option("2,2", "--pose-noise", help="sigma_t (m), sigma_theta (deg) for the AP test"),
         prior: bool = typer.Option(False, "--prior", help="also give the engine that noisy pose as a GNSS prior"),
-        limit: Optional[int] = typer.Option(None, "--limit", min=1, help="evaluate at most this many pairs"),
+        limit: int | None = typer.Option(None, "--limit", min=1, help="evaluate at most this many pairs"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
         seed: int = typer.Option(0, "--seed", help="seed of the pose noise and of simulated detections"),
     ) -> None:
@@ -119,8 +139,14 @@ def register(app: typer.Typer) -> None:
         except (ValueError, FileNotFoundError) as exc:
             raise typer.BadParameter(str(exc)) from exc
         summary = summarize(records)
-        summary["meta"] = {"root": str(root), "commit": commit, "pose_noise": [sigma_t, sigma_deg], "prior": prior,
-                           "seed": seed, "align_config": cfg.align.model_dump()}
+        summary["meta"] = {
+            "root": str(root),
+            "commit": commit,
+            "pose_noise": [sigma_t, sigma_deg],
+            "prior": prior,
+            "seed": seed,
+            "align_config": cfg.align.model_dump(),
+        }
         _print_summary(summary)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)

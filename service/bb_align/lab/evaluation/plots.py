@@ -30,8 +30,13 @@ def _cdf(ax, values, ok, label, xmax, **kw):
         return
     xs = np.sort(v[np.isfinite(v)])
     ys = np.arange(1, len(xs) + 1) / n
-    ax.step(np.concatenate([[0], xs, [xmax]]), np.concatenate([[0], ys, [ys[-1] if len(ys) else 0]]),
-            where="post", label=f"{label} (n={n})", **kw)
+    ax.step(
+        np.concatenate([[0], xs, [xmax]]),
+        np.concatenate([[0], ys, [ys[-1] if len(ys) else 0]]),
+        where="post",
+        label=f"{label} (n={n})",
+        **kw,
+    )
 
 
 def _pair_cdfs(fig_path, groups: dict[str, tuple], title: str, t_max=5.0, r_max=5.0):
@@ -85,35 +90,59 @@ def write_plots(records: list[PairRecord], out_dir: str | Path) -> list[Path]:
         paths.append(out / name)
         return out / name
 
-    _pair_cdfs(p("fig07_bbalign_vs_graph_matching.png"),
-               {"BB-Align": _full(records), "graph matching (VIPS-style)": _baseline(records)},
-               "Fig. 7: pose recovery accuracy, BB-Align vs graph matching (all pairs)")
+    _pair_cdfs(
+        p("fig07_bbalign_vs_graph_matching.png"),
+        {"BB-Align": _full(records), "graph matching (VIPS-style)": _baseline(records)},
+        "Fig. 7: pose recovery accuracy, BB-Align vs graph matching (all pairs)",
+    )
     _box_by_cars(p("fig08_error_by_common_cars.png"), records)
-    _pair_cdfs(p("fig09a_by_inliers_bv.png"),
-               {f"Inliers_bv {k}": _raw(_sel(records, lambda x: x.inliers_bv, lo, hi, True))
-                for k, (lo, hi) in BV_INLIER_BUCKETS.items()},
-               "Fig. 9a: accuracy by BV-matching inliers (raw pose, failures included)")
-    _pair_cdfs(p("fig09b_by_inliers_box.png"),
-               {f"Inliers_box {k}": _raw(_sel(records, lambda x: x.inliers_box, lo, hi, True))
-                for k, (lo, hi) in BOX_INLIER_BUCKETS.items()},
-               "Fig. 9b: accuracy by box-alignment inliers (raw pose, failures included)")
+    _pair_cdfs(
+        p("fig09a_by_inliers_bv.png"),
+        {
+            f"Inliers_bv {k}": _raw(_sel(records, lambda x: x.inliers_bv, lo, hi, True))
+            for k, (lo, hi) in BV_INLIER_BUCKETS.items()
+        },
+        "Fig. 9a: accuracy by BV-matching inliers (raw pose, failures included)",
+    )
+    _pair_cdfs(
+        p("fig09b_by_inliers_box.png"),
+        {
+            f"Inliers_box {k}": _raw(_sel(records, lambda x: x.inliers_box, lo, hi, True))
+            for k, (lo, hi) in BOX_INLIER_BUCKETS.items()
+        },
+        "Fig. 9b: accuracy by box-alignment inliers (raw pose, failures included)",
+    )
     dist_groups = {k: _sel(records, lambda x: x.distance_m, lo, hi, False) for k, (lo, hi) in DIST_BUCKETS.items()}
     dist_groups["0-70 (all)"] = _sel(records, lambda x: x.distance_m, 0, 70, False)
-    _pair_cdfs(p("fig10_by_distance.png"), {f"{k} m": _full(v) for k, v in dist_groups.items()},
-               "Fig. 10: accuracy by distance between the cars")
-    _pair_cdfs(p("fig11_stage1_by_distance.png"), {f"{k} m": _stage1(v) for k, v in dist_groups.items()},
-               "Fig. 11: BV image matching alone (stage 1) by distance")
-    _pair_cdfs(p("fig12_by_common_cars.png"),
-               {f"{k} cars": _full(_sel(records, lambda x: x.common_cars, lo, hi, True))
-                for k, (lo, hi) in CAR_BUCKETS.items()},
-               "Fig. 12: accuracy by number of commonly observed cars")
+    _pair_cdfs(
+        p("fig10_by_distance.png"),
+        {f"{k} m": _full(v) for k, v in dist_groups.items()},
+        "Fig. 10: accuracy by distance between the cars",
+    )
+    _pair_cdfs(
+        p("fig11_stage1_by_distance.png"),
+        {f"{k} m": _stage1(v) for k, v in dist_groups.items()},
+        "Fig. 11: BV image matching alone (stage 1) by distance",
+    )
+    _pair_cdfs(
+        p("fig12_by_common_cars.png"),
+        {
+            f"{k} cars": _full(_sel(records, lambda x: x.common_cars, lo, hi, True))
+            for k, (lo, hi) in CAR_BUCKETS.items()
+        },
+        "Fig. 12: accuracy by number of commonly observed cars",
+    )
     sensors = sorted({x.peer_sensor for x in records})
-    _pair_cdfs(p("fig13_by_peer_sensor.png"),
-               {f"peer {s}": _full([x for x in records if x.peer_sensor == s]) for s in sensors},
-               "Fig. 13 (variant): accuracy by the peer's LiDAR model")
-    _pair_cdfs(p("fig14_with_without_box_alignment.png"),
-               {"stage 1 + 2 (BB-Align)": _full(records), "stage 1 only": _stage1(records)},
-               "Fig. 14: accuracy with and without box alignment")
+    _pair_cdfs(
+        p("fig13_by_peer_sensor.png"),
+        {f"peer {s}": _full([x for x in records if x.peer_sensor == s]) for s in sensors},
+        "Fig. 13 (variant): accuracy by the peer's LiDAR model",
+    )
+    _pair_cdfs(
+        p("fig14_with_without_box_alignment.png"),
+        {"stage 1 + 2 (BB-Align)": _full(records), "stage 1 only": _stage1(records)},
+        "Fig. 14: accuracy with and without box alignment",
+    )
     _ap_table(p("table1_late_fusion_ap.png"), records)
     _scatter_distance(p("errors_vs_distance.png"), records)
     return paths

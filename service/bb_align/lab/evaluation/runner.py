@@ -23,7 +23,7 @@ from bb_align.engine.config import AlignConfig
 from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2, transform_points_2d
 from bb_align.engine.matching import match_descriptors
 from bb_align.engine.pipeline import Aligner
-from bb_align.engine.result import FailureReason
+from bb_align.engine.verdict import STAGE2_FAILURES
 from bb_align.io.dataset import AgentFrame, FrameGroup, iter_frames
 
 from ..sim.detections import DetectionModel, count_points_in_boxes, detect
@@ -33,8 +33,7 @@ from .baseline import GraphMatchConfig, graph_match
 AP_RANGES = {"0-30": (0.0, 30.0), "30-50": (30.0, 50.0), "50-100": (50.0, 100.0), "all": (0.0, 100.0)}
 AP_IOUS = (0.5, 0.7)
 POSES = ("noisy", "recovered", "true")
-_STAGE2_REASONS = {FailureReason.no_boxes.value, FailureReason.no_box_overlap.value,
-                   FailureReason.too_few_inliers_box.value, FailureReason.box_correction_too_large.value}
+_STAGE2_REASONS = {r.value for r in STAGE2_FAILURES}
 
 
 class EvalConfig(BaseModel):
@@ -185,8 +184,12 @@ def _oracle(ego, peer, T_ego_peer_true: np.ndarray, cfg: EvalConfig, tol_m: floa
     kp_peer = transform_points_2d(se2(*se2_params(T_ego_peer_true)), p.keypoints_xy)
     d = np.linalg.norm(kp_peer[:, None, :] - e.keypoints_xy[None, :, :], axis=2)
     repeatable = int((d.min(axis=1) < tol_m).sum())
-    i_p, i_e = match_descriptors(p.descriptors, np.concatenate([e.descriptors, e.descriptors_flipped]),
-                                 mutual=cfg.align.match.mutual, ratio=cfg.align.match.ratio)
+    i_p, i_e = match_descriptors(
+        p.descriptors,
+        np.concatenate([e.descriptors, e.descriptors_flipped]),
+        mutual=cfg.align.match.mutual,
+        ratio=cfg.align.match.ratio,
+    )
     i_e = i_e % len(e.descriptors)
     correct = int((np.linalg.norm(kp_peer[i_p] - e.keypoints_xy[i_e], axis=1) < tol_m).sum())
     return repeatable, correct
@@ -195,8 +198,11 @@ def _oracle(ego, peer, T_ego_peer_true: np.ndarray, cfg: EvalConfig, tol_m: floa
 def _noisy(T_ego_peer_true: np.ndarray, rng: np.random.Generator, cfg: EvalConfig) -> np.ndarray:
     """OpenCOOD-style pose noise on the peer: Gaussian on its x, y (sigma_t) and yaw (sigma_theta)."""
     yaw, tx, ty = se2_params(T_ego_peer_true)
-    return se2(yaw + np.radians(rng.normal(0, cfg.pose_noise_deg)), tx + rng.normal(0, cfg.pose_noise_t_m),
-               ty + rng.normal(0, cfg.pose_noise_t_m))
+    return se2(
+        yaw + np.radians(rng.normal(0, cfg.pose_noise_deg)),
+        tx + rng.normal(0, cfg.pose_noise_t_m),
+        ty + rng.normal(0, cfg.pose_noise_t_m),
+    )
 
 
 def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list[PairRecord]:
@@ -216,24 +222,52 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
         s1_ok = res.success or res.reason in _STAGE2_REASONS
         gm = graph_match(ego.boxes, peer.boxes, cfg.baseline)
         g_t, g_r = pose_error(gm.T_ego_peer, T_true)
-        common = sum(1 for i, n in ego.seen.items()
-                     if n >= cfg.common_min_points and peer.seen.get(i, 0) >= cfg.common_min_points)
+        common = sum(
+            1
+            for i, n in ego.seen.items()
+            if n >= cfg.common_min_points and peer.seen.get(i, 0) >= cfg.common_min_points
+        )
         T_rec = res.T_ego_peer if res.success else T_noisy  # a failed recovery keeps the reported pose
         rep, correct = _oracle(ego, peer, T_true, cfg)
         yaw, tx, ty = se2_params(T_true)
-        records.append(PairRecord(
-            scenario=group.scenario, timestamp=group.timestamp, ego=ego.frame.agent, peer=peer_frame.agent,
-            distance_m=float(np.hypot(tx, ty)), true_yaw_deg=float(np.degrees(yaw)),
-            ego_sensor=str(ego.frame.extra.get("sensor", "")), peer_sensor=str(peer_frame.extra.get("sensor", "")),
-            ego_points=len(ego.points), peer_points=len(peer.points), ego_boxes=len(ego.boxes),
-            peer_boxes=len(peer.boxes), common_cars=int(common), success=bool(res.success), reason=res.reason,
-            t_err_m=t_err, r_err_deg=r_err, inliers_bv=int(res.inliers_bv), inliers_box=int(res.inliers_box),
-            confidence=float(res.confidence), stage2_applied=bool(res.stage2_applied), stage1_success=bool(s1_ok),
-            stage1_t_err_m=s1_t, stage1_r_err_deg=s1_r, baseline_success=bool(gm.success),
-            baseline_matches=int(gm.matches), baseline_t_err_m=g_t, baseline_r_err_deg=g_r,
-            prepare_ms=ego.prepare_ms + peer.prepare_ms, align_ms=align_ms, matches_bv=int(res.matches_bv),
-            oracle_repeatable_kp=rep, oracle_correct_matches=correct,
-            ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg)))
+        records.append(
+            PairRecord(
+                scenario=group.scenario,
+                timestamp=group.timestamp,
+                ego=ego.frame.agent,
+                peer=peer_frame.agent,
+                distance_m=float(np.hypot(tx, ty)),
+                true_yaw_deg=float(np.degrees(yaw)),
+                ego_sensor=str(ego.frame.extra.get("sensor", "")),
+                peer_sensor=str(peer_frame.extra.get("sensor", "")),
+                ego_points=len(ego.points),
+                peer_points=len(peer.points),
+                ego_boxes=len(ego.boxes),
+                peer_boxes=len(peer.boxes),
+                common_cars=int(common),
+                success=bool(res.success),
+                reason=res.reason,
+                t_err_m=t_err,
+                r_err_deg=r_err,
+                inliers_bv=int(res.inliers_bv),
+                inliers_box=int(res.inliers_box),
+                confidence=float(res.confidence),
+                stage2_applied=bool(res.stage2_applied),
+                stage1_success=bool(s1_ok),
+                stage1_t_err_m=s1_t,
+                stage1_r_err_deg=s1_r,
+                baseline_success=bool(gm.success),
+                baseline_matches=int(gm.matches),
+                baseline_t_err_m=g_t,
+                baseline_r_err_deg=g_r,
+                prepare_ms=ego.prepare_ms + peer.prepare_ms,
+                align_ms=align_ms,
+                matches_bv=int(res.matches_bv),
+                oracle_repeatable_kp=rep,
+                oracle_correct_matches=correct,
+                ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg),
+            )
+        )
     return records
 
 
@@ -259,8 +293,9 @@ def _run_one(group: FrameGroup) -> list[PairRecord]:
     return evaluate_group(group, _worker_state["aligner"], _worker_state["cfg"])
 
 
-def evaluate_dataset(root, cfg: EvalConfig | None = None, limit: int | None = None, workers: int | None = None,
-                     progress: bool = True) -> list[PairRecord]:
+def evaluate_dataset(
+    root, cfg: EvalConfig | None = None, limit: int | None = None, workers: int | None = None, progress: bool = True
+) -> list[PairRecord]:
     """Evaluate every frame group under ``root`` (the first ``limit`` pairs' groups when given)."""
     cfg = cfg or EvalConfig()
     groups = []
@@ -285,8 +320,9 @@ def evaluate_dataset(root, cfg: EvalConfig | None = None, limit: int | None = No
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # one thread per worker process: no oversubscription
         try:
-            with get_context("spawn").Pool(workers, initializer=_init_worker,
-                                           initargs=(cfg.model_dump_json(),)) as pool:
+            with get_context("spawn").Pool(
+                workers, initializer=_init_worker, initargs=(cfg.model_dump_json(),)
+            ) as pool:
                 for recs in pool.imap(_run_one, groups):
                     records += recs
                     bar.update(len(recs))

@@ -53,11 +53,17 @@ def _arrays(records: list[PairRecord], which: str):
     if which == "bbalign":
         return ([x.t_err_m for x in records], [x.r_err_deg for x in records], [x.success for x in records])
     if which == "stage1":
-        return ([x.stage1_t_err_m for x in records], [x.stage1_r_err_deg for x in records],
-                [x.stage1_success for x in records])
+        return (
+            [x.stage1_t_err_m for x in records],
+            [x.stage1_r_err_deg for x in records],
+            [x.stage1_success for x in records],
+        )
     if which == "baseline":
-        return ([x.baseline_t_err_m for x in records], [x.baseline_r_err_deg for x in records],
-                [x.baseline_success for x in records])
+        return (
+            [x.baseline_t_err_m for x in records],
+            [x.baseline_r_err_deg for x in records],
+            [x.baseline_success for x in records],
+        )
     raise ValueError(which)
 
 
@@ -107,8 +113,10 @@ def _diagnosis(records: list[PairRecord]) -> dict:
     for name, (lo, hi) in DIST_BUCKETS.items():
         rs = [x for x in records if lo <= x.distance_m < hi]
         if rs:
-            out[name] = {k: float(np.median([getattr(x, k) for x in rs])) for k in
-                         ("oracle_repeatable_kp", "oracle_correct_matches", "inliers_bv", "matches_bv")}
+            out[name] = {
+                k: float(np.median([getattr(x, k) for x in rs]))
+                for k in ("oracle_repeatable_kp", "oracle_correct_matches", "inliers_bv", "matches_bv")
+            }
     return out
 
 

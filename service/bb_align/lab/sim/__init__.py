@@ -5,5 +5,15 @@ from .detections import DetectionModel, Detections, detect
 from .scenario import Scenario, SimAgent, SimConfig, SimFrame, simulate_sequence
 from .sensors import SENSOR_MODELS, SensorModel
 
-__all__ = ["DetectionModel", "Detections", "SENSOR_MODELS", "Scenario", "SensorModel", "SimAgent", "SimConfig",
-           "SimFrame", "detect", "simulate_sequence"]
+__all__ = [
+    "DetectionModel",
+    "Detections",
+    "SENSOR_MODELS",
+    "Scenario",
+    "SensorModel",
+    "SimAgent",
+    "SimConfig",
+    "SimFrame",
+    "detect",
+    "simulate_sequence",
+]

@@ -41,8 +41,13 @@ class Detections:
     truth: np.ndarray  # (M,) index of the true vehicle box it came from, -1 for a false positive
 
 
-def detect(true_boxes: np.ndarray, n_points: np.ndarray, points: np.ndarray | None, rng: np.random.Generator,
-           model: DetectionModel | None = None) -> Detections:
+def detect(
+    true_boxes: np.ndarray,
+    n_points: np.ndarray,
+    points: np.ndarray | None,
+    rng: np.random.Generator,
+    model: DetectionModel | None = None,
+) -> Detections:
     """Simulated detections from (K, 7) true boxes in the sensor frame with their LiDAR point counts.
 
     ``points`` (N, 3+) in the sensor frame is used to put false positives on real structure (None: at random
@@ -83,13 +88,17 @@ def detect(true_boxes: np.ndarray, n_points: np.ndarray, points: np.ndarray | No
             a = rng.uniform(-np.pi, np.pi, n_fp)
             anchors = np.stack([r * np.cos(a), r * np.sin(a)], 1)
         fp[:, :2] = anchors + rng.normal(0, 0.5, (n_fp, 2))
-        fp[:, 3:6] = np.stack([rng.uniform(3.8, 5.0, n_fp), rng.uniform(1.6, 2.0, n_fp),
-                               rng.uniform(1.3, 1.8, n_fp)], 1)
+        fp[:, 3:6] = np.stack(
+            [rng.uniform(3.8, 5.0, n_fp), rng.uniform(1.6, 2.0, n_fp), rng.uniform(1.3, 1.8, n_fp)], 1
+        )
         fp[:, 6] = rng.uniform(-np.pi, np.pi, n_fp)
     fp_scores = rng.uniform(0.2, 0.75, n_fp)
     boxes = np.concatenate([out, fp])
-    return Detections(boxes, np.clip(np.concatenate([scores, fp_scores]), 0.01, 0.99),
-                      np.concatenate([idx, np.full(n_fp, -1)]).astype(np.int64))
+    return Detections(
+        boxes,
+        np.clip(np.concatenate([scores, fp_scores]), 0.01, 0.99),
+        np.concatenate([idx, np.full(n_fp, -1)]).astype(np.int64),
+    )
 
 
 def count_points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin_m: float = 0.2) -> np.ndarray:

@@ -16,7 +16,7 @@ class Path:
     heading: np.ndarray  # (n,) radians, unwrapped (CCW from +x)
 
     @classmethod
-    def from_points(cls, xy: np.ndarray) -> "Path":
+    def from_points(cls, xy: np.ndarray) -> Path:
         xy = np.asarray(xy, dtype=float)
         seg = np.diff(xy, axis=0)
         s = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
@@ -36,12 +36,12 @@ class Path:
         yaw = np.interp(s, self.s, self.heading)
         return x, y, yaw
 
-    def offset(self, d: float) -> "Path":
+    def offset(self, d: float) -> Path:
         """The parallel curve d metres to the left (negative: right)."""
         n = np.stack([-np.sin(self.heading), np.cos(self.heading)], axis=1)
         return Path.from_points(self.xy + d * n)
 
-    def reversed(self) -> "Path":
+    def reversed(self) -> Path:
         return Path.from_points(self.xy[::-1].copy())
 
     def nearest_s(self, xy: np.ndarray) -> tuple[float, float]:
@@ -51,8 +51,9 @@ class Path:
         return float(self.s[i]), float(d[i])
 
 
-def build_centreline(rng: np.random.Generator, length_m: float, step_m: float = 0.5,
-                     start_xy=(0.0, 0.0), start_heading: float = 0.0) -> Path:
+def build_centreline(
+    rng: np.random.Generator, length_m: float, step_m: float = 0.5, start_xy=(0.0, 0.0), start_heading: float = 0.0
+) -> Path:
     """A street of straight pieces and circular curves, integrated from a piecewise-constant curvature."""
     kappa_pieces: list[tuple[float, float]] = []  # (length, curvature)
     total = 0.0

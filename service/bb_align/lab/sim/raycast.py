@@ -95,8 +95,19 @@ def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None,
     return np.where(hit, np.maximum(t_in, 0.0), np.inf), t_out
 
 
-def _ground_hits(world: World, ox, oy, dx, dy, z0: float, slope: np.ndarray, max_range: float, rng,
-                 step: float = 1.0, chunk: int = 16) -> np.ndarray:
+def _ground_hits(
+    world: World,
+    ox,
+    oy,
+    dx,
+    dy,
+    z0: float,
+    slope: np.ndarray,
+    max_range: float,
+    rng,
+    step: float = 1.0,
+    chunk: int = 16,
+) -> np.ndarray:
     """Horizontal distance (n_cols, n_beams) at which each beam meets the terrain (or its grass), inf if not.
 
     The terrain profile under each column's ray is sampled once; each downward beam takes the first sample
@@ -110,7 +121,7 @@ def _ground_hits(world: World, ox, oy, dx, dy, z0: float, slope: np.ndarray, max
     down = np.flatnonzero(slope.min(axis=0) < -1e-6)
     rows = np.arange(n)[:, None]
     for c0 in range(0, len(down), chunk):
-        b = down[c0:c0 + chunk]
+        b = down[c0 : c0 + chunk]
         sl = slope[:, b].astype(np.float32)  # (n, nb)
         diff = (z0 + sl[:, :, None] * ds) - prof[:, None, :]  # (n, nb, S) ray height above ground
         below = diff <= 0
@@ -127,8 +138,16 @@ def _ground_hits(world: World, ox, oy, dx, dy, z0: float, slope: np.ndarray, max
     return out
 
 
-def cast_sweep(world: World, vehicle: int, sensor: SensorModel, mount: Mount, t_mid: float,
-               rng: np.random.Generator, beam_error_deg: np.ndarray | None = None, distortion: bool = True) -> Sweep:
+def cast_sweep(
+    world: World,
+    vehicle: int,
+    sensor: SensorModel,
+    mount: Mount,
+    t_mid: float,
+    rng: np.random.Generator,
+    beam_error_deg: np.ndarray | None = None,
+    distortion: bool = True,
+) -> Sweep:
     """One full revolution of ``sensor`` on car ``vehicle`` centred on time ``t_mid``.
 
     ``distortion=False`` freezes the world at t_mid for the whole sweep (an ideal, de-skewed scan).

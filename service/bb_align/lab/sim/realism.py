@@ -34,9 +34,8 @@ def bev_stats(points: np.ndarray, config: BevConfig | None = None) -> dict:
     r = np.hypot(xy[:, 0], xy[:, 1]).reshape(n, n)
     lit = img > 0
     h = bev.heights_m()
-    out = {"points": int(len(points)), "lit_pixels": int(lit.sum()),
-           "keypoints": int(len(detect_keypoints(img)))}
-    px_area = cfg.resolution_m ** 2
+    out = {"points": int(len(points)), "lit_pixels": int(lit.sum()), "keypoints": int(len(detect_keypoints(img)))}
+    px_area = cfg.resolution_m**2
     for lo, hi in RINGS:
         ring = (r >= lo) & (r < hi)
         out[f"lit_per_100m2_{lo}-{hi}m"] = float(lit[ring].sum() * 100.0 / max(ring.sum() * px_area, 1e-9))
@@ -110,8 +109,11 @@ def pair_overlay(seed: int, distance_m: float, path: Path) -> None:
     rgb[..., 0], rgb[..., 1] = a, b
     fig, ax = plt.subplots(figsize=(6, 6))
     ax.imshow(rgb, interpolation="nearest")
-    ax.set_title(f"sim seed {seed}: ego {ego.sensor} (red), peer {peer.sensor} (green) at the true pose,\n"
-                 f"{np.hypot(*T[:2, 3]):.0f} m apart; yellow = both see it", fontsize=8)
+    ax.set_title(
+        f"sim seed {seed}: ego {ego.sensor} (red), peer {peer.sensor} (green) at the true pose,\n"
+        f"{np.hypot(*T[:2, 3]):.0f} m apart; yellow = both see it",
+        fontsize=8,
+    )
     ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -134,8 +136,10 @@ def main(argv=None) -> None:
     pair_overlay(22, 55.0, args.out_dir / "pair_overlay_55m.png")
     for group, d in stats.items():
         for name, s in d.items():
-            print(f"{group:4s} {name:40s} " + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
-                                                       for k, v in s.items()))
+            print(
+                f"{group:4s} {name:40s} "
+                + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items())
+            )
 
 
 if __name__ == "__main__":

@@ -35,8 +35,13 @@ class SimConfig(BaseModel):
     traffic: float | None = Field(None, ge=0, le=1, description="0 light .. 1 busy; None: drawn per scenario")
     tilt_sigma_deg: float = Field(0.3, ge=0, description="residual sensor roll/pitch (mounting + body), 1 sigma")
     stopped_prob: float = Field(0.15, ge=0, le=1, description="probability that an agent is standing still")
-    phase_jitter_s: float = Field(0.05, ge=0, le=0.5, description="peers' sweeps are centred up to this far "
-                                  "from the ego's (unsynchronised LiDARs; uniform, fixed per agent)")
+    phase_jitter_s: float = Field(
+        0.05,
+        ge=0,
+        le=0.5,
+        description="peers' sweeps are centred up to this far "
+        "from the ego's (unsynchronised LiDARs; uniform, fixed per agent)",
+    )
     same_road_prob: float = Field(0.7, ge=0, le=1, description="probability that a peer drives on the ego's road")
     vehicle_range_m: float = Field(120.0, gt=0, description="vehicles listed as ground truth within this range")
     detection: DetectionModel = DetectionModel()
@@ -86,10 +91,19 @@ def _add_agent(world: World, lane: Path, s0: float, rng, stopped_prob: float, ag
     speed = next((a.speed for a in agents if a.path is lane), speed)  # agents sharing a lane never collide
     # clear the lane around the agent (traffic in a lane shares one speed, so nothing drives into it)
     behind = 40.0 + (40.0 if speed == 0 else 0.0)
-    world.vehicles = [v for v in world.vehicles if any(v is a for a in agents)
-                      or not (v.path is lane and -behind < v.s0 - s0 < 14.0)]
-    car = Vehicle(-1, float(rng.uniform(4.4, 4.9)), float(rng.uniform(1.8, 1.95)), float(rng.uniform(1.45, 1.7)),
-                  "car", path=lane, s0=s0, speed=speed)
+    world.vehicles = [
+        v for v in world.vehicles if any(v is a for a in agents) or not (v.path is lane and -behind < v.s0 - s0 < 14.0)
+    ]
+    car = Vehicle(
+        -1,
+        float(rng.uniform(4.4, 4.9)),
+        float(rng.uniform(1.8, 1.95)),
+        float(rng.uniform(1.45, 1.7)),
+        "car",
+        path=lane,
+        s0=s0,
+        speed=speed,
+    )
     world.vehicles.append(car)
     return car
 
@@ -138,8 +152,7 @@ def _place(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimC
 class Scenario:
     """A world with agents, ready to render frames at any time."""
 
-    def __init__(self, seed: int, n_agents: int = 2, distance_m: float | None = None,
-                 config: SimConfig | None = None):
+    def __init__(self, seed: int, n_agents: int = 2, distance_m: float | None = None, config: SimConfig | None = None):
         if n_agents < 1:
             raise ValueError(f"n_agents must be >= 1, got {n_agents}")
         if distance_m is not None and not (0 <= distance_m <= 300):
@@ -153,8 +166,12 @@ class Scenario:
         tilt = np.radians(cfg.tilt_sigma_deg)
         self.agents: list[_AgentSpec] = []
         for vid, sensor in zip(vids, sensors):
-            mount = Mount(height_m=float(rng.uniform(1.65, 2.15)), x_offset_m=float(rng.uniform(-0.5, 0.8)),
-                          roll=float(rng.normal(0, tilt)), pitch=float(rng.normal(0, tilt)))
+            mount = Mount(
+                height_m=float(rng.uniform(1.65, 2.15)),
+                x_offset_m=float(rng.uniform(-0.5, 0.8)),
+                roll=float(rng.normal(0, tilt)),
+                pitch=float(rng.normal(0, tilt)),
+            )
             err = rng.normal(0, sensor.elevation_jitter_deg, sensor.beams)
             phase = float(rng.uniform(-cfg.phase_jitter_s, cfg.phase_jitter_s)) if self.agents else 0.0
             self.agents.append(_AgentSpec(vid, sensor, mount, err, phase))
@@ -171,8 +188,9 @@ class Scenario:
         for a_idx, spec in enumerate(self.agents):
             rng = np.random.default_rng([self.seed, 2, index, a_idx])
             t_mid = stamp + spec.phase_s
-            sweep = cast_sweep(w, spec.vehicle, spec.sensor, spec.mount, t_mid, rng, spec.beam_error_deg,
-                               distortion=cfg.distortion)
+            sweep = cast_sweep(
+                w, spec.vehicle, spec.sensor, spec.mount, t_mid, rng, spec.beam_error_deg, distortion=cfg.distortion
+            )
             hit = sweep.owner >= 0
             ids, counts = np.unique(sweep.owner[hit], return_counts=True)
             true_boxes = np.zeros((len(ids), 7))
@@ -186,10 +204,16 @@ class Scenario:
                 true_boxes[j, 6] = box[6] + np.arctan2(T_sw[1, 0], T_sw[0, 0])
             dets = detect(true_boxes, counts, sweep.points, rng, cfg.detection)
             agents[str(a_idx)] = SimAgent(
-                points=sweep.points, boxes=dets.boxes, scores=dets.scores, T_world_sensor=sweep.T_world_sensor,
-                sensor=spec.sensor.name, time_s=t_mid, vehicle_id=spec.vehicle,
+                points=sweep.points,
+                boxes=dets.boxes,
+                scores=dets.scores,
+                T_world_sensor=sweep.T_world_sensor,
+                sensor=spec.sensor.name,
+                time_s=t_mid,
+                vehicle_id=spec.vehicle,
                 points_on={int(i): int(c) for i, c in zip(ids, counts)},
-                seen_boxes={int(i): true_boxes[j] for j, i in enumerate(ids)})
+                seen_boxes={int(i): true_boxes[j] for j, i in enumerate(ids)},
+            )
         ego_xy = agents["0"].T_world_sensor[:2, 3]
         vehicles = {}
         for v in w.vehicles:
@@ -199,8 +223,14 @@ class Scenario:
         return SimFrame(stamp=stamp, agents=agents, vehicles=vehicles)
 
 
-def simulate_sequence(seed: int, n_frames: int = 10, n_agents: int = 2, distance_m: float | None = None,
-                      dt: float = 0.1, config: SimConfig | None = None) -> list[SimFrame]:
+def simulate_sequence(
+    seed: int,
+    n_frames: int = 10,
+    n_agents: int = 2,
+    distance_m: float | None = None,
+    dt: float = 0.1,
+    config: SimConfig | None = None,
+) -> list[SimFrame]:
     """``n_frames`` consecutive frames (``dt`` apart) of ``n_agents`` cars ``distance_m`` apart (None: drawn
     in config's [min_distance_m, max_distance_m]). Agent "0" is the ego. Deterministic for a seed."""
     if n_frames < 1:

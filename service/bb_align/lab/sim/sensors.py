@@ -31,24 +31,89 @@ class SensorModel(BaseModel):
         return len(self.elevations_deg)
 
 
-_VLP32C = (-25.0, -15.64, -11.31, -8.84, -7.25, -6.15, -5.33, -4.67, -4.0, -3.67, -3.33, -3.0, -2.67, -2.33,
-           -2.0, -1.67, -1.33, -1.0, -0.67, -0.33, 0.0, 0.33, 0.67, 1.0, 1.33, 1.67, 2.33, 3.33, 4.67, 7.0,
-           10.33, 15.0)
+_VLP32C = (
+    -25.0,
+    -15.64,
+    -11.31,
+    -8.84,
+    -7.25,
+    -6.15,
+    -5.33,
+    -4.67,
+    -4.0,
+    -3.67,
+    -3.33,
+    -3.0,
+    -2.67,
+    -2.33,
+    -2.0,
+    -1.67,
+    -1.33,
+    -1.0,
+    -0.67,
+    -0.33,
+    0.0,
+    0.33,
+    0.67,
+    1.0,
+    1.33,
+    1.67,
+    2.33,
+    3.33,
+    4.67,
+    7.0,
+    10.33,
+    15.0,
+)
 
 SENSOR_MODELS: dict[str, SensorModel] = {
-    "hdl64": SensorModel(name="hdl64", elevations_deg=tuple(np.round(np.concatenate(
-        [np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.9, 32)]), 3)), columns=2000, max_range_m=120,
-        range_noise_m=0.02, dropout=0.04),
-    "vlp32c": SensorModel(name="vlp32c", elevations_deg=_VLP32C, columns=1800, max_range_m=120,
-                          range_noise_m=0.03, dropout=0.06),
-    "os1_64": SensorModel(name="os1_64", elevations_deg=tuple(np.round(np.linspace(16.6, -16.6, 64), 3)),
-                          columns=1024, max_range_m=100, range_noise_m=0.03, dropout=0.05),
-    "pandar40": SensorModel(name="pandar40", elevations_deg=tuple(np.round(np.concatenate(
-        [[15.0, 11.0, 8.0, 5.0, 3.0, 2.0], np.linspace(1.67, -4.0, 18), [-4.33, -4.67, -5.0, -5.33, -5.67],
-         [-6.0, -7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0]]), 3)),
-        columns=1800, max_range_m=110, range_noise_m=0.03, dropout=0.05),
-    "vlp16": SensorModel(name="vlp16", elevations_deg=tuple(float(a) for a in range(-15, 16, 2)), columns=1800,
-                         max_range_m=100, range_noise_m=0.03, dropout=0.05),
+    "hdl64": SensorModel(
+        name="hdl64",
+        elevations_deg=tuple(np.round(np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.9, 32)]), 3)),
+        columns=2000,
+        max_range_m=120,
+        range_noise_m=0.02,
+        dropout=0.04,
+    ),
+    "vlp32c": SensorModel(
+        name="vlp32c", elevations_deg=_VLP32C, columns=1800, max_range_m=120, range_noise_m=0.03, dropout=0.06
+    ),
+    "os1_64": SensorModel(
+        name="os1_64",
+        elevations_deg=tuple(np.round(np.linspace(16.6, -16.6, 64), 3)),
+        columns=1024,
+        max_range_m=100,
+        range_noise_m=0.03,
+        dropout=0.05,
+    ),
+    "pandar40": SensorModel(
+        name="pandar40",
+        elevations_deg=tuple(
+            np.round(
+                np.concatenate(
+                    [
+                        [15.0, 11.0, 8.0, 5.0, 3.0, 2.0],
+                        np.linspace(1.67, -4.0, 18),
+                        [-4.33, -4.67, -5.0, -5.33, -5.67],
+                        [-6.0, -7.0, -8.0, -9.0, -10.0, -11.0, -12.0, -13.0, -14.0, -19.0, -25.0],
+                    ]
+                ),
+                3,
+            )
+        ),
+        columns=1800,
+        max_range_m=110,
+        range_noise_m=0.03,
+        dropout=0.05,
+    ),
+    "vlp16": SensorModel(
+        name="vlp16",
+        elevations_deg=tuple(float(a) for a in range(-15, 16, 2)),
+        columns=1800,
+        max_range_m=100,
+        range_noise_m=0.03,
+        dropout=0.05,
+    ),
 }
 """Presets. vlp16 is the sparse extreme; the default fleet draws from the others."""
 

@@ -41,8 +41,12 @@ class _Occupancy:
             self.carriage.append(dist <= r.half_width + 0.5)
         self.any_corridor = np.logical_or.reduce(self.corridor)
         self.any_carriage = np.logical_or.reduce(self.carriage)
-        self._other = [np.logical_or.reduce([m for j, m in enumerate(self.carriage) if j != i])
-                       if len(roads) > 1 else np.zeros(self.shape, dtype=bool) for i in range(len(roads))]
+        self._other = [
+            np.logical_or.reduce([m for j, m in enumerate(self.carriage) if j != i])
+            if len(roads) > 1
+            else np.zeros(self.shape, dtype=bool)
+            for i in range(len(roads))
+        ]
         self.taken = np.zeros(self.shape, dtype=bool)
 
     def ij(self, xy) -> np.ndarray:
@@ -76,7 +80,14 @@ class _Side:
 
     def __init__(self, sh: Shapes, occ: _Occupancy, rng, road: Road, road_idx: int, side: int, parked: list):
         self.sh, self.occ, self.rng, self.road, self.idx, self.side, self.parked = (
-            sh, occ, rng, road, road_idx, side, parked)
+            sh,
+            occ,
+            rng,
+            road,
+            road_idx,
+            side,
+            parked,
+        )
         self.edge = road.half_width + road.sidewalk  # property line, from the centre line
 
     def at(self, s: float, lat: float) -> tuple[float, float, float]:
@@ -100,13 +111,21 @@ class _Side:
         z1 = h_trunk + 0.55 * h_crown
         self.sh.cyl(x, y, r_crown, h_trunk, z1, porosity=r.uniform(0.35, 0.65), reflect=0.35)
         jx, jy = r.normal(0, 0.3 * scale, 2)
-        self.sh.cyl(x + jx, y + jy, r_crown * r.uniform(0.55, 0.8), z1, h_trunk + h_crown,
-                    porosity=r.uniform(0.35, 0.65), reflect=0.35)
+        self.sh.cyl(
+            x + jx,
+            y + jy,
+            r_crown * r.uniform(0.55, 0.8),
+            z1,
+            h_trunk + h_crown,
+            porosity=r.uniform(0.35, 0.65),
+            reflect=0.35,
+        )
 
     def bush(self, x, y, big=1.0):
         r = self.rng
-        self.sh.cyl(x, y, r.uniform(0.4, 1.6) * big, 0.0, r.uniform(0.5, 1.9) * big, porosity=r.uniform(0.2, 0.5),
-                    reflect=0.3)
+        self.sh.cyl(
+            x, y, r.uniform(0.4, 1.6) * big, 0.0, r.uniform(0.5, 1.9) * big, porosity=r.uniform(0.2, 0.5), reflect=0.3
+        )
 
     def wall(self, s0, s1, lat, h, thick=0.15, zb=0.0, porosity=0.0, step=6.0, gap_prob=0.0):
         """A fence / wall / hedge / rail following the road in short straight pieces (some left out as gaps)."""
@@ -166,18 +185,34 @@ class _Side:
             self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(0.2, 0.6), relief=relief[style])
             if r.random() < 0.4:  # annex, porch or stepped roof
                 off = self.side * hw * r.uniform(0.3, 0.9)
-                self.sh.prism(cx - np.sin(yaw_b) * off, cy + np.cos(yaw_b) * off, hl * r.uniform(0.3, 0.7),
-                              hw * 0.6, yaw_b, 0.0, h * r.uniform(0.3, 1.6), reflect=r.uniform(0.2, 0.6),
-                              relief=relief[style])
+                self.sh.prism(
+                    cx - np.sin(yaw_b) * off,
+                    cy + np.cos(yaw_b) * off,
+                    hl * r.uniform(0.3, 0.7),
+                    hw * 0.6,
+                    yaw_b,
+                    0.0,
+                    h * r.uniform(0.3, 1.6),
+                    reflect=r.uniform(0.2, 0.6),
+                    relief=relief[style],
+                )
             if r.random() < {"city": 0.7, "suburb": 0.5, "industrial": 0.4}[style]:  # a second row behind
                 depth2 = depth * r.uniform(0.6, 1.3)
                 lat2 = self.edge + setback + depth + r.uniform(3, 15) + depth2 / 2
                 x2, y2, _ = self.at(s + (a + b) / 2 + r.normal(0, 3), lat2)
                 hl2 = hl * r.uniform(0.6, 1.2)
                 if self.occ.claim_rect(x2, y2, hl2, depth2 / 2, yaw_b, self.occ.any_corridor):
-                    self.sh.prism(x2, y2, hl2, depth2 / 2, yaw_b + r.normal(0, 0.03), 0.0,
-                                  max(3.0, base_h * r.uniform(0.5, 1.6)), reflect=r.uniform(0.2, 0.6),
-                                  relief=relief[style])
+                    self.sh.prism(
+                        x2,
+                        y2,
+                        hl2,
+                        depth2 / 2,
+                        yaw_b + r.normal(0, 0.03),
+                        0.0,
+                        max(3.0, base_h * r.uniform(0.5, 1.6)),
+                        reflect=r.uniform(0.2, 0.6),
+                        relief=relief[style],
+                    )
             if style == "suburb":
                 self._yard(s + a, s + b, setback)
                 self._yard(s + a, s + b, setback + depth + r.uniform(2, 12))  # back yard
@@ -191,8 +226,9 @@ class _Side:
             if self.free(x, y):
                 (self.tree(x, y, r.uniform(0.6, 1.0)) if r.random() < 0.5 else self.bush(x, y))
         if r.random() < 0.35:  # hedge or fence on the property line
-            self.wall(s0, s1, self.edge + 0.4, r.uniform(0.9, 2.0), thick=r.uniform(0.2, 0.5),
-                      porosity=r.uniform(0.1, 0.4))
+            self.wall(
+                s0, s1, self.edge + 0.4, r.uniform(0.9, 2.0), thick=r.uniform(0.2, 0.5), porosity=r.uniform(0.1, 0.4)
+            )
         if r.random() < 0.4:  # car in the driveway
             x, y, yaw = self.at(r.uniform(s0, s1), self.edge + r.uniform(2.5, max(3.0, setback - 2.5)))
             if self.free(x, y):
@@ -201,16 +237,22 @@ class _Side:
     def open_stretch(self, s, length):
         """Few landmarks: nothing, bushes, a fence or wall, a guard rail, a few trees, woods, a parking lot."""
         r = self.rng
-        kind = r.choice(["empty", "bushes", "fence", "rail", "trees", "woods", "lot"],
-                        p=[0.22, 0.18, 0.14, 0.12, 0.14, 0.1, 0.1])
+        kind = r.choice(
+            ["empty", "bushes", "fence", "rail", "trees", "woods", "lot"], p=[0.22, 0.18, 0.14, 0.12, 0.14, 0.1, 0.1]
+        )
         if kind == "bushes":
             for _ in range(int(r.integers(3, 14))):
                 x, y, _ = self.at(s + r.uniform(0, length), self.edge + r.uniform(1, 25))
                 if self.free(x, y):
                     self.bush(x, y, big=r.uniform(0.7, 1.3))
         elif kind == "fence":
-            self.wall(s, s + length, self.edge + r.uniform(0.5, 4), r.uniform(1.2, 2.8),
-                      porosity=0.3 if r.random() < 0.5 else 0.0)
+            self.wall(
+                s,
+                s + length,
+                self.edge + r.uniform(0.5, 4),
+                r.uniform(1.2, 2.8),
+                porosity=0.3 if r.random() < 0.5 else 0.0,
+            )
         elif kind == "rail":
             self.wall(s, s + length, self.road.half_width + 0.4, 0.8, thick=0.1, zb=0.35)
         elif kind in ("trees", "woods"):
@@ -249,8 +291,15 @@ class _Side:
             if style != "open" and r.random() < 0.5:  # low wall, hedge or fence along the property line
                 kind = r.integers(3)  # wall, hedge, fence
                 height = (r.uniform(0.6, 1.2), r.uniform(0.8, 2.0), r.uniform(1.0, 2.2))[kind]
-                self.wall(s, end, self.edge + 0.3, height, thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind],
-                          porosity=(0.0, 0.3, 0.5)[kind], gap_prob=0.25)
+                self.wall(
+                    s,
+                    end,
+                    self.edge + 0.3,
+                    height,
+                    thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind],
+                    porosity=(0.0, 0.3, 0.5)[kind],
+                    gap_prob=0.25,
+                )
             for _ in range(int(r.poisson((end - s) / {"city": 12, "suburb": 60}.get(style, 120)))):  # people
                 x, y, _ = self.at(r.uniform(s, end), self.edge - r.uniform(0.3, self.road.sidewalk - 0.2))
                 if self.free(x, y, kerb=True):
@@ -333,16 +382,18 @@ def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traff
     ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world).
     """
     main = build_centreline(rng, main_length_m, start_heading=float(rng.uniform(-np.pi, np.pi)))
-    roads = [Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
-                  float(rng.uniform(2, 4)))]
+    roads = [
+        Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])), float(rng.uniform(2, 4)))
+    ]
     for _ in range(int(rng.integers(1, 4))):
         s_x = float(rng.uniform(120, main.length - 120))
         x, y, yaw = (float(v) for v in main.pose_at(s_x))
         ang = yaw + np.radians(rng.uniform(65, 115)) * rng.choice([-1, 1])
         half = float(rng.uniform(110, 180))
         c = straight((x - half * np.cos(ang), y - half * np.sin(ang)), ang, 2 * half)
-        roads.append(Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
-                          float(rng.uniform(2, 4))))
+        roads.append(
+            Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])), float(rng.uniform(2, 4)))
+        )
     occ = _Occupancy(roads)
     sh = Shapes()
     parked: list[tuple[float, float, float]] = []

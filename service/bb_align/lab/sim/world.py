@@ -47,12 +47,22 @@ class Shapes:
         for name, v in zip(("kind", "x", "y", "a", "b", "yaw", "zb", "zt", "porosity", "reflect", "relief"), vals):
             getattr(self, name).append(v if name == "kind" else float(v))
 
-    def arrays(self) -> "ShapeArrays":
+    def arrays(self) -> ShapeArrays:
         is_cyl = np.array([k == "cyl" for k in self.kind], dtype=bool)
         f = lambda v: np.asarray(v, dtype=np.float64)  # noqa: E731
-        return ShapeArrays(is_cyl, np.stack([f(self.x), f(self.y)], 1).reshape(-1, 2), f(self.a), f(self.b),
-                           f(self.yaw), f(self.zb), f(self.zt), f(self.porosity), f(self.reflect),
-                           f(self.relief), np.full(len(self.kind), -1, dtype=np.int64))
+        return ShapeArrays(
+            is_cyl,
+            np.stack([f(self.x), f(self.y)], 1).reshape(-1, 2),
+            f(self.a),
+            f(self.b),
+            f(self.yaw),
+            f(self.zb),
+            f(self.zt),
+            f(self.porosity),
+            f(self.reflect),
+            f(self.relief),
+            np.full(len(self.kind), -1, dtype=np.int64),
+        )
 
 
 @dataclass
@@ -77,11 +87,11 @@ class ShapeArrays:
         """Horizontal bounding radius of each footprint."""
         return np.where(self.is_cyl, self.a, np.hypot(self.a, self.b))
 
-    def take(self, idx) -> "ShapeArrays":
+    def take(self, idx) -> ShapeArrays:
         return ShapeArrays(*(getattr(self, n)[idx] for n in self.__dataclass_fields__))
 
     @staticmethod
-    def concat(parts: list["ShapeArrays"]) -> "ShapeArrays":
+    def concat(parts: list[ShapeArrays]) -> ShapeArrays:
         names = list(ShapeArrays.__dataclass_fields__)
         return ShapeArrays(*(np.concatenate([getattr(p, n) for p in parts]) for n in names))
 
@@ -189,8 +199,16 @@ class World:
             if v.kind == "car":
                 sh.prism(x, y, v.length / 2, v.width / 2, yaw, z + 0.25, z + v.height * 0.62, reflect=refl)
                 off = -0.08 * v.length
-                sh.prism(x + c * off, y + s * off, v.length * 0.27, v.width * 0.44, yaw, z + v.height * 0.62,
-                         z + v.height, reflect=refl)
+                sh.prism(
+                    x + c * off,
+                    y + s * off,
+                    v.length * 0.27,
+                    v.width * 0.44,
+                    yaw,
+                    z + v.height * 0.62,
+                    z + v.height,
+                    reflect=refl,
+                )
                 n = 2
             else:
                 sh.prism(x, y, v.length / 2, v.width / 2, yaw, z + 0.3, z + v.height, reflect=refl)

@@ -32,8 +32,16 @@ def scenario_distance(seed: int, index: int, n: int, config: SimConfig) -> float
     return float(lo + (index + u) / n * (hi - lo))
 
 
-def write_scenario(root: str | Path, seed: int, index: int, n_scenarios: int, frames: int = 1, n_agents: int = 2,
-                   dt: float = 0.1, config: SimConfig | None = None) -> str:
+def write_scenario(
+    root: str | Path,
+    seed: int,
+    index: int,
+    n_scenarios: int,
+    frames: int = 1,
+    n_agents: int = 2,
+    dt: float = 0.1,
+    config: SimConfig | None = None,
+) -> str:
     """Simulate and write scenario ``index``; returns its directory name."""
     cfg = config or SimConfig()
     name = f"sim_{seed}_{index:04d}"
@@ -55,16 +63,38 @@ def write_scenario(root: str | Path, seed: int, index: int, n_scenarios: int, fr
                     box[:3] = T[:3, :3] @ seen[:3] + T[:3, 3]
                     box[6] = seen[6] + np.arctan2(T[1, 0], T[0, 0])
                 vehicles[v.vid] = box
-            extra = {"sensor": agent.sensor, "timestamp_s": round(agent.time_s, 6), "sim_seed": sc.seed,
-                     "vehicle_points": {int(k): int(n) for k, n in agent.points_on.items() if k in vehicles}}
-            write_agent_frame(root, name, agent_id, f"{f:06d}", agent.points, agent.T_world_sensor, vehicles,
-                              detections=agent.boxes, detection_scores=agent.scores, extra=extra)
+            extra = {
+                "sensor": agent.sensor,
+                "timestamp_s": round(agent.time_s, 6),
+                "sim_seed": sc.seed,
+                "vehicle_points": {int(k): int(n) for k, n in agent.points_on.items() if k in vehicles},
+            }
+            write_agent_frame(
+                root,
+                name,
+                agent_id,
+                f"{f:06d}",
+                agent.points,
+                agent.T_world_sensor,
+                vehicles,
+                detections=agent.boxes,
+                detection_scores=agent.scores,
+                extra=extra,
+            )
     return name
 
 
-def write_benchmark(root: str | Path, n_scenarios: int, seed: int = 0, frames: int = 1, n_agents: int = 2,
-                    dt: float = 0.1, config: SimConfig | None = None, workers: int | None = None,
-                    progress: bool = True) -> list[str]:
+def write_benchmark(
+    root: str | Path,
+    n_scenarios: int,
+    seed: int = 0,
+    frames: int = 1,
+    n_agents: int = 2,
+    dt: float = 0.1,
+    config: SimConfig | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> list[str]:
     """Simulate ``n_scenarios`` scenarios into ``root`` (deterministic for ``seed``); returns their names."""
     if n_scenarios < 1:
         raise ValueError(f"n_scenarios must be >= 1, got {n_scenarios}")

@@ -1,0 +1,64 @@
+"""One car's frame with its engine features (Algorithm 1 lines 6-8 computed once, reused against many frames)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .bev import BevImage
+from .config import FeatureConfig, RefineConfig
+from .descriptors import bvft_descriptors, flip_180
+from .parallel import run_parts
+from .refine import BevCloud, bev_cloud
+
+
+@dataclass
+class PreparedFrame:
+    """One car's frame with its engine features computed (reusable against many other frames)."""
+
+    bev: BevImage
+    boxes: np.ndarray  # (K, 7) [x, y, z, l, w, h, yaw], sensor frame
+    keypoints_rc: np.ndarray  # (K, 2) pixels (row, col)
+    keypoints_xy: np.ndarray  # (K, 2) metres in the sensor frame
+    descriptors: np.ndarray  # (K, D)
+    descriptors_flipped: np.ndarray  # (K, D) the same patches rotated by 180 deg
+    orientations: np.ndarray | None = None  # (K,) dominant MIM orientation of each keypoint (1..No, 0: none)
+    mim: np.ndarray | None = None  # kept for plots when keep_maps=True
+    num_points: int | None = None  # raw cloud size when known
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    _maps: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # (MIM, max amplitude)
+    _cloud: BevCloud | None = field(default=None, repr=False)
+    _reference: np.ndarray | None = field(default=None, repr=False)
+
+    def reference_descriptors(self, features: FeatureConfig, n_orient: int) -> np.ndarray:
+        """What this frame offers when it is the side matched against (the ego frame): for each orientation
+        offset in ``features.reference_orientation_offsets`` the descriptors and their 180-degree copies,
+        (2 x offsets x K, D); row i describes keypoint i % K. Built on first use (an ego frame pays it once)."""
+        if self._reference is None:
+
+            def describe(offset: int) -> list[np.ndarray]:
+                if offset == 0:
+                    return [self.descriptors, self.descriptors_flipped]
+                d = bvft_descriptors(
+                    *self._maps,
+                    self.keypoints_rc,
+                    features,
+                    n_orient,
+                    orientation_offset=offset,
+                    orientations=self.orientations,
+                )
+                return [d, flip_180(d, features)]
+
+            self._reference = np.concatenate(sum(run_parts(describe, features.reference_orientation_offsets), []))
+        return self._reference
+
+    def cloud(self, cfg: RefineConfig) -> BevCloud:
+        """Lit pixels with normals and their index image (built on first use: an ego frame pays it once)."""
+        if self._cloud is None:
+            self._cloud = bev_cloud(self.bev, cfg)
+        return self._cloud
+
+    @property
+    def lit_pixels(self) -> int:
+        return int(np.count_nonzero(self.bev.image))

@@ -1,0 +1,140 @@
+"""The verdict: why an alignment fails, the success rule (the paper's Inliers_bv > 25 and Inliers_box > 6, plus
+the checks this project adds against confident aliases) and the confidence, in one place.
+
+Each check returns a :class:`FailureReason` or None, so the pipeline chains its stages with ``or`` and finishes
+once (:meth:`Verdict.finish`).
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+import numpy as np
+
+from .config import ConfidenceConfig, SuccessRule
+from .geometry import se2_params, se3_from_se2
+from .result import AlignResult
+
+
+class FailureReason(str, Enum):
+    """Why an alignment did not succeed (``AlignResult.reason``)."""
+
+    too_few_points = "too_few_points"  # a cloud had fewer than config.min_points points
+    empty_image = "empty_image"  # a BV image has no lit pixels
+    no_keypoints = "no_keypoints"  # FAST found (almost) nothing to describe
+    too_few_matches = "too_few_matches"  # fewer descriptor matches than a rigid fit needs
+    too_few_inliers_bv = "too_few_inliers_bv"  # stage 1 below the success rule
+    ambiguous_bv = "ambiguous_bv"  # a distinct pose explains almost as many matches
+    inconsistent_overlap = "inconsistent_overlap"  # after refinement too few BV pixels coincide (alias)
+    no_boxes = "no_boxes"  # boxes were required but one side sent none
+    no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
+    too_few_inliers_box = "too_few_inliers_box"  # stage 2 below the success rule
+    box_correction_too_large = "box_correction_too_large"  # stage 2 disagrees with stage 1 by too much
+
+
+# Stage 1 stands but stage 2 could not confirm it (confidence capped at cap_stage2_failed, not cap_stage1_failed).
+UNCONFIRMED_BY_BOXES = frozenset(
+    {FailureReason.no_boxes, FailureReason.no_box_overlap, FailureReason.too_few_inliers_box}
+)
+STAGE2_FAILURES = UNCONFIRMED_BY_BOXES | {FailureReason.box_correction_too_large}
+
+
+class Verdict:
+    """Built once from the config; judges each stage's evidence and finishes the result."""
+
+    def __init__(
+        self,
+        rule: SuccessRule,
+        confidence: ConfidenceConfig,
+        *,
+        min_points: int,
+        min_keypoints: int,
+        box_max_correction_m: float,
+        box_max_correction_deg: float,
+        refine_enabled: bool,
+    ):
+        self.rule, self.conf = rule, confidence
+        self.min_points, self.min_keypoints = min_points, min_keypoints
+        self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
+        self.refine_enabled = refine_enabled
+
+    def inputs(self, *frames) -> FailureReason | None:
+        """Nothing to match: too few points, an empty image, (almost) no keypoints."""
+        for f in frames:
+            if f.num_points is not None and f.num_points < self.min_points:
+                return FailureReason.too_few_points
+            if f.lit_pixels == 0:
+                return FailureReason.empty_image
+            if len(f.keypoints_rc) < self.min_keypoints:
+                return FailureReason.no_keypoints
+        return None
+
+    def stage1(self, r: AlignResult) -> FailureReason | None:
+        """Inliers_bv above the rule's minimum, and no distinct runner-up pose nearly as good."""
+        if r.inliers_bv <= self.rule.min_inliers_bv:
+            return FailureReason.too_few_inliers_bv
+        if r.ambiguity_bv >= self.rule.max_ambiguity:
+            return FailureReason.ambiguous_bv
+        return None
+
+    def refined(self, r: AlignResult) -> FailureReason | None:
+        """After the dense refinement, enough of the peer's lit pixels must land on ego pixels."""
+        return FailureReason.inconsistent_overlap if r.refine_fitness < self.rule.min_refine_fitness else None
+
+    def without_boxes(self, r: AlignResult, missing: list[str]) -> FailureReason | None:
+        if self.rule.require_boxes:
+            return FailureReason.no_boxes
+        r.notes.append("stage 2 skipped: no boxes from " + " and ".join(missing))
+        return None
+
+    def stage2(self, r: AlignResult, T_box: np.ndarray) -> FailureReason | None:
+        """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone), and a
+        correction within bounds."""
+        failure = (
+            FailureReason.no_box_overlap
+            if r.box_pairs == 0
+            else FailureReason.too_few_inliers_box
+            if r.inliers_box <= self.rule.min_inliers_box
+            else None
+        )
+        if failure is not None:
+            strong = self.rule.strong_inliers_bv
+            if strong is not None and r.inliers_bv > strong:
+                r.notes.append(
+                    f"stage 2 could not verify ({failure.value}); accepted on stage-1 evidence (inliers_bv > {strong})"
+                )
+                return None
+            return failure
+        yaw, tx, ty = se2_params(T_box)
+        if np.hypot(tx, ty) > self.box_max_m or abs(np.degrees(yaw)) > self.box_max_deg:
+            return FailureReason.box_correction_too_large
+        return None
+
+    def boxes_verified(self, r: AlignResult) -> bool:
+        """Stage 2 itself passed (its correction may be applied)."""
+        return r.box_pairs > 0 and r.inliers_box > self.rule.min_inliers_box
+
+    def finish(
+        self, r: AlignResult, reason: FailureReason | None, *, tz: float, roll: float, pitch: float
+    ) -> AlignResult:
+        """Algorithm 1 lines 15-17: T_2D = T_box @ T_bv, T_3D by Eq. 1; success, reason and confidence."""
+        r.T_ego_peer = se3_from_se2(r.T_box @ r.T_bv, tz=tz, roll=roll, pitch=pitch)
+        r.success = reason is None
+        r.reason = None if reason is None else reason.value
+        r.confidence = self.confidence(r, reason)
+        r.timings_ms["align_total"] = sum(v for k, v in r.timings_ms.items() if k != "align_total")
+        return r
+
+    def confidence(self, r: AlignResult, reason: FailureReason | None) -> float:
+        """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9), shrinks with the RANSAC
+        ambiguity and a low refinement fitness; capped when failed."""
+        s, c = self.rule, self.conf
+        c_bv = 1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / c.bv_inlier_scale)
+        c_bv *= 1.0 - min(1.0, r.ambiguity_bv)
+        if self.refine_enabled and r.refine_fitness > 0:
+            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / c.fitness_span, 0.0, 1.0))
+        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / c.box_inlier_scale)
+        out = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
+        if reason is not None:
+            out = min(out, c.cap_stage2_failed if reason in UNCONFIRMED_BY_BOXES else c.cap_stage1_failed)
+        return float(np.clip(out, 0.0, 1.0))
