@@ -210,6 +210,51 @@ class ConfidenceConfig(_Frozen):
     cap_stage2_failed: float = Field(0.5, ge=0, le=1, description="most confidence when only stage 2 failed")
 
 
+class TrackConfig(_Frozen):
+    """Following a peer through time (bb_align.engine.tracker): process noise, gates, when to acquire again."""
+
+    odometry_drift_m_per_s: float = Field(
+        0.05,
+        gt=0,
+        description="with odometry: how fast the two cars' odometry "
+        "offset may drift, 1 sigma of a random walk per sqrt(s), metres",
+    )
+    odometry_drift_deg_per_s: float = Field(0.05, gt=0, description="likewise for its yaw, degrees")
+    relative_accel_m_per_s2: float = Field(
+        1.5,
+        gt=0,
+        description="without odometry: the relative pose's constant-velocity model, white acceleration noise, 1 sigma",
+    )
+    relative_accel_deg_per_s2: float = Field(3.0, gt=0, description="likewise for the relative yaw")
+    initial_relative_speed_m_per_s: float = Field(
+        10.0, gt=0, description="without odometry: 1 sigma of the relative velocity when a track starts"
+    )
+    initial_relative_yaw_rate_deg_per_s: float = Field(10.0, gt=0)
+    gate_chi2: float = Field(
+        16.27,
+        gt=0,
+        description="a measurement whose squared Mahalanobis distance to the "
+        "prediction exceeds this is rejected (16.27: chi2, 3 dof, 99.9 %)",
+    )
+    max_rejects: int = Field(3, ge=1, description="this many rejected measurements in a row: the track is lost")
+    max_sigma_m: float = Field(
+        1.0,
+        gt=0,
+        description="a prediction whose worst-direction 1-sigma exceeds this "
+        "triggers an acquisition, and is not a valid answer on its own",
+    )
+    crosscheck_s: float = Field(
+        5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"
+    )
+    max_gap_s: float = Field(5.0, gt=0, description="a peer silent longer than this loses its track")
+    max_coast_s: float = Field(
+        0.3,
+        ge=0,
+        description="after the last fused measurement, frames whose measurement "
+        "failed are answered from the prediction as valid for at most this long",
+    )
+
+
 class AlignConfig(_Frozen):
     bev: BevConfig = BevConfig()
     mim: MimConfig = MimConfig()

@@ -1,0 +1,245 @@
+"""Following one peer through time: acquire once, then refine each frame from a prediction, fuse, gate.
+
+The state is what stays nearly constant between the two cars:
+
+* with odometry (each car's own locally accurate, slowly drifting pose ``O_e``, ``O_p`` in its odometry frame),
+  the offset between the two odometry frames ``X = T_egoodom_peerodom``, so that
+  ``T_ego_peer(t) = inv(O_e(t)) @ X @ O_p(t)``; process noise is the odometries' drift;
+* without odometry, the relative pose ``T_ego_peer`` itself and its velocity (constant-velocity model).
+
+Each frame: predict ``T_ego_peer`` and its covariance, measure it by refining densely from the prediction (the
+caller's ``measure``), gate the measurement by its Mahalanobis distance, fuse (a Kalman update on left increments
+``T = se2(delta) @ T_hat``). A full acquisition runs when there is no track, when the track's uncertainty grows
+past a bound, and periodically as a cross-check. Every answer says where it came from, its covariance and the track
+state; every state change carries its reason.
+
+Covariances are of left increments (yaw rad, tx m, ty m), the convention of the refinement's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from .config import TrackConfig
+from .geometry import se2, se2_params, wrap_angle
+
+
+class TrackState(str, Enum):
+    acquiring = "acquiring"  # no pose yet: every frame runs a full acquisition
+    tracking = "tracking"  # a pose and a covariance, refined each frame
+    lost = "lost"  # the last track was given up (the next frame acquires afresh)
+
+
+@dataclass
+class Measurement:
+    """One frame's evidence: a refined or acquired T_ego_peer (3x3) and its covariance, or a failure."""
+
+    ok: bool
+    T_ego_peer: np.ndarray | None = None
+    covariance: np.ndarray | None = None  # 3x3, left increments (yaw, tx, ty)
+    reason: str | None = None
+
+
+@dataclass
+class TrackAnswer:
+    """What the tracker says for one frame."""
+
+    stamp: float
+    state: TrackState
+    source: str  # "acquisition", "tracking", "prediction" (no usable measurement) or "none"
+    valid: bool  # a pose to act on: within the track's bounds and supported by this or recent frames
+    T_ego_peer: np.ndarray | None  # 3x3
+    covariance: np.ndarray | None  # 3x3, left increments (yaw, tx, ty)
+    event: str | None = None  # why the state changed this frame, if it did
+    mahalanobis2: float | None = None  # the measurement's squared Mahalanobis distance to the prediction
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Maps a left increment d of A to the left increment of T @ A @ inv(T): se2(d') = T se2(d) T^-1 (first order)."""
+    c, s, tx, ty = T[0, 0], T[1, 0], T[0, 2], T[1, 2]
+    return np.array([[1.0, 0.0, 0.0], [ty, c, -s], [-tx, s, c]])
+
+
+def log_left(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """The left increment d with T_a = se2(d) @ T_b (yaw wrapped)."""
+    yaw, tx, ty = se2_params(T_a @ np.linalg.inv(T_b))
+    return np.array([float(wrap_angle(yaw)), tx, ty])
+
+
+def worst_sigma_m(cov: np.ndarray) -> float:
+    """1-sigma of the translation along its worst direction."""
+    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(np.asarray(cov)[1:, 1:]).max()))))
+
+
+class PeerTrack:
+    """The track of one ego-peer pair. ``step`` once per peer frame, in time order."""
+
+    def __init__(self, cfg: TrackConfig | None = None):
+        self.cfg = cfg or TrackConfig()
+        self.state = TrackState.acquiring
+        self.X: np.ndarray | None = None  # 3x3: T_egoodom_peerodom, or T_ego_peer without odometry
+        self.P: np.ndarray | None = None  # state covariance: 3x3 (odometry) or 6x6 (pose and velocity)
+        self.w = np.zeros(3)  # constant-velocity model: left increment per second
+        self.with_odometry = False
+        self.stamp: float | None = None
+        self.last_acquired: float | None = None
+        self.rejects = 0
+        self.last_event: str | None = None
+        self.last_fused: float | None = None
+
+    # ---- the frame step ----------------------------------------------------------------------------------------
+    def step(
+        self,
+        stamp: float,
+        measure: Callable[[np.ndarray], Measurement],
+        acquire: Callable[[np.ndarray | None], Measurement],
+        O_ego: np.ndarray | None = None,
+        O_peer: np.ndarray | None = None,
+    ) -> TrackAnswer:
+        """One peer frame at ``stamp`` (s). ``measure(T_pred)`` refines from a predicted T_ego_peer (3x3);
+        ``acquire(T_prior or None)`` runs the full method. ``O_ego`` / ``O_peer``: 3x3 odometry poses of the
+        two frames (both or neither)."""
+        odometry = O_ego is not None and O_peer is not None
+        O_e = np.asarray(O_ego, float) if odometry else np.eye(3)
+        O_p = np.asarray(O_peer, float) if odometry else np.eye(3)
+        event = None
+        if self.X is not None and odometry != self.with_odometry:
+            event = self._drop("odometry appeared or disappeared")
+        elif self.X is not None and stamp < self.stamp:
+            return self._answer(stamp, "none", False, None, None, "frame older than the track: ignored")
+        elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
+            event = self._drop(f"no frame for {stamp - self.stamp:.1f} s (max_gap_s {self.cfg.max_gap_s:g})")
+        if self.X is None:
+            return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
+
+        X, P, T_pred, H = self._predict(stamp - self.stamp, O_e, O_p)
+        P_T = H @ P @ H.T
+        sigma = worst_sigma_m(P_T)
+        periodic = self.cfg.crosscheck_s > 0 and stamp - self.last_acquired >= self.cfg.crosscheck_s
+        if sigma > self.cfg.max_sigma_m or periodic:
+            # The full method, seeded by the prediction: fused when it agrees, a fresh track when it does not;
+            # when it fails, the refinement below still tries to hold the track.
+            self.last_acquired = stamp
+            m = acquire(T_pred)
+            if m.ok:
+                return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "acquisition", crosscheck=True)
+        m = measure(T_pred)
+        if not m.ok:
+            return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False)
+        return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
+
+    # ---- steps -------------------------------------------------------------------------------------------------
+    def _predict(self, dt: float, O_e: np.ndarray, O_p: np.ndarray):
+        """The state dt seconds on, its covariance, the predicted T_ego_peer and H (state increment -> left
+        increment of T_ego_peer)."""
+        c = self.cfg
+        if self.with_odometry:
+            q = (
+                np.array([np.radians(c.odometry_drift_deg_per_s), c.odometry_drift_m_per_s, c.odometry_drift_m_per_s])
+                ** 2
+            )
+            X, P = self.X, self.P + np.diag(q) * dt  # the offset stays; its uncertainty diffuses with the drift
+            H = adjoint(np.linalg.inv(O_e))
+        else:
+            X = se2(*(self.w * dt)) @ self.X
+            F = np.eye(6)
+            F[:3, 3:] = np.eye(3) * dt
+            qa = np.diag(
+                np.array(
+                    [np.radians(c.relative_accel_deg_per_s2), c.relative_accel_m_per_s2, c.relative_accel_m_per_s2]
+                )
+                ** 2
+            )
+            Q = np.block([[qa * dt**3 / 3, qa * dt**2 / 2], [qa * dt**2 / 2, qa * dt]])  # white acceleration
+            P = F @ self.P @ F.T + Q
+            H = np.hstack([np.eye(3), np.zeros((3, 3))])
+        return X, P, np.linalg.inv(O_e) @ X @ O_p, H
+
+    def _update(
+        self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, source: str, crosscheck: bool = False
+    ) -> TrackAnswer:
+        """Kalman update on left increments; a measurement outside the Mahalanobis gate is rejected."""
+        nu = log_left(m.T_ego_peer, T_pred)
+        S = H @ P @ H.T + np.asarray(m.covariance, float)
+        d2 = float(nu @ np.linalg.solve(S, nu))
+        if d2 > self.cfg.gate_chi2:
+            if crosscheck:  # a full acquisition that disagrees with the track: the track was wrong
+                event = self._drop(f"the cross-check acquisition disagrees with the track (Mahalanobis^2 {d2:.1f})")
+                return self._acquire(stamp, m, O_e, O_p, self.with_odometry, event)
+            self.rejects += 1
+            if self.rejects >= self.cfg.max_rejects:
+                event = self._drop(f"{self.rejects} measurements in a row outside the gate (Mahalanobis^2 {d2:.1f})")
+                return self._answer(stamp, "none", False, None, None, event, d2)
+            return self._coast(stamp, X, P, T_pred, H @ P @ H.T, f"measurement outside the gate ({d2:.1f})", True, d2)
+        self.rejects = 0
+        K = P @ H.T @ np.linalg.inv(S)
+        dx = K @ nu
+        if self.with_odometry:
+            X = se2(*dx) @ X
+        else:
+            X = se2(*dx[:3]) @ X
+            self.w = self.w + dx[3:]
+        P = (np.eye(len(P)) - K @ H) @ P
+        self._keep(stamp, X, 0.5 * (P + P.T))
+        self.last_fused = stamp
+        T = np.linalg.inv(O_e) @ X @ O_p
+        return self._answer(stamp, source, True, T, H @ self.P @ H.T, None, d2)
+
+    def _coast(self, stamp, X, P, T_pred, P_T, why: str, rejected: bool, d2: float | None = None) -> TrackAnswer:
+        """No usable measurement this frame: the prediction stands. It is a valid answer only when nothing
+        contradicted it (the measurement failed, it was not rejected), shortly after the last fused measurement,
+        and while its uncertainty is in bounds."""
+        self._keep(stamp, X, P)
+        valid = (
+            not rejected
+            and stamp - self.last_fused <= self.cfg.max_coast_s
+            and worst_sigma_m(P_T) <= self.cfg.max_sigma_m
+        )
+        return self._answer(stamp, "prediction", valid, T_pred, P_T, why, d2)
+
+    def _acquire(self, stamp, m: Measurement, O_e, O_p, odometry: bool, event: str | None) -> TrackAnswer:
+        """A full acquisition's outcome: a new track, or (failed) the old track given up."""
+        self.last_acquired = stamp
+        if not m.ok:
+            return self._answer(stamp, "acquisition", False, None, None, event or m.reason)
+        self.with_odometry = odometry
+        A = adjoint(O_e)  # left increments of T_ego_peer -> of X = O_e T O_p^-1
+        P = A @ np.asarray(m.covariance, float) @ A.T
+        if not odometry:
+            v0 = np.array(
+                [
+                    np.radians(self.cfg.initial_relative_yaw_rate_deg_per_s),
+                    self.cfg.initial_relative_speed_m_per_s,
+                    self.cfg.initial_relative_speed_m_per_s,
+                ]
+            )
+            P = np.block([[P, np.zeros((3, 3))], [np.zeros((3, 3)), np.diag(v0**2)]])
+        self.w = np.zeros(3)
+        self.rejects = 0
+        self.last_fused = stamp
+        changed = self.state != TrackState.tracking
+        self.state = TrackState.tracking
+        self._keep(stamp, O_e @ m.T_ego_peer @ np.linalg.inv(O_p), P)
+        if changed:
+            event = (event + "; acquired") if event else "acquired"
+        self.last_event = event or self.last_event
+        return self._answer(stamp, "acquisition", True, m.T_ego_peer, np.asarray(m.covariance, float), event)
+
+    # ---- bookkeeping -------------------------------------------------------------------------------------------
+    def _keep(self, stamp: float, X: np.ndarray, P: np.ndarray) -> None:
+        self.stamp, self.X, self.P = stamp, X, P
+
+    def _drop(self, why: str) -> str:
+        self.X = self.P = None
+        self.w = np.zeros(3)
+        self.state = TrackState.lost
+        self.rejects = 0
+        self.last_event = f"lost: {why}"
+        return self.last_event
+
+    def _answer(self, stamp, source, valid, T, cov, event=None, d2=None) -> TrackAnswer:
+        return TrackAnswer(stamp, self.state, source, valid, T, cov, event, d2)
