@@ -10,6 +10,7 @@ over [min_distance_m, max_distance_m] so every distance bucket gets its share of
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from tqdm import tqdm
 
 from bb_align.io.dataset import write_agent_frame
 
-from .scenario import Scenario, SimConfig
+from .scenario import Scenario, SimAgent, SimConfig
 
 
 def scenario_seed(seed: int, index: int) -> int:
@@ -44,8 +45,21 @@ def write_scenario(
 ) -> str:
     """Simulate and write scenario ``index``; returns its directory name."""
     cfg = config or SimConfig()
-    name = f"sim_{seed}_{index:04d}"
     sc = Scenario(scenario_seed(seed, index), n_agents, scenario_distance(seed, index, n_scenarios, cfg), cfg)
+    return write_scenario_frames(root, f"sim_{seed}_{index:04d}", sc, frames, dt)
+
+
+def write_scenario_frames(
+    root: str | Path,
+    name: str,
+    sc: Scenario,
+    frames: int,
+    dt: float = 0.1,
+    extra: Callable[[str, SimAgent], dict] | None = None,
+) -> str:
+    """Render ``frames`` frames of a scenario and write every agent's cloud and yaml under ``root/name``;
+    ``extra(agent_id, agent)`` adds fields to each yaml (called in frame order). Returns ``name``."""
+    cfg = sc.config
     for f in range(frames):
         frame = sc.frame(f, dt)
         for agent_id, agent in frame.agents.items():
@@ -63,11 +77,12 @@ def write_scenario(
                     box[:3] = T[:3, :3] @ seen[:3] + T[:3, 3]
                     box[6] = seen[6] + np.arctan2(T[1, 0], T[0, 0])
                 vehicles[v.vid] = box
-            extra = {
+            fields = {
                 "sensor": agent.sensor,
                 "timestamp_s": round(agent.time_s, 6),
                 "sim_seed": sc.seed,
                 "vehicle_points": {int(k): int(n) for k, n in agent.points_on.items() if k in vehicles},
+                **(extra(agent_id, agent) if extra is not None else {}),
             }
             write_agent_frame(
                 root,
@@ -79,7 +94,7 @@ def write_scenario(
                 vehicles,
                 detections=agent.boxes,
                 detection_scores=agent.scores,
-                extra=extra,
+                extra=fields,
             )
     return name
 
