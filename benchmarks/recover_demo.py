@@ -22,12 +22,13 @@ import numpy as np
 from bb_align.engine.geometry import pose_error
 from bb_align.io.dataset import iter_frames
 from bb_align.io.recover import JSONL_NAME
+from bb_align.lab.evaluation.runner import DIST_BUCKETS
 
 
 def compare(root: Path, out: Path, max_t_m: float = 1.0, max_r_deg: float = 1.0) -> dict:
     truth = {(g.scenario, g.timestamp): g for g in iter_frames(root)}
     written = {(g.scenario, g.timestamp): g for g in iter_frames(out)}
-    before, after, ok = [], [], []
+    before, after, ok, dist = [], [], [], []
     for line in (out / JSONL_NAME).read_text().splitlines():
         row = json.loads(line)
         key = (row["scenario"], row["timestamp"])
@@ -37,10 +38,12 @@ def compare(root: Path, out: Path, max_t_m: float = 1.0, max_r_deg: float = 1.0)
         before.append(pose_error(np.asarray(row["T_ego_peer_reported"]), T_true))
         after.append(pose_error(T_written, T_true))
         ok.append(row["success"])
-    b, a = np.array(before), np.array(after)
+        dist.append(float(np.hypot(*T_true[:2, 3])))
+    b, a, d = np.array(before), np.array(after), np.array(dist)
 
-    def frac(e):
-        return float(np.mean((e[:, 0] < max_t_m) & (e[:, 1] < max_r_deg)))
+    def frac(e, sel=None):
+        sel = np.ones(len(e), bool) if sel is None else sel
+        return float(np.mean((e[sel, 0] < max_t_m) & (e[sel, 1] < max_r_deg))) if sel.any() else None
 
     return {
         "agent_frames": len(a),
@@ -51,6 +54,14 @@ def compare(root: Path, out: Path, max_t_m: float = 1.0, max_r_deg: float = 1.0)
         "before_median_r_deg": float(np.median(b[:, 1])),
         "after_median_t_m": float(np.median(a[:, 0])),
         "after_median_r_deg": float(np.median(a[:, 1])),
+        "by_distance": {
+            name: {
+                "agent_frames": int(((d >= lo) & (d < hi)).sum()),
+                "before": frac(b, (d >= lo) & (d < hi)),
+                "after": frac(a, (d >= lo) & (d < hi)),
+            }
+            for name, (lo, hi) in DIST_BUCKETS.items()
+        },
         "recovered_but_over_limit": int(np.sum(np.array(ok) & ~((a[:, 0] < max_t_m) & (a[:, 1] < max_r_deg)))),
     }
 
