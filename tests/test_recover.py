@@ -220,6 +220,11 @@ def test_recover_4x4_poses_with_corner_detection_files(tmp_path):
     res = CliRunner().invoke(app, ["recover", str(root), str(tmp_path / "out2"), "--quiet"])
     assert res.exit_code == 0 and "stage 2 is skipped" in _plain(res.output)
     assert _rows(tmp_path / "out2")[0]["boxes_ego"] is None
+    # simulated from the labels only when asked, and said so
+    res = CliRunner().invoke(app, ["recover", str(root), str(tmp_path / "out3"), "--simulate-detections", "--quiet"])
+    assert res.exit_code == 0 and "detections: simulated from ground truth" in _plain(res.output)
+    assert _rows(tmp_path / "out3")[0]["boxes_peer"] > 0
+    assert "simulated" in json.loads((tmp_path / "out3" / SUMMARY_NAME).read_text())["detections"]
 
 
 def _corners(boxes: np.ndarray) -> np.ndarray:
