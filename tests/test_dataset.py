@@ -169,3 +169,14 @@ def test_writer_reader_round_trip(tmp_path):
             np.testing.assert_allclose(a.vehicles[str(k)], v, atol=1e-9)
         np.testing.assert_allclose(a.detections, dets)
         assert a.extra["sensor"] == "vlp32c"
+
+
+def test_reader_finds_scenarios_directly_under_root_and_in_split_folders(tmp_path):
+    T = x_to_world([1.0, 2.0, 0.0, 0.0, 10.0, 0.0])
+    pts = np.array([[1.0, 0.0, 0.0, 0.5]] * 3, dtype=np.float32)
+    for root, scen in ((tmp_path / "flat", "s1"), (tmp_path / "split", "train/s1"), (tmp_path / "split", "test/s2")):
+        for agent in ("0", "1"):
+            write_agent_frame(root, scen, agent, "000001", pts, T, {})
+    (tmp_path / "split" / "train" / "notes").mkdir()  # a folder without agents is not a scenario
+    assert [(g.scenario, list(g.agents)) for g in iter_frames(tmp_path / "flat")] == [("s1", ["0", "1"])]
+    assert [g.scenario for g in iter_frames(tmp_path / "split")] == ["test/s2", "train/s1"]

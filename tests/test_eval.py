@@ -149,8 +149,9 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
     assert bad.exit_code != 0 and "pose-noise" in bad.output
 
 
-def test_eval_simulates_detections_when_the_dataset_has_none(tmp_path):
-    """An OPV2V-style dataset without 'detections': boxes come from the detector model on the labels."""
+def test_eval_simulates_detections_only_when_asked(tmp_path):
+    """An OPV2V-style dataset without 'detections': no boxes (stage 2 skipped) unless simulate_detections, then
+    boxes come from the detector model on the labels."""
     from bb_align.io.dataset import write_agent_frame
     from bb_align.lab.evaluation import EvalConfig, evaluate_dataset
     from bb_align.lab.sim import Scenario
@@ -160,7 +161,11 @@ def test_eval_simulates_detections_when_the_dataset_has_none(tmp_path):
     for aid, agent in frame.agents.items():
         vehicles = {v.vid: v.box(frame.stamp) for v in sc.world.vehicles if v.vid != agent.vehicle_id}
         write_agent_frame(tmp_path, "opv2v_like", aid, "000000", agent.points, agent.T_world_sensor, vehicles)
-    (rec,) = evaluate_dataset(tmp_path, EvalConfig(), workers=1, progress=False)
+    (bare,) = evaluate_dataset(tmp_path, EvalConfig(), workers=1, progress=False)
+    assert bare.ego_boxes == 0 and bare.peer_boxes == 0
+    assert bare.ego_detections == bare.peer_detections == "none"
+    (rec,) = evaluate_dataset(tmp_path, EvalConfig(simulate_detections=True), workers=1, progress=False)
+    assert rec.ego_detections == rec.peer_detections == "simulated"
     assert rec.ego_boxes > 0 and rec.peer_boxes > 0 and rec.common_cars > 0
     assert rec.distance_m == pytest.approx(12.0, abs=2.0)
     assert set(rec.ap) == {"noisy", "recovered", "true"}

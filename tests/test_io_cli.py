@@ -107,3 +107,24 @@ def test_cli_align_exits_3_on_a_failed_alignment_and_config_files_drive_it(tmp_p
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"success": {"min_inliers_bv": -1}}))
     bad = runner.invoke(app, [*args, "--config", str(tmp_path / "bad.yaml")])
     assert bad.exit_code == 2 and "min_inliers_bv" in bad.output
+
+
+def test_plot_labels_each_image_and_draws_a_metre_scale():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bb_align.engine.bev import BevImage
+    from bb_align.io.plot import _label_and_scale, scale_bar_m
+
+    assert scale_bar_m(100.0) == 20.0 and scale_bar_m(160.0) == 20.0 and scale_bar_m(30.0) == 5.0
+    assert scale_bar_m(2.0) == 1.0
+    bev = BevImage(np.zeros((500, 500), np.uint8), resolution_m=0.2, range_m=50.0)  # 100 m wide
+    fig, ax = plt.subplots()
+    assert _label_and_scale(ax, bev, "peer", col0=500) == (20.0, 100.0)  # 20 m = 100 px at 0.2 m/px
+    texts = [t.get_text() for t in ax.texts]
+    assert texts == ["peer", "20 m"]
+    (bar,) = ax.lines
+    np.testing.assert_allclose(bar.get_xdata(), [520.0, 620.0])  # inside the second image, 100 px long
+    plt.close(fig)

@@ -199,3 +199,28 @@ def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch)
     assert s.auth.mode == "hmac" and s.startup_problem() is None  # the container runs with a fleet key
     assert "BBALIGN_AUTH__FLEET_KEY" in demo["environment"]
     assert "--no-multicast-scouting" in services["zenohd"]["command"]
+
+
+def test_compose_key_name_healthchecks_and_start_order():
+    """One name for the fleet key (the one the service reads); a healthcheck for the router, none inherited by
+    the demo (it runs no server); each service starts after what it needs is healthy."""
+    text = (REPO / "docker" / "compose.yaml").read_text()
+    services = yaml.safe_load(text)["services"]
+    assert set(re.findall(r"\$\{(\w+)", text)) == {"BBALIGN_AUTH__FLEET_KEY"}
+    assert "export BBALIGN_AUTH__FLEET_KEY=" in (REPO / "README.md").read_text()
+    assert "BBALIGN_FLEET_KEY" not in text
+    assert services["demo"]["healthcheck"] == {"disable": True}
+    assert services["bb-align"]["depends_on"] == {"zenohd": {"condition": "service_healthy"}}
+    assert services["demo"]["depends_on"] == {"bb-align": {"condition": "service_healthy"}}
+    # the router's check: a LISTEN socket on the port it is told to listen on, read from /proc/net/tcp(6)
+    check = services["zenohd"]["healthcheck"]["test"]
+    assert check[0] == "CMD-SHELL"
+    listen = services["zenohd"]["command"][services["zenohd"]["command"].index("--listen") + 1]
+    port = int(listen.rsplit(":", 1)[1])
+    pattern = re.search(r"'(.+?)'", check[1]).group(1)
+    assert f":{port:04X} " in pattern
+    listening_v4 = f"   0: 00000000:{port:04X} 00000000:0000 0A 00000000:00000000 00:00000000 00000000"
+    listening_v6 = f"   0: {'0' * 32}:{port:04X} {'0' * 32}:0000 0A 00000000:00000000 00:00000000"
+    connected = f"   1: 0100007F:{port:04X} 0100007F:B2C4 01 00000000:00000000 00:00000000 00000000"
+    assert re.search(pattern, listening_v4) and re.search(pattern, listening_v6)
+    assert not re.search(pattern, connected)

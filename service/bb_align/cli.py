@@ -88,20 +88,12 @@ ALIGN_FAILED = 3  # exit code of `bb-align align` when the alignment failed
 
 def _load_config(path: Path | None):
     """An AlignConfig from a JSON or YAML file (defaults for what it leaves out); the defaults without one."""
-    from pydantic import ValidationError
+    from bb_align.io.config_file import load_align_config
 
-    from bb_align.engine.config import AlignConfig
-
-    if path is None:
-        return AlignConfig()
     try:
-        if path.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-
-            return AlignConfig.model_validate(yaml.safe_load(path.read_text()) or {})
-        return AlignConfig.model_validate_json(path.read_text())
-    except (ValidationError, ValueError) as e:
-        raise typer.BadParameter(f"{path}: {e}", param_hint="--config") from None
+        return load_align_config(path)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--config") from None
 
 
 @app.command("config")
@@ -119,6 +111,7 @@ def config_cmd(
 
 def _register_feature_commands() -> None:
     """Each feature area adds its own commands."""
+    from bb_align.io.commands import register as io  # recover
     from bb_align.lab.bench.cli import register as bench  # bench
     from bb_align.lab.commands import register as lab  # demo, soak
     from bb_align.lab.evaluation.cli import register as evaluation  # sim, eval
@@ -126,6 +119,14 @@ def _register_feature_commands() -> None:
 
     for register in (server, lab, evaluation, bench):
         register(app)
+    io(app, simulated_detections=_simulated_detections)
+
+
+def _simulated_detections(seed: int):
+    """The detection source of `recover --simulate-detections` (the detector model lives in the lab)."""
+    from bb_align.lab.sim.detections import GroundTruthDetections
+
+    return GroundTruthDetections(seed=seed)
 
 
 _register_feature_commands()

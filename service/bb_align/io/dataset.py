@@ -2,6 +2,7 @@
 
     ROOT/<scenario>/<agent_id>/<timestamp>.pcd    x y z [intensity], the agent's sensor frame
     ROOT/<scenario>/<agent_id>/<timestamp>.yaml   lidar_pose, vehicles, optional detections
+    (or the same one level down in split folders: ROOT/train|validate|test/<scenario>/...)
 
 - ``lidar_pose``: ``[x, y, z, roll, yaw, pitch]`` (metres, degrees) turned into T_world_sensor by OpenCOOD's
   ``x_to_world`` formula, or a 4x4 matrix (V2V4Real), nested or flat.
@@ -177,12 +178,36 @@ def read_agent_frame(yaml_path: Path, scenario: str = "", agent: str = "") -> Ag
     )
 
 
-def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
-    """Every (scenario, timestamp) with at least ``min_agents`` agents having both .yaml and .pcd, sorted."""
+def _is_scenario(path: Path) -> bool:
+    """A scenario folder holds agent folders with ``<timestamp>.yaml`` files."""
+    return any(a.is_dir() and next(a.glob("*.yaml"), None) is not None for a in path.iterdir())
+
+
+def find_scenarios(root: str | Path) -> list[tuple[str, Path]]:
+    """The scenario folders under ``root``, as (name, path), sorted by name.
+
+    Scenarios sit directly under ``root`` (``ROOT/<scenario>/<agent>/``) or one level down in split folders
+    (``ROOT/train|validate|test/<scenario>/<agent>/``, OPV2V's and V2V4Real's download layout); a scenario
+    found one level down is named ``<split>/<scenario>``."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"dataset root {root} is not a directory")
-    for scen in sorted(p for p in root.iterdir() if p.is_dir()):
+    found = []
+    for d in sorted(p for p in root.iterdir() if p.is_dir()):
+        if _is_scenario(d):
+            found.append((d.name, d))
+        else:
+            found += [
+                (f"{d.name}/{s.name}", s) for s in sorted(p for p in d.iterdir() if p.is_dir()) if _is_scenario(s)
+            ]
+    return found
+
+
+def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
+    """Every (scenario, timestamp) with at least ``min_agents`` agents having both .yaml and .pcd, sorted.
+
+    Scenarios are found by :func:`find_scenarios` (directly under ``root`` or in split folders)."""
+    for name, scen in find_scenarios(root):
         agent_dirs = {p.name: p for p in scen.iterdir() if p.is_dir()}
         stamps: dict[str, list[str]] = {}
         for a in agent_order(agent_dirs):
@@ -193,9 +218,7 @@ def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
             agents = stamps[ts]
             if len(agents) < min_agents:
                 continue
-            yield FrameGroup(
-                scen.name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", scen.name, a) for a in agents}
-            )
+            yield FrameGroup(name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", name, a) for a in agents})
 
 
 # ---- writing -----------------------------------------------------------------------------------------------

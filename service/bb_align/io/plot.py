@@ -33,6 +33,29 @@ def warp_to_ego(peer: BevImage, ego: BevImage, T_ego_peer: np.ndarray) -> np.nda
     )
 
 
+SCALE_STEPS_M = (1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)  # scale-bar lengths to choose from
+
+
+def scale_bar_m(width_m: float, fraction: float = 0.2) -> float:
+    """The longest of SCALE_STEPS_M not over ``fraction`` of the image width (the shortest if none fits)."""
+    fits = [s for s in SCALE_STEPS_M if s <= fraction * width_m]
+    return fits[-1] if fits else SCALE_STEPS_M[0]
+
+
+def _label_and_scale(ax, bev: BevImage, label: str, col0: int = 0) -> tuple[float, float]:
+    """Name an image drawn at columns col0.. of ``ax`` and draw a metre scale bar at its lower left.
+    Returns (bar length m, bar length px)."""
+    h, w = bev.shape
+    box = {"facecolor": "white", "edgecolor": "0.4", "alpha": 0.85, "pad": 2}
+    ax.text(col0 + 0.02 * w, 0.03 * h, label, va="top", ha="left", fontsize=10, weight="bold", bbox=box)
+    length_m = scale_bar_m(w * bev.resolution_m)
+    length_px = length_m / bev.resolution_m
+    x0, y0 = col0 + 0.04 * w, 0.95 * h
+    ax.plot([x0, x0 + length_px], [y0, y0], "-", color="black", lw=3, solid_capstyle="butt")
+    ax.text(x0 + length_px / 2, y0 - 0.015 * h, f"{length_m:g} m", ha="center", va="bottom", fontsize=9, bbox=box)
+    return length_m, length_px
+
+
 def plot_alignment(
     path: str | Path,
     ego: BevImage,
@@ -59,6 +82,9 @@ def plot_alignment(
         b = peer.metre_to_pixel(result.inlier_xy_peer)
         for (r0, c0), (r1, c1) in zip(a, b):
             axes[0].plot([c0, c1 + ego.shape[1]], [r0, r1], "-", lw=0.6, color="tab:green", alpha=0.7)
+    _label_and_scale(axes[0], ego, "ego")
+    _label_and_scale(axes[0], peer, "peer", col0=ego.shape[1])
+    axes[0].axvline(ego.shape[1] - 0.5, color="0.5", lw=1)
     axes[0].set_title(f"ego | peer BV images, {result.inliers_bv} stage-1 inliers of {result.matches_bv} matches")
     axes[0].axis("off")
     # (b) overlay in the ego frame
@@ -78,6 +104,7 @@ def plot_alignment(
         for corners in box_corners_bev(boxes):
             rc = ego.metre_to_pixel(np.vstack([corners, corners[:1]]))
             axes[1].plot(rc[:, 1], rc[:, 0], "-", lw=0.8, color=color)
+    _label_and_scale(axes[1], ego, "overlay (ego frame)")
     status = "success" if result.success else f"FAILED: {result.reason}"
     axes[1].set_title(
         f"ego (red) + aligned peer (green), overlap black\n{status}; yaw {result.yaw_deg:.2f} deg, "

@@ -8,9 +8,9 @@ the ego frame with a noisy, the recovered, and the true pose).
 
 from __future__ import annotations
 
+import math
 import os
 import time
-import zlib
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 
@@ -25,12 +25,16 @@ from bb_align.engine.matching import match_descriptors
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.verdict import STAGE2_FAILURES
 from bb_align.io.dataset import AgentFrame, FrameGroup, iter_frames
+from bb_align.io.detections import DetectionDir, load_detection_file
 
-from ..sim.detections import DetectionModel, count_points_in_boxes, detect
+from ..sim.detections import DetectionModel, detect, frame_rng, points_per_vehicle, vehicles_in_sensor
 from .ap import match_frame, nms_bev
 from .baseline import GraphMatchConfig, graph_match
 
-AP_RANGES = {"0-30": (0.0, 30.0), "30-50": (30.0, 50.0), "50-100": (50.0, 100.0), "all": (0.0, 100.0)}
+# The one definition of the distance bins (metres, [lo, hi)): the accuracy tables and figures bin pairs by the
+# distance between the cars, Table I (late-fusion AP) bins boxes by their distance from the ego, with these.
+DIST_BUCKETS = {"0-20": (0.0, 20.0), "20-40": (20.0, 40.0), "40-70": (40.0, 70.0), "70+": (70.0, math.inf)}
+AP_RANGES = {**DIST_BUCKETS, "all": (0.0, math.inf)}
 AP_IOUS = (0.5, 0.7)
 POSES = ("noisy", "recovered", "true")
 _STAGE2_REASONS = {r.value for r in STAGE2_FAILURES}
@@ -40,7 +44,13 @@ class EvalConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     align: AlignConfig = AlignConfig()
-    detection: DetectionModel = Field(DetectionModel(), description="used when a yaml has no 'detections'")
+    detection: DetectionModel = Field(DetectionModel(), description="the detector model of simulate_detections")
+    simulate_detections: bool = Field(
+        False, description="simulate every agent's detections from its ground-truth labels (never implicitly)"
+    )
+    detections_dir: str | None = Field(
+        None, description="per-frame detection files (bb_align.io.detections); used instead of the yaml's"
+    )
     baseline: GraphMatchConfig = GraphMatchConfig()
     pose_noise_t_m: float = Field(2.0, ge=0, description="sigma_t of the peer pose noise for the AP test")
     pose_noise_deg: float = Field(2.0, ge=0, description="sigma_theta of the peer pose noise for the AP test")
@@ -87,6 +97,8 @@ class PairRecord:
     # (what overlap allows), and how many of the engine's descriptor matches are right (what matching finds).
     oracle_repeatable_kp: int = 0
     oracle_correct_matches: int = 0
+    ego_detections: str = ""  # where the boxes came from: yaml, folder, simulated or none
+    peer_detections: str = ""
     # AP material: {pose: {range: {"n_gt": int, "scores": [...], "tp@0.5": [...], "tp@0.7": [...]}}}
     ap: dict = field(default_factory=dict, repr=False)
 
@@ -98,29 +110,7 @@ class PairRecord:
 
 
 def _frame_rng(cfg: EvalConfig, *keys: str) -> np.random.Generator:
-    return np.random.default_rng([cfg.seed, *(zlib.crc32(k.encode()) for k in keys)])
-
-
-def _boxes_sensor(agent: AgentFrame) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """The agent's ground-truth vehicles in its sensor frame: ids -> rows of one (K, 7) array."""
-    ids = list(agent.vehicles)
-    if not ids:
-        return {}, np.zeros((0, 7))
-    world = np.stack([agent.vehicles[i] for i in ids])
-    T_sw = np.linalg.inv(agent.T_world_sensor)
-    out = world.copy()
-    out[:, :3] = world[:, :3] @ T_sw[:3, :3].T + T_sw[:3, 3]
-    out[:, 6] = world[:, 6] + np.arctan2(T_sw[1, 0], T_sw[0, 0])
-    return dict(zip(ids, range(len(ids)))), out
-
-
-def _points_per_vehicle(agent: AgentFrame, points: np.ndarray, gt_sensor: np.ndarray, ids: dict) -> dict[str, int]:
-    known = agent.extra.get("vehicle_points")
-    if isinstance(known, dict):
-        known = {str(k): int(v) for k, v in known.items()}
-        return {i: known.get(i, 0) for i in ids}
-    counts = count_points_in_boxes(points, gt_sensor)
-    return {i: int(counts[j]) for i, j in ids.items()}
+    return frame_rng(cfg.seed, *keys)
 
 
 @dataclass
@@ -132,27 +122,39 @@ class _Agent:
     seen: dict[str, int]  # vehicle id -> points on it
     prepared: object
     prepare_ms: float
+    detection_source: str  # yaml, folder, simulated or none
 
 
 def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: str, ts: str) -> _Agent:
     pts = agent.load_points()
-    ids, gt = _boxes_sensor(agent)
-    seen = _points_per_vehicle(agent, pts, gt, ids)
-    if agent.detections is not None:
-        boxes = agent.detections
-        scores = agent.detection_scores if agent.detection_scores is not None else np.ones(len(boxes))
-    else:
+    ids, gt = vehicles_in_sensor(agent)
+    seen = points_per_vehicle(agent, pts, gt, ids)
+    if cfg.simulate_detections:
         counts = np.array([seen[i] for i in ids], dtype=np.int64)
         det = detect(gt, counts, pts, _frame_rng(cfg, scenario, agent.agent, ts), cfg.detection)
-        boxes, scores = det.boxes, det.scores
+        boxes, scores, source = det.boxes, det.scores, "simulated"
+    else:
+        found = None
+        if cfg.detections_dir is not None:
+            found = DetectionDir(cfg.detections_dir).path_for(scenario, agent.agent, ts)
+        if found is not None:
+            boxes, scores = load_detection_file(found)
+            scores = scores if scores is not None else np.ones(len(boxes))
+            source = "folder"
+        elif cfg.detections_dir is None and agent.detections is not None:
+            boxes = agent.detections
+            scores = agent.detection_scores if agent.detection_scores is not None else np.ones(len(boxes))
+            source = "yaml"
+        else:  # no detections: stage 2 is skipped, late fusion has no boxes from this agent
+            boxes, scores, source = np.zeros((0, 7)), np.zeros(0), "none"
     t0 = time.perf_counter()
     prepared = aligner.prepare(pts, boxes)
-    return _Agent(agent, pts, boxes, scores, seen, prepared, (time.perf_counter() - t0) * 1e3)
+    return _Agent(agent, pts, boxes, scores, seen, prepared, (time.perf_counter() - t0) * 1e3, source)
 
 
 def _ap_material(ego: _Agent, peer: _Agent, T_ego_peer_by_pose: dict[str, np.ndarray], cfg: EvalConfig) -> dict:
     """Late fusion per pose: ego boxes + peer boxes moved into the ego frame, NMS, TP flags per range/IoU."""
-    ids, gt = _boxes_sensor(ego.frame)
+    ids, gt = vehicles_in_sensor(ego.frame)
     visible = np.array([ego.seen.get(i, 0) + peer.seen.get(i, 0) > 0 for i in ids], dtype=bool)
     gt = gt[visible] if len(gt) else gt
     out = {}
@@ -265,6 +267,8 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
                 matches_bv=int(res.matches_bv),
                 oracle_repeatable_kp=rep,
                 oracle_correct_matches=correct,
+                ego_detections=ego.detection_source,
+                peer_detections=peer.detection_source,
                 ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg),
             )
         )

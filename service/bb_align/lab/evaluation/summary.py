@@ -13,9 +13,8 @@ import math
 import numpy as np
 
 from .ap import ApAccumulator
-from .runner import AP_IOUS, AP_RANGES, POSES, PairRecord
+from .runner import AP_IOUS, AP_RANGES, DIST_BUCKETS, POSES, PairRecord
 
-DIST_BUCKETS = {"0-20": (0.0, 20.0), "20-40": (20.0, 40.0), "40-70": (40.0, 70.0), "70+": (70.0, math.inf)}
 CAR_BUCKETS = {"0-2": (0, 2), "3-5": (3, 5), "6-10": (6, 10), ">10": (11, 10**9)}
 BV_INLIER_BUCKETS = {"<=25": (0, 25), "26-50": (26, 50), "51-100": (51, 100), ">100": (101, 10**9)}
 BOX_INLIER_BUCKETS = {"<=6": (0, 6), "7-12": (7, 12), "13-20": (13, 20), ">20": (21, 10**9)}
@@ -128,6 +127,10 @@ def summarize(records: list[PairRecord]) -> dict:
     reasons: dict[str, int] = {}
     for x in records:
         reasons[x.reason or "success"] = reasons.get(x.reason or "success", 0) + 1
+    sources: dict[str, int] = {}  # agent frames per detection source (ego and peer of every pair)
+    for x in records:
+        for src in (x.ego_detections, x.peer_detections):
+            sources[src or "unknown"] = sources.get(src or "unknown", 0) + 1
     sensors: dict[str, list[PairRecord]] = {}
     for x in records:
         sensors.setdefault(f"{x.ego_sensor}<-{x.peer_sensor}", []).append(x)
@@ -142,6 +145,7 @@ def summarize(records: list[PairRecord]) -> dict:
         "by_sensor_pair": {k: accuracy(*_arrays(v, "bbalign")) for k, v in sorted(sensors.items())},
         "stage1_only": _block(records, "stage1"),
         "baseline_graph_matching": _block(records, "baseline"),
+        "detections_used": dict(sorted(sources.items())),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "stage1_diagnosis_by_distance": _diagnosis(records),
         "detection_ap": detection_ap(records),
