@@ -104,10 +104,25 @@ def register(app: typer.Typer) -> None:
             f"(comma list of {', '.join(SENSOR_MODELS)}; one name: every car the same)",
         ),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
+        sweep: bool = typer.Option(
+            False,
+            "--sweep",
+            help="two-car sequences whose spacing sweeps ~5-120 m (receding, approaching, overtaking, oncoming, "
+            "crossing) with odometry and GNSS poses in each yaml, for `bb-align track` (--frames: e.g. 150)",
+        ),
     ) -> None:
         """Simulate V2V LiDAR scenarios (heterogeneous sensors, distortion, detections) into OUT_DIR."""
         from ..sim.scenario import SimConfig
         from ..sim.writer import write_benchmark
+
+        if sweep:
+            from ..sim.sweep import write_sweeps
+
+            if frames < 2:
+                raise typer.BadParameter("--sweep needs --frames of 2 or more (e.g. 150: 15 s)")
+            names = write_sweeps(out_dir, scenarios, frames, seed=seed, workers=workers)
+            typer.echo(f"wrote {len(names)} swept sequences x {frames} frames x 2 agents to {out_dir}")
+            return
 
         if max_distance <= min_distance:
             raise typer.BadParameter("--max-distance must be larger than --min-distance")

@@ -35,6 +35,12 @@ class SweepConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    duration_s: float = Field(
+        15.0,
+        gt=0,
+        description="the sweep's motion is planned over this long (150 frames at "
+        "10 Hz); a shorter sequence is its beginning",
+    )
     near_m: float = Field(5.0, gt=0, description="closest spacing of the sweep")
     far_m: float = Field(120.0, gt=0, description="farthest spacing of the sweep")
     ego_speed_m_s: tuple[float, float] = Field((8.0, 12.0), description="the ego's speed is drawn in this range")
@@ -166,7 +172,7 @@ def write_sweep(
     """Simulate and write swept scenario ``index``; returns its directory name."""
     cfg = cfg or SweepConfig()
     kind = SWEEP_KINDS[index % len(SWEEP_KINDS)]
-    sc = sweep_scenario(scenario_seed(seed, index), kind, frames * dt, cfg)
+    sc = sweep_scenario(scenario_seed(seed, index), kind, cfg.duration_s, cfg)
     sensors = {a: PoseSensors(np.random.default_rng([seed, index, 23, i]), cfg, dt) for i, a in enumerate(sc.agent_ids)}
 
     def extra(agent_id: str, agent) -> dict:
