@@ -64,6 +64,18 @@ def _is_envelope(obj: Any) -> bool:
     return isinstance(obj, dict) and "mac" in obj and "payload" in obj
 
 
+def _pairs(pairs) -> dict:
+    """object_pairs_hook of both decoders: map keys must be strings, each once (no 'last one wins')."""
+    out: dict = {}
+    for k, v in pairs:
+        if not isinstance(k, str):
+            raise ValueError(f"map keys must be strings, got a {type(k).__name__} key")
+        if k in out:
+            raise ValueError(f"duplicate map key {k!r}")
+        out[k] = v
+    return out
+
+
 def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
     """Bytes -> a plain dict, refusing oversized or undecodable messages before any model is built."""
     if len(data) > limits.max_message_bytes:
@@ -79,9 +91,10 @@ def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
                 max_array_len=2 * limits.max_boxes + 64,
                 max_map_len=64,
                 max_ext_len=0,
+                object_pairs_hook=_pairs,
             )
         elif encoding == JSON:
-            obj = json.loads(data)
+            obj = json.loads(data, object_pairs_hook=_pairs)
         else:
             raise WireError(415, "unsupported_media_type", f"use {MSGPACK} or {JSON}", "content-type", encoding)
     except WireError:
@@ -169,10 +182,11 @@ def load_align_request(
 ) -> AlignRequest:
     """Untrusted bytes -> an AlignRequest holding checked Frames (raises WireError)."""
     obj = _unpack(data, encoding, limits)
-    extra = sorted(set(obj) - {"schema_version", "peer", "ego"})
+    extra = sorted(set(obj) - {"schema_version", "peer", "ego"}, key=str)  # keys are str (_pairs); key=str anyway
     if extra:
         raise invalid(str(extra[0]), "Extra inputs are not permitted")
-    if obj.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
+    version = obj.get("schema_version", SCHEMA_VERSION)
+    if type(version) is not int or version != SCHEMA_VERSION:  # strict: True is not 1
         raise invalid("schema_version", f"Input should be {SCHEMA_VERSION}", SCHEMA_VERSION)
     if "peer" not in obj:
         raise invalid("peer", "Field required")

@@ -22,6 +22,7 @@ class Limits(BaseModel):
 
     max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="whole message (msgpack or JSON body)")
     max_image_px: int = Field(1024, ge=16, le=8192, description="BV image width/height, pixels")
+    min_image_px: int = Field(16, ge=1, le=1024, description="smallest BV image width/height, pixels (0x0 is no image)")
     max_png_ratio: float = Field(
         1032.0,
         gt=1,

@@ -67,7 +67,8 @@ Box = Annotated[list[float], Field(min_length=7, max_length=7, description="[x, 
 
 
 class _Wire(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # strict: no coercion on the air ("1" is not an int, true is not 1, bytes are not a str); ints are floats
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 class BevMeta(_Wire):
@@ -77,7 +78,7 @@ class BevMeta(_Wire):
     resolution_m: float = Field(gt=0.01, le=5, description="cell size, metres per pixel")
     range_m: float = Field(gt=0, le=250, description="half width of the square image, metres")
     mode: Literal["max_height", "slices"] = "max_height"
-    ground_clearance_m: float = Field(0.3, ge=0, le=5)
+    ground_clearance_m: float = Field(0.3, ge=0, le=5, description="must be below max_height_m")
     max_height_m: float = Field(12.0, gt=0, le=100)
 
 
