@@ -6,6 +6,7 @@ Imports no server code and none of the engine's stages (only its BV image type a
 """
 
 from .codec import (
+    AnswerTrust,
     is_signed,
     json_align_request,
     load_align_request,
@@ -14,9 +15,19 @@ from .codec import (
     pack,
     pack_align_request,
     sign,
+    sign_result,
     to_json,
 )
 from .errors import WireError
+from .identity import (
+    FRAME_DOMAIN,
+    RESULT_DOMAIN,
+    Certificate,
+    Credential,
+    FleetAuthority,
+    IdentityError,
+    TrustStore,
+)
 from .keys import align_key, frames_key, poses_key
 from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
 from .models import (
@@ -39,6 +50,15 @@ from .validation import validate_frame
 from .zenoh_config import ZenohSettings, ZenohTls
 
 __all__ = [
+    "FRAME_DOMAIN",
+    "RESULT_DOMAIN",
+    "AnswerTrust",
+    "Certificate",
+    "Credential",
+    "FleetAuthority",
+    "IdentityError",
+    "TrustStore",
+    "sign_result",
     "FLEET_KEY_ID",
     "JSON",
     "MSGPACK",

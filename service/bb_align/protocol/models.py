@@ -22,6 +22,7 @@ from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import rotation_rpy
 
 from .errors import invalid
+from .identity import MAX_CERT_BYTES, SIGNATURE_BYTES
 from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
 from .png import check_png
 from .signatures import MAC_BYTES
@@ -149,27 +150,50 @@ class Frame(_Wire):
 
 
 class Signed(_Wire):
-    """A signed frame: the frame's own encoded bytes (msgpack, or JSON inside a JSON envelope) with an
-    HMAC-SHA256 made with the key ``key_id`` names (bb_align.protocol.signatures): ``"fleet"`` or the sender's
-    vehicle id."""
+    """A signed frame (or a signed answer): the message's own encoded bytes (msgpack, or JSON inside a JSON
+    envelope) with an Ed25519 signature by the sender's certified key (``alg: "ed25519"``, ``cert``: its vehicle
+    certificate, bb_align.protocol.identity) or an HMAC-SHA256 made with the key ``key_id`` names
+    (bb_align.protocol.signatures): ``"fleet"`` or the sender's vehicle id."""
 
     schema_version: Literal[1] = SCHEMA_VERSION
-    key_id: str = Field(pattern=VEHICLE_ID_PATTERN, description=f"{FLEET_KEY_ID!r} or the sender's vehicle id")
-    alg: Literal["hmac-sha256"] = "hmac-sha256"
+    key_id: str = Field(
+        pattern=VEHICLE_ID_PATTERN,
+        description=f"ed25519: the signer's vehicle id (its certificate's); hmac-sha256: {FLEET_KEY_ID!r} or the "
+        "sender's vehicle id",
+    )
+    alg: Literal["hmac-sha256", "ed25519"] = "hmac-sha256"
     mac: Annotated[
         bytes,
         BeforeValidator(_b64_if_str),
-        Field(min_length=MAC_BYTES, max_length=MAC_BYTES),
+        Field(min_length=MAC_BYTES, max_length=SIGNATURE_BYTES),
         _B64_JSON,
         WithJsonSchema(
             {
                 "type": "string",
                 "contentEncoding": "base64",
-                "description": "HMAC-SHA256(key, 'bb-align/frame/v1' 0x00 key_id 0x00 "
-                "payload), 32 bytes; msgpack: bin, JSON: base64",
+                "description": "hmac-sha256: HMAC-SHA256(key, domain key_id 0x00 payload), 32 bytes; ed25519: "
+                "Ed25519(vehicle key, domain key_id 0x00 payload), 64 bytes. domain: 'bb-align/frame/v1' 0x00 "
+                "(frames) or 'bb-align/result/v1' 0x00 (answers); msgpack: bin, JSON: base64",
             }
         ),
     ]
+    cert: (
+        Annotated[
+            bytes,
+            BeforeValidator(_b64_if_str),
+            Field(max_length=MAX_CERT_BYTES),
+            _B64_JSON,
+            WithJsonSchema(
+                {
+                    "type": "string",
+                    "contentEncoding": "base64",
+                    "description": "ed25519: the signer's vehicle certificate (bb_align.protocol.identity), issued "
+                    "by a fleet authority the receiver trusts; absent for hmac-sha256",
+                }
+            ),
+        ]
+        | None
+    ) = None
     payload: Annotated[
         bytes,
         BeforeValidator(_b64_if_str),

@@ -34,7 +34,6 @@ from bb_align.protocol import (
     WireError,
     load_align_request,
     load_frame,
-    pack,
 )
 
 from .bandwidth import BandwidthReport
@@ -139,10 +138,11 @@ async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
     return b"".join(chunks), _MEDIA_TYPES[media]
 
 
-def _result_response(request: Request, result: Result) -> Response:
-    if MSGPACK in request.headers.get("accept", "") or "application/x-msgpack" in request.headers.get("accept", ""):
-        return Response(pack(result), media_type=MSGPACK)
-    return JSONResponse(result.model_dump(mode="json"))
+def _result_response(request: Request, result: Result, service: AlignService) -> Response:
+    """The answer, signed by the service (a Signed envelope around the Result, docs/security.md) when it has a key."""
+    accept = request.headers.get("accept", "")
+    encoding = MSGPACK if MSGPACK in accept or "application/x-msgpack" in accept else JSON
+    return Response(service.encode_answer(result, encoding), media_type=encoding)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -237,7 +237,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise WireError(503, "unavailable", str(outcome))
         if isinstance(outcome, Exception):
             raise outcome
-        return _result_response(request, outcome)
+        return _result_response(request, outcome, service)
 
     @app.post(
         "/v1/frames",

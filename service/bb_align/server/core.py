@@ -30,7 +30,7 @@ import numpy as np
 from bb_align.engine.frame import PreparedFrame
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.result import AlignResult
-from bb_align.protocol import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, to_json
+from bb_align.protocol import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, sign_result, to_json
 
 from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
@@ -52,7 +52,9 @@ class ServiceReason(str, Enum):
 
 _EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
 UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
-STREAM, REQUEST = "stream", "request"  # replay channels
+# One replay window per sender across both doors and both REST routes: a frame taken from the Zenoh stream is not
+# accepted again as a query or by /v1/align, nor the other way round.
+STREAM = REQUEST = "frames"
 
 
 class Unavailable(RuntimeError):
@@ -108,6 +110,7 @@ class AlignService:
         self.aligner = Aligner(settings.align)
         self.cache = EgoCache(settings.ego_cache_size)
         self.keyring = settings.auth.keyring()
+        self._answer_key, self._answer_key_id = settings.auth.answer_key()
         # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
         self.scheduler = Scheduler(
             settings.peer_queue_depth, settings.max_pending_requests, priority=frozenset({settings.ego_id})
@@ -176,6 +179,10 @@ class AlignService:
     def running(self) -> bool:
         return bool(self._threads) and all(t.is_alive() for t in self._threads)
 
+    def encode_answer(self, result: Result, encoding: str = MSGPACK) -> bytes:
+        """A Result as it leaves the service: signed with the ego's credential (or the fleet key), any door."""
+        return sign_result(result, self._answer_key, encoding, self._answer_key_id)
+
     # ---- doors -------------------------------------------------------------------------------------------------
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
         """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
@@ -236,6 +243,16 @@ class AlignService:
         )
         job.nbytes = len(_encode(frame, encoding))  # the peer frame alone, as it would go on the air
         try:
+            if ego is not None:  # an inline ego frame: the ego's own, and replay-checked like any other
+                if ego.vehicle_id != self.settings.ego_id:
+                    raise WireError(
+                        422,
+                        "invalid",
+                        f"the ego frame's vehicle_id {ego.vehicle_id!r} is not this service's ego id",
+                        "ego.vehicle_id",
+                        self.settings.ego_id,
+                    )
+                self.peer_table.admit(ego, REQUEST)
             self._admit(job, REQUEST)
         except WireError as e:
             self._refused(job, e)
