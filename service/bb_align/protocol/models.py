@@ -64,6 +64,15 @@ PngBytes = Annotated[
 ]
 
 
+def _exact_int(v: Any) -> Any:
+    if isinstance(v, bool):  # Literal[1] would take true (True == 1): not on the air
+        raise ValueError("must be the integer 1, not a boolean")
+    return v
+
+
+Version = Annotated[Literal[1], BeforeValidator(_exact_int)]
+
+
 Box = Annotated[list[float], Field(min_length=7, max_length=7, description="[x, y, z, l, w, h, yaw]")]
 
 
@@ -117,7 +126,7 @@ class Pose(_Wire):
 class Frame(_Wire):
     """One car's LiDAR sweep as sent on the air (Zenoh ``<prefix>/frames/<vehicle_id>`` or REST)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     vehicle_id: str = Field(pattern=VEHICLE_ID_PATTERN)
     seq: int = Field(0, ge=0, le=2**63 - 1, description="sender's frame counter")
     stamp: float = Field(ge=0, description="capture time, seconds (the cars' common clock)")
@@ -155,7 +164,7 @@ class Signed(_Wire):
     certificate, bb_align.protocol.identity) or an HMAC-SHA256 made with the key ``key_id`` names
     (bb_align.protocol.signatures): ``"fleet"`` or the sender's vehicle id."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     key_id: str = Field(
         pattern=VEHICLE_ID_PATTERN,
         description=f"ed25519: the signer's vehicle id (its certificate's); hmac-sha256: {FLEET_KEY_ID!r} or the "
@@ -213,7 +222,7 @@ class AlignRequest(_Wire):
     """REST POST /v1/align: a peer frame and optionally the ego frame (else the service's cached one); each
     a Frame or a Signed frame (the service resolves envelopes: a loaded request holds Frames)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     peer: Frame | Signed
     ego: Frame | Signed | None = None
 
@@ -221,7 +230,7 @@ class AlignRequest(_Wire):
 class Result(_Wire):
     """T_ego_peer for one peer frame (Zenoh ``<prefix>/poses/<ego_id>/<peer_id>``, query replies, REST)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     ego_id: str
     peer_id: str
     peer_seq: int
