@@ -253,3 +253,77 @@ def test_rest_refuses_key_type_mixes_coercion_and_0x0_images(pair):
             f"{url}/v1/frames", content=sign(msgpack.packb({**d, "seq": "1"}, use_bin_type=True), FLEET_KEY), headers=ct
         )
         assert r.status_code == 422 and r.json()["field"] == "seq"
+
+
+# ---- a keyless flood (finding 2) -------------------------------------------------------------------------------
+def _metric_value(text: str, name: str, **labels) -> float:
+    want = name + ("{" + ",".join(f'{k}="{v}"' for k, v in labels.items()) + "}" if labels else "")
+    return sum(float(ln.rsplit(" ", 1)[1]) for ln in text.splitlines() if ln.startswith(want + " "))
+
+
+def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
+    """Finding 2: 1-byte garbage at ~79k msg/s on frames/car2 cost car1 93 of ~100 frames and the ego 42/100;
+    1 MB zero-MAC envelopes on frames/ego let ~11/100 ego frames in. Now junk waits in its own lane."""
+    import threading
+
+    settings = _settings(fleet, fleet_key=FLEET_KEY)
+    ep = settings.zenoh.listen
+    n = 30
+    (_, ego, peer), _ = pair
+    ego_cred, car1_cred = Credential.load(fleet / "ego.cred"), Credential.load(fleet / "car1.cred")
+    zero_mac = msgpack.packb(
+        {"schema_version": 1, "key_id": "fleet", "alg": "hmac-sha256", "mac": b"\0" * 32, "payload": b"\0" * 2**20}
+    )
+    stop, flooded = threading.Event(), {"small": 0, "big": 0}
+
+    def flood():
+        with zenoh.open(ZenohSettings(listen=[], connect=ep).to_zenoh_config()) as s:
+            small = s.declare_publisher("bbalign/frames/car1")
+            big = s.declare_publisher("bbalign/frames/ego")
+            deadline = time.monotonic() + 60  # bounded even if the test fails
+            while not stop.is_set() and time.monotonic() < deadline:
+                for _ in range(50):
+                    small.put(b"\x00")
+                flooded["small"] += 50
+                big.put(zero_mac)
+                flooded["big"] += 1
+
+    with running_service(settings) as (_, url):
+        with (
+            ZenohPeer("ego", connect=ep, key=ego_cred, trust=fleet / "ca.pub", block_when_congested=True) as ego_car,
+            ZenohPeer("car1", connect=ep, key=car1_cred, trust=fleet / "ca.pub", block_when_congested=True) as car1,
+        ):
+            assert ego_car.wait_for_subscriber(10) and car1.wait_for_subscriber(10)
+            flooder = threading.Thread(target=flood, daemon=True)
+            flooder.start()
+            try:
+                time.sleep(1.0)  # the flood is running before the first real frame
+                for k in range(n):
+                    t = time.time()
+                    ego_car.publish(_enc(ego, "ego", k, t))
+                    car1.publish(_enc(peer, "car1", k, t))
+                    time.sleep(0.1)
+                time.sleep(0.5)
+            finally:
+                stop.set()
+                flooder.join(30)
+            assert not flooder.is_alive()
+            auth = {}
+            wait_for(lambda: httpx.get(f"{url}/metrics").status_code == 200)
+            text = httpx.get(f"{url}/metrics", headers=auth).text
+
+            def accepted():
+                t = httpx.get(f"{url}/metrics").text
+                return _metric_value(t, "bbalign_frames_received_total", door="zenoh", kind="ego"), httpx.get(
+                    f"{url}/v1/peers"
+                ).json().get("car1", {}).get("frames_accepted", 0)
+
+            wait_for(lambda: accepted() == (n, n), timeout=30, what=f"all {n} ego and car1 frames accepted")
+            text = httpx.get(f"{url}/metrics").text
+            status = httpx.get(f"{url}/v1/peers").json()["car1"]
+    assert _metric_value(text, "bbalign_intake_dropped_total", lane="unverified") > 0  # the flood did overflow
+    assert flooded["small"] > 10 * n and flooded["big"] > 0, flooded
+    assert status["intake_dropped"] == 0  # junk under car1's key is never charged to car1
+    assert _metric_value(text, "bbalign_intake_dropped_total", lane="signed") == 0
+    assert _metric_value(text, "bbalign_intake_dropped_total", lane="ego") == 0
+    assert _metric_value(text, "bbalign_frames_rejected_total", door="zenoh", error="undecodable") > 0

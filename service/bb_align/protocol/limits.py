@@ -61,8 +61,15 @@ class Limits(BaseModel):
         gt=0,
         description="a sender silent this long is forgotten (queues, replay state, metrics labels, bandwidth tallies)",
     )
-    intake_queue: int = Field(64, ge=1, description="raw Zenoh messages waiting for the gate (oldest dropped)")
-    intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes waiting for the gate")
+    intake_queue: int = Field(
+        64, ge=1, description="signed Zenoh messages (signature verified at the door) waiting for the gate"
+    )
+    intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes of those")
+    intake_ego_queue: int = Field(16, ge=1, description="the ego's own messages waiting for the gate (own lane)")
+    intake_unverified_queue: int = Field(
+        64, ge=1, description="unsigned or unverifiable messages waiting for the gate (own lane: junk displaces junk)"
+    )
+    intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
 
     @model_validator(mode="after")
     def _replay_window_covers_eviction(self) -> Limits:
