@@ -327,3 +327,54 @@ def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
     assert _metric_value(text, "bbalign_intake_dropped_total", lane="signed") == 0
     assert _metric_value(text, "bbalign_intake_dropped_total", lane="ego") == 0
     assert _metric_value(text, "bbalign_frames_rejected_total", door="zenoh", error="undecodable") > 0
+
+
+# ---- bounded work per frame (finding 3) ------------------------------------------------------------------------
+@pytest.mark.parametrize("range_m", [208.0, 225.0, 250.0])
+def test_a_small_coarse_frame_cannot_make_the_engine_work_on_a_huge_image(range_m):
+    """Finding 3: a signed 5-7 KB frame (100 px PNG at 5 m/px, range 208-250 m) was upscaled to ~1250 px: 1.4-4 s
+    per align, and eight such shapes took the service from 363 MB to 2.85 GB (per-shape filter-bank cache)."""
+    import cv2
+    import numpy as np
+
+    from bb_align.engine.bev import image_size_px
+    from bb_align.engine.config import BevConfig
+
+    settings = secure_settings(False)
+    limits = settings.limits
+    assert limits.engine_resolution_m == settings.align.bev.resolution_m
+    assert limits.max_resampled_px == image_size_px(settings.align.bev)
+    n = image_size_px(BevConfig(range_m=range_m, resolution_m=5.0))
+    img = np.zeros((n, n), np.uint8)
+    img[::7, ::5] = 200
+    frame = {
+        "schema_version": 1,
+        "vehicle_id": "car1",
+        "seq": 1,
+        "stamp": time.time(),
+        "png": cv2.imencode(".png", img)[1].tobytes(),
+        "bev": {"resolution_m": 5.0, "range_m": range_m},
+    }
+    data = sign(msgpack.packb(frame, use_bin_type=True), FLEET_KEY)
+    assert len(data) < 8000
+    with pytest.raises(WireError) as e:
+        load_frame(data, limits, keyring=settings.auth.keyring(), now=time.time())
+    assert (e.value.status, e.value.field, e.value.limit) == (422, "bev.resolution_m", limits.max_resampled_px)
+    assert load_frame(data, Limits(), now=time.time()).bev.range_m == range_m  # only the service's limits refuse
+
+
+def test_the_filter_bank_cache_is_bounded_in_bytes():
+    import numpy as np
+
+    from bb_align.engine.config import MimConfig
+    from bb_align.engine.loggabor import _blocks, filter_bank, maximum_index_map
+
+    cfg = MimConfig(filter_cache_mb=40.0, threads=1)
+    _blocks.cache_clear()
+    filter_bank.cache_clear()
+    rng = np.random.default_rng(0)
+    for side in (180, 200, 220, 240, 260, 280, 300, 320):  # eight odd shapes
+        maximum_index_map(rng.integers(0, 255, (side, side)).astype(np.uint8), cfg)
+        assert _blocks.cache_bytes() <= 40 * 2**20
+    assert _blocks.cache_bytes() > 0 and filter_bank.cache_bytes() == 0  # the full banks are not kept
+    _blocks.cache_clear()

@@ -61,6 +61,18 @@ class Limits(BaseModel):
         gt=0,
         description="a sender silent this long is forgotten (queues, replay state, metrics labels, bandwidth tallies)",
     )
+    engine_resolution_m: float | None = Field(
+        None,
+        gt=0,
+        description="the engine's BV cell size (the service sets it from align.bev): a peer image at another "
+        "resolution is resampled to it",
+    )
+    max_resampled_px: int | None = Field(
+        None,
+        ge=16,
+        description="largest image side after that resampling (the service sets it to its own BV image side): "
+        "a small frame at a coarse resolution cannot make the engine work on a huge image",
+    )
     intake_queue: int = Field(
         64, ge=1, description="signed Zenoh messages (signature verified at the door) waiting for the gate"
     )

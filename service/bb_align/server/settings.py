@@ -24,6 +24,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from bb_align.engine.bev import image_size_px
 from bb_align.engine.config import AlignConfig
 from bb_align.protocol.identity import Credential, TrustStore
 from bb_align.protocol.limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
@@ -174,6 +175,16 @@ class Settings(BaseSettings):
     def _demo_profile_turns_auth_off(self) -> Settings:
         if self.profile == "demo":
             self.auth = self.auth.model_copy(update={"mode": "off"})
+        if self.limits.engine_resolution_m is None or self.limits.max_resampled_px is None:
+            # a frame is never resampled beyond the engine's own image (finding: a 100 px PNG at 5 m/px became
+            # 1250 px at 0.4 m/px, seconds of CPU and a 300 MB filter bank per odd shape)
+            own = image_size_px(self.align.bev)
+            self.limits = self.limits.model_copy(
+                update={
+                    "engine_resolution_m": self.limits.engine_resolution_m or self.align.bev.resolution_m,
+                    "max_resampled_px": self.limits.max_resampled_px or own,
+                }
+            )
         if self.zenoh.max_message_bytes is None:  # Zenoh's own reassembly limit backs up the door's size check
             self.zenoh = self.zenoh.model_copy(update={"max_message_bytes": self.limits.max_message_bytes})
         return self
