@@ -138,7 +138,7 @@ def keys_init(
         typer.secho(f"{directory / 'ca.key'} exists (use --force to replace it)", err=True, fg="red")
         raise typer.Exit(2)
     pub, key = FleetAuthority.generate(name).save(directory)
-    typer.echo(f"{pub}\n{key}")
+    typer.echo(f"{pub} (trusted by services and cars)\n{key} (mode 0600: keep it offline)")
 
 
 @keys_app.command("issue")
@@ -148,7 +148,8 @@ def keys_issue(
     days: float = typer.Option(365.0, min=0.001, help="validity, days"),
 ) -> None:
     """Issue DIR/<VEHICLE_ID>.cred: a fresh Ed25519 key and its certificate (mode 0600; give it to that car only).
-    Prints the settings that make a service use it as its own identity."""
+    Prints, as shell, the settings that make a service use it as its own identity:
+    ``eval "$(bb-align keys issue DIR ego)"; bb-align serve``."""
     from bb_align.protocol import FleetAuthority
 
     try:
@@ -157,8 +158,7 @@ def keys_issue(
         typer.secho(f"bb-align keys issue: {e}", err=True, fg="red")
         raise typer.Exit(2) from None
     path = cred.save(directory / f"{vehicle_id}.cred")
-    typer.echo(str(path))
-    typer.echo(f"# for a service whose ego id is {vehicle_id!r}:")
+    typer.echo(f"# wrote {path}; for a service whose ego id is {vehicle_id!r}:")
     typer.echo(f"export BBALIGN_EGO_ID={vehicle_id}")
     typer.echo(f"export BBALIGN_AUTH__CA_CERT={(directory / 'ca.pub').resolve()}")
     typer.echo(f"export BBALIGN_AUTH__CREDENTIAL={path.resolve()}")
