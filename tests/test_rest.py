@@ -171,6 +171,10 @@ def test_full_request_queue_answers_503(pair):
         codes = sorted(r.status_code for r in responses)
         assert set(codes) <= {200, 503} and 200 in codes and 503 in codes
         assert all(r.json()["error"] == "overloaded" for r in responses if r.status_code == 503)
+        # finding 7: each refusal counted once (the service and the REST door both counted it)
+        line = 'bbalign_frames_rejected_total{door="rest",error="overloaded"} '
+        counted = [ln for ln in httpx.get(f"{url}/metrics").text.splitlines() if ln.startswith(line)]
+        assert counted == [f"{line}{float(codes.count(503))}"]
 
 
 def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):

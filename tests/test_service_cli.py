@@ -40,7 +40,7 @@ def test_defaults_bind_loopback_only(monkeypatch):
     assert s.host == "127.0.0.1" and s.port == 8000
     assert s.zenoh.listen == ["tcp/127.0.0.1:7447"] and s.zenoh.connect == [] and not s.zenoh.multicast_scouting
     assert s.zenoh.mode == "peer" and s.zenoh.prefix == "bbalign"
-    assert s.profile == "vehicle" and s.auth.mode == "hmac"  # secure unless the demo profile is asked for
+    assert s.profile == "vehicle" and s.auth.mode == "signed"  # secure unless the demo profile is asked for
     assert s.startup_problem() is not None and "BBALIGN_AUTH__FLEET_KEY" in s.startup_problem()
     demo = Settings(profile="demo")
     assert demo.auth.mode == "off" and demo.startup_problem() is None
@@ -196,7 +196,7 @@ def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch)
     demo = services["demo"]
     assert demo["entrypoint"] == ["bb-align", "demo"]
     get_command(app).commands["demo"].make_context("demo", list(demo["command"]))  # options exist and parse
-    assert s.auth.mode == "hmac" and s.startup_problem() is None  # the container runs with a fleet key
+    assert s.auth.required and s.startup_problem() is None  # the container runs with a fleet key
     assert "BBALIGN_AUTH__FLEET_KEY" in demo["environment"]
     assert "--no-multicast-scouting" in services["zenohd"]["command"]
 

@@ -238,6 +238,88 @@ def test_random_maps_only_ever_raise_wire_errors(d):
         load_frame(msgpack.packb(d), LIMITS)
 
 
+_KEYS = st.one_of(
+    st.sampled_from(list(Frame.model_fields) + ["x"]),
+    st.binary(max_size=8),
+    st.integers(-5, 5),
+    st.booleans(),
+    st.none(),
+    st.floats(allow_nan=False),
+)
+
+
+def _msgpack_map(pairs) -> bytes:
+    """A msgpack map written pair by pair (keys of any type, duplicates kept: msgpack.packb(dict) cannot)."""
+    return bytes([0x80 | len(pairs)]) + b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in pairs)
+
+
+@hsettings(max_examples=150, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            _KEYS, st.one_of(st.none(), st.integers(-(2**63), 2**63 - 1), st.text(max_size=4), st.binary(max_size=4))
+        ),
+        max_size=6,
+    ),
+    st.sampled_from(["frame", "align_request"]),
+)
+def test_maps_with_any_key_types_and_duplicate_keys_only_raise_wire_errors(pairs, kind):
+    """Finding 4: a str and a bytes key (82a16101c4016202) made sorted() raise TypeError -> HTTP 500."""
+    load = load_frame if kind == "frame" else load_align_request
+    with pytest.raises(WireError) as e:
+        load(_msgpack_map(pairs[:15]), LIMITS)
+    assert e.value.status in (400, 413, 422)
+
+
+def test_mixed_key_types_and_duplicate_keys_are_400_naming_the_key():
+    e = _refused_request(bytes.fromhex("82a16101c4016202"))
+    assert e.status == 400 and "keys must be strings" in e.detail
+    good = _fields(_frame())
+    dup = _msgpack_map([*good.items(), ("seq", 99)])
+    e = _refused(dup)
+    assert e.status == 400 and "duplicate map key 'seq'" in e.detail
+    body = json.dumps(json.loads(to_json(_frame())))[:-1] + ', "seq": 99}'
+    e = _refused(body.encode(), JSON)
+    assert e.status == 400 and "duplicate map key 'seq'" in e.detail
+
+
+def _refused_request(data: bytes) -> WireError:
+    with pytest.raises(WireError) as e:
+        load_align_request(data, LIMITS)
+    return e.value
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"seq": "1"}, "seq"),
+        ({"seq": True}, "seq"),
+        ({"vehicle_id": b"car1"}, "vehicle_id"),
+        ({"stamp": "5"}, "stamp"),
+        ({"schema_version": True}, "schema_version"),
+    ],
+)
+def test_no_coercion_on_the_air(change, field):
+    """Finding 7: "1", true and bytes were coerced into the fields' types."""
+    e = _refused(msgpack.packb({**_fields(_frame()), **change}, use_bin_type=True))
+    assert (e.status, e.field) == (422, field)
+
+
+def test_no_coercion_inside_nested_maps_and_cross_field_checks():
+    d = _fields(_frame())
+    e = _refused(msgpack.packb({**d, "bev": {**d["bev"], "range_m": "20"}}, use_bin_type=True))
+    assert (e.status, e.field) == (422, "bev.range_m")
+    e = _refused(msgpack.packb({**d, "bev": {**d["bev"], "ground_clearance_m": 5.0, "max_height_m": 4.0}}))
+    assert (e.status, e.field, e.limit) == (422, "bev.ground_clearance_m", 4.0)
+
+
+def test_a_0x0_image_is_refused_naming_the_limit():
+    d = _fields(_frame())
+    d["bev"] = {**d["bev"], "range_m": 0.001, "resolution_m": 5.0}
+    e = _refused(msgpack.packb(d, use_bin_type=True))
+    assert (e.status, e.field, e.limit) == (422, "bev.range_m", LIMITS.min_image_px)
+
+
 def test_pose_matrix_matches_scipy_and_round_trips():
     p = Pose(x=1.0, y=-2.0, z=0.5, roll=0.1, pitch=-0.25, yaw=2.8)
     R_ref = Rotation.from_euler("ZYX", [p.yaw, p.pitch, p.roll]).as_matrix()  # intrinsic z-y'-x''

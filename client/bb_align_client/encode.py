@@ -14,6 +14,7 @@ from bb_align.protocol import (
     JSON,
     MSGPACK,
     BevMeta,
+    Credential,
     Frame,
     Pose,
     Result,
@@ -80,14 +81,14 @@ def encode_frame(
     seq: int = 0,
     pose: Any = None,
     encoding: str = MSGPACK,
-    key: bytes | str | None = None,
+    key: bytes | str | Credential | None = None,
     key_id: str = FLEET_KEY_ID,
     **bev_options,
 ) -> bytes:
     """The bytes a car sends for one sweep: msgpack (default) or JSON (``encoding="application/json"``).
-    ``key``: sign the frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``) or the car's own key
-    (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields (range_m, resolution_m, ...) plus ``scores`` and
-    ``png_compression``."""
+    ``key``: sign the frame: a vehicle Credential (Ed25519, the recommended way), or HMAC-SHA256 with the fleet
+    key (``key_id="fleet"``) or the car's own key (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields
+    (range_m, resolution_m, ...) plus ``scores`` and ``png_compression``."""
     frame = make_frame(points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, **bev_options)
     if encoding == JSON:
         data = to_json(frame)
@@ -98,7 +99,7 @@ def encode_frame(
     return data if key is None else sign(data, key, key_id, encoding)
 
 
-def sign_frame(data: bytes, key: bytes | str, key_id: str = FLEET_KEY_ID) -> bytes:
+def sign_frame(data: bytes, key: bytes | str | Credential, key_id: str = FLEET_KEY_ID) -> bytes:
     """Sign already encoded frame bytes (msgpack or JSON); bytes already signed are returned unchanged."""
     return data if is_signed(data) else sign(data, key, key_id)
 

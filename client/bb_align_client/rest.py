@@ -8,15 +8,18 @@ from bb_align.protocol import (
     FLEET_KEY_ID,
     JSON,
     MSGPACK,
+    AnswerTrust,
+    Credential,
     ErrorBody,
     Result,
+    TrustStore,
     json_align_request,
-    load_result,
     pack_align_request,
 )
 
 from .encode import sign_frame
 from .errors import ServiceError
+from .trust import answer_trust, read_answer
 
 
 def _align_body(peer: bytes, ego: bytes | None) -> tuple[bytes, str]:
@@ -43,7 +46,7 @@ def _check(r: httpx.Response) -> httpx.Response:
 
 
 class _Signer:
-    def __init__(self, key: bytes | str | None, key_id: str):
+    def __init__(self, key: bytes | str | Credential | None, key_id: str):
         self._key, self._key_id = key, key_id
 
     def __call__(self, frame: bytes | None) -> bytes | None:
@@ -58,7 +61,8 @@ def _headers(token: str | None) -> dict:
 class AlignClient:
     """``AlignClient("http://127.0.0.1:8000", token=..., key=...)``; usable as a context manager.
 
-    ``token``: the service's REST bearer token; ``key``/``key_id``: sign unsigned frames (fleet key by default)."""
+    ``token``: the service's REST bearer token; ``key``/``key_id``: sign unsigned frames (a Credential: Ed25519; or
+    an HMAC key, fleet by default). ``trust`` / ``verify_answers``: every answer is verified (see ZenohPeer)."""
 
     def __init__(
         self,
@@ -66,9 +70,12 @@ class AlignClient:
         *,
         timeout: float = 60.0,
         token: str | None = None,
-        key: bytes | str | None = None,
+        key: bytes | str | Credential | None = None,
         key_id: str = FLEET_KEY_ID,
+        trust: AnswerTrust | TrustStore | str | None = None,
+        verify_answers: bool = True,
     ):
+        self._trust = answer_trust(key, key_id, trust, verify_answers)
         self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
@@ -76,7 +83,7 @@ class AlignClient:
         """Align an encoded peer frame against ``ego`` (or the service's cached ego frame nearest in time)."""
         body, media = _align_body(self._sign(peer), self._sign(ego))
         r = self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
-        return load_result(_check(r).content)
+        return read_answer(_check(r).content, self._trust)
 
     def post_frame(self, frame: bytes) -> dict:
         """Hand in an encoded ego or peer frame (202 Accepted; its result is published like a Zenoh frame's)."""
@@ -108,16 +115,19 @@ class AsyncAlignClient:
         *,
         timeout: float = 60.0,
         token: str | None = None,
-        key: bytes | str | None = None,
+        key: bytes | str | Credential | None = None,
         key_id: str = FLEET_KEY_ID,
+        trust: AnswerTrust | TrustStore | str | None = None,
+        verify_answers: bool = True,
     ):
+        self._trust = answer_trust(key, key_id, trust, verify_answers)
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
     async def align(self, peer: bytes, ego: bytes | None = None) -> Result:
         body, media = _align_body(self._sign(peer), self._sign(ego))
         r = await self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
-        return load_result(_check(r).content)
+        return read_answer(_check(r).content, self._trust)
 
     async def post_frame(self, frame: bytes) -> dict:
         frame = self._sign(frame)

@@ -12,18 +12,21 @@ import zenoh
 
 from bb_align.protocol import (
     FLEET_KEY_ID,
+    AnswerTrust,
+    Credential,
     ErrorBody,
     Result,
+    TrustStore,
     ZenohSettings,
     ZenohTls,
     align_key,
     frames_key,
-    load_result,
     poses_key,
 )
 
 from .encode import sign_frame
 from .errors import ServiceError
+from .trust import answer_trust, read_answer
 
 
 @dataclass
@@ -44,8 +47,16 @@ class ArrivalLog:
 class PoseStream:
     """Results the ego service publishes (``<prefix>/poses/<ego_id>/<peer_id>``), buffered for ``get``."""
 
-    def __init__(self, session: zenoh.Session, key: str, capacity: int = 1000):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        capacity: int = 1000,
+        trust: AnswerTrust | None = None,
+        ego_id: str | None = None,
+    ):
         self.key = key
+        self._trust, self._ego_id = trust, ego_id
         self._queue: queue.Queue[bytes] = queue.Queue(capacity)
         self._subscriber = session.declare_subscriber(key, self._on_sample)
 
@@ -56,9 +67,10 @@ class PoseStream:
             pass
 
     def get(self, timeout: float | None = None) -> Result:
-        """The next result; raises TimeoutError after ``timeout`` seconds."""
+        """The next result, verified (WireError 401/403 for an unsigned or forged one, unless the peer was made
+        with ``verify_answers=False``); raises TimeoutError after ``timeout`` seconds."""
         try:
-            return load_result(self._queue.get(timeout=timeout))
+            return read_answer(self._queue.get(timeout=timeout), self._trust, self._ego_id)
         except queue.Empty:
             raise TimeoutError(f"no result on {self.key} within {timeout} s") from None
 
@@ -73,9 +85,12 @@ class ZenohPeer:
     are dropped when the link is congested (a newer sweep follows anyway); ``block_when_congested=True`` makes
     ``publish`` wait instead (every frame reaches the service; for tests and recordings).
 
-    ``key``: sign every unsigned frame (HMAC-SHA256) with the fleet key (``key_id="fleet"``, the default) or this
-    car's own key (``key_id=vehicle_id``). ``tls``: certificates for ``tls/`` endpoints (bb_align.protocol.ZenohTls
-    or a dict of its fields)."""
+    ``key``: sign every unsigned frame: this car's Credential (Ed25519, ``bb-align keys issue``), or an HMAC key:
+    the fleet key (``key_id="fleet"``, the default) or this car's own (``key_id=vehicle_id``). ``trust``: the
+    fleet authority's ``ca.pub`` (path or TrustStore): every answer (published pose, query reply) must be signed
+    by the ego's certificate, else ``WireError`` (401 unsigned/forged, 403 another vehicle). With the fleet HMAC
+    key and no ``trust``, HMAC-signed answers are verified with it. ``verify_answers=False``: the demo profile's
+    unsigned answers. ``tls``: certificates for ``tls/`` endpoints (bb_align.protocol.ZenohTls or a dict)."""
 
     def __init__(
         self,
@@ -87,10 +102,13 @@ class ZenohPeer:
         mode: str = "peer",
         multicast_scouting: bool = False,
         block_when_congested: bool = False,
-        key: bytes | str | None = None,
+        key: bytes | str | Credential | None = None,
         key_id: str = FLEET_KEY_ID,
         tls: ZenohTls | dict | None = None,
+        trust: AnswerTrust | TrustStore | str | None = None,
+        verify_answers: bool = True,
     ):
+        self._trust = answer_trust(key, key_id, trust, verify_answers)
         self.vehicle_id = vehicle_id
         self.block_when_congested = block_when_congested
         self.prefix = prefix
@@ -137,13 +155,14 @@ class ZenohPeer:
         key = align_key(self.prefix, ego_id)
         for reply in self.session.get(key, payload=self._signed(frame), timeout=timeout):
             if reply.ok is not None:
-                return load_result(reply.ok.payload.to_bytes())
+                return read_answer(reply.ok.payload.to_bytes(), self._trust, ego_id)
             raise ServiceError(None, _error_body(reply.err.payload.to_bytes()))
         raise TimeoutError(f"no reply on {key} within {timeout} s (service absent, overloaded or too slow)")
 
     def poses(self, ego_id: str, peer_id: str | None = None) -> PoseStream:
         """Subscribe to the results the ego service publishes for ``peer_id`` (default: this car; "*": all)."""
-        stream = PoseStream(self.session, poses_key(self.prefix, ego_id, peer_id or self.vehicle_id))
+        key = poses_key(self.prefix, ego_id, peer_id or self.vehicle_id)
+        stream = PoseStream(self.session, key, trust=self._trust, ego_id=ego_id)
         self._streams.append(stream)
         return stream
 

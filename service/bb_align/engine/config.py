@@ -50,6 +50,12 @@ class MimConfig(_Frozen):
         "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)",
     )
     threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
+    filter_cache_mb: float = Field(
+        256.0,
+        ge=0,
+        description="the per-shape filter banks kept, bounded in MB (least recently used shapes go first); a "
+        "400 px image's boxed bank is about 30 MB",
+    )
 
 
 class FeatureConfig(_Frozen):

@@ -12,8 +12,10 @@ the spectrum is formed on the wedge's bounding box alone, and the amplitude is a
 
 from __future__ import annotations
 
+import functools
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
-from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -60,9 +62,55 @@ def angular_filters(theta: np.ndarray, cfg: MimConfig) -> np.ndarray:
     return out
 
 
-@lru_cache(maxsize=8)
+class _BytesLRU:
+    """A least-recently-used cache bounded in bytes (the sum of the values' ``nbytes``), not in entries: the
+    filter bank of one large shape is hundreds of MB, so a count bound let a few odd shapes hold gigabytes. The
+    budget is ``cfg.filter_cache_mb`` of the config the caller passes (the newest call's bound applies)."""
+
+    def __init__(self, fn, size_of):
+        self._fn, self._size_of = fn, size_of
+        self._entries: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, shape, cfg):
+        key = (shape, _bank_fields(cfg))
+        with self._lock:
+            hit = self._entries.get(key)
+            if hit is not None:
+                self._entries.move_to_end(key)
+                return hit[0]
+        value = self._fn(shape, cfg)
+        size = self._size_of(value)
+        budget = int(cfg.filter_cache_mb * 2**20)
+        with self._lock:
+            if key not in self._entries and size <= budget:
+                self._entries[key] = (value, size)
+                self._bytes += size
+            while self._bytes > budget and self._entries:
+                _, (_, old) = self._entries.popitem(last=False)
+                self._bytes -= old
+        return value
+
+    def cache_bytes(self) -> int:
+        with self._lock:
+            return self._bytes
+
+    def cache_clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self._bytes = 0
+
+
+def _bytes_cache(size_of):
+    return lambda fn: _BytesLRU(fn, size_of)
+
+
+@_bytes_cache(lambda bank: bank.nbytes)
 def filter_bank(shape: tuple[int, int], cfg: MimConfig) -> np.ndarray:
-    """(No, Ns, H, W) complex64-ready float32 bank G_s * S_o for an FFT of ``shape``; cached per shape."""
+    """(No, Ns, H, W) complex64-ready float32 bank G_s * S_o for an FFT of ``shape``; cached per shape, the cache
+    bounded in bytes (``cfg.filter_cache_mb``)."""
     r, theta = frequency_grid(shape)
     radial = radial_filters(r, cfg)
     angular = angular_filters(theta, cfg)
@@ -113,13 +161,13 @@ def _block(g: np.ndarray) -> _Block:
 
 def _bank_fields(cfg: MimConfig) -> MimConfig:
     """cfg with the fields the filter bank does not depend on set to fixed values: one cache entry per bank."""
-    return cfg.model_copy(update={"threads": 1, "min_amplitude": 0.0, "fft_margin_px": 0})
+    return cfg.model_copy(update={"threads": 1, "min_amplitude": 0.0, "fft_margin_px": 0, "filter_cache_mb": 0.0})
 
 
-@lru_cache(maxsize=4)
+@_bytes_cache(lambda blocks: sum(b.values.nbytes for row in blocks for b in row))
 def _blocks(shape: tuple[int, int], cfg: MimConfig) -> tuple[tuple[_Block, ...], ...]:
     """[orientation][scale] boxed filters for an FFT of ``shape``, the 1/(H W) of the inverse DFT folded in."""
-    bank = filter_bank(shape, cfg) / np.float32(shape[0] * shape[1])
+    bank = filter_bank.__wrapped__(shape, cfg) / np.float32(shape[0] * shape[1])  # the full bank is not kept
     return tuple(tuple(_block(bank[o, s]) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
 
 
@@ -136,7 +184,7 @@ def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int,
     shape = fft_shape((h, w), m)
     padded = np.zeros(shape, dtype=np.float32)
     padded[m : m + h, m : m + w] = image
-    blocks = _blocks(shape, _bank_fields(cfg))
+    blocks = _blocks(shape, cfg)
     bh = max(b.values.shape[0] for bs in blocks for b in bs)
     bw = max(b.values.shape[1] for bs in blocks for b in bs)
     spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)
@@ -150,7 +198,7 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
     h, w = image.shape
     m = cfg.fft_margin_px
     wrapped, shape = _spectrum(image, cfg) if spectrum is None else spectrum
-    blocks = _blocks(shape, _bank_fields(cfg))
+    blocks = _blocks(shape, cfg)
     # Buffers allocated once per call and written in place: fresh 1.5 MB temporaries per transform cost more in
     # page faults than the arithmetic.
     product = np.zeros(shape + (2,), dtype=np.float32)  # zero outside the current box

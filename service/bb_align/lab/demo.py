@@ -237,7 +237,10 @@ def run_demo(
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
     n_sent = 0
-    cars = {aid: ZenohPeer(name, connect=connect, prefix=prefix, key=key) for aid, name in names.items()}
+    cars = {
+        aid: ZenohPeer(name, connect=connect, prefix=prefix, key=key, verify_answers=key is not None)
+        for aid, name in names.items()
+    }
     title = f"bb-align demo: {n_agents} cars, seed {seed}, via {', '.join(connect)}"
 
     def collect(deadline: float, expected: set, live) -> None:

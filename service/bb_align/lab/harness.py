@@ -24,7 +24,7 @@ from bb_align.server.settings import Settings
 values = json.loads(sys.argv[1])
 key = sys.stdin.readline().strip()
 if key:
-    values["auth"] = {"mode": "hmac", "fleet_key": key}
+    values["auth"] = {"mode": "signed", "fleet_key": key}
 run_server(Settings.model_validate(values), sys.argv[2])
 """
 

@@ -6,6 +6,7 @@ Imports no server code and none of the engine's stages (only its BV image type a
 """
 
 from .codec import (
+    AnswerTrust,
     is_signed,
     json_align_request,
     load_align_request,
@@ -13,10 +14,21 @@ from .codec import (
     load_result,
     pack,
     pack_align_request,
+    peek_signed,
     sign,
+    sign_result,
     to_json,
 )
 from .errors import WireError
+from .identity import (
+    FRAME_DOMAIN,
+    RESULT_DOMAIN,
+    Certificate,
+    Credential,
+    FleetAuthority,
+    IdentityError,
+    TrustStore,
+)
 from .keys import align_key, frames_key, poses_key
 from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
 from .models import (
@@ -39,6 +51,15 @@ from .validation import validate_frame
 from .zenoh_config import ZenohSettings, ZenohTls
 
 __all__ = [
+    "FRAME_DOMAIN",
+    "RESULT_DOMAIN",
+    "AnswerTrust",
+    "Certificate",
+    "Credential",
+    "FleetAuthority",
+    "IdentityError",
+    "TrustStore",
+    "sign_result",
     "FLEET_KEY_ID",
     "JSON",
     "MSGPACK",
@@ -70,6 +91,7 @@ __all__ = [
     "load_result",
     "pack",
     "pack_align_request",
+    "peek_signed",
     "poses_key",
     "sign",
     "to_json",

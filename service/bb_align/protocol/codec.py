@@ -7,6 +7,7 @@ failures raise :class:`WireError` with the offending field, the limit and an HTT
 
 from __future__ import annotations
 
+import hmac
 import json
 from typing import Any
 
@@ -14,20 +15,21 @@ import msgpack
 from pydantic import BaseModel, ValidationError
 
 from .errors import WireError, invalid, too_large
+from .identity import FRAME_DOMAIN, RESULT_DOMAIN, SIGNATURE_BYTES, Credential, IdentityError, TrustStore
 from .limits import FLEET_KEY_ID, Limits
 from .models import JSON, MSGPACK, SCHEMA_VERSION, AlignRequest, Frame, Result, Signed
-from .signatures import AuthError, Keyring, frame_mac
+from .signatures import MAC_BYTES, AuthError, Keyring, frame_mac
 from .validation import validate_frame
 
 
 def pack(model: BaseModel) -> bytes:
-    """A wire model -> msgpack bytes (PNG as bin)."""
-    return msgpack.packb(model.model_dump(mode="python"), use_bin_type=True)
+    """A wire model -> msgpack bytes (PNG as bin). An envelope leaves out its absent certificate."""
+    return msgpack.packb(model.model_dump(mode="python", exclude_none=isinstance(model, Signed)), use_bin_type=True)
 
 
 def to_json(model: BaseModel) -> bytes:
     """A wire model -> JSON bytes (PNG as base64)."""
-    return model.model_dump_json().encode()
+    return model.model_dump_json(exclude_none=isinstance(model, Signed)).encode()
 
 
 def pack_align_request(peer: bytes, ego: bytes | None = None) -> bytes:
@@ -44,10 +46,27 @@ def json_align_request(peer: bytes, ego: bytes | None = None) -> bytes:
     return body + (b',"ego":' + ego if ego is not None else b"") + b"}"
 
 
-def sign(payload: bytes, key: bytes | str, key_id: str = FLEET_KEY_ID, encoding: str | None = None) -> bytes:
-    """Wrap an encoded frame in a Signed envelope of the same encoding (JSON when the payload is JSON)."""
+def sign(
+    payload: bytes,
+    key: bytes | str | Credential,
+    key_id: str = FLEET_KEY_ID,
+    encoding: str | None = None,
+    domain: bytes = FRAME_DOMAIN,
+) -> bytes:
+    """Wrap an encoded frame (or, with ``domain=RESULT_DOMAIN``, an answer) in a Signed envelope of the same
+    encoding (JSON when the payload is JSON). ``key``: a vehicle's Credential (Ed25519; the key id is its vehicle
+    id, ``key_id`` is ignored) or an HMAC secret named by ``key_id``."""
     encoding = encoding or (JSON if payload[:1] == b"{" else MSGPACK)
-    env = Signed(key_id=key_id, mac=frame_mac(key, key_id, payload), payload=payload)
+    if isinstance(key, Credential):
+        env = Signed(
+            key_id=key.vehicle_id,
+            alg="ed25519",
+            mac=key.sign(domain, payload),
+            cert=key.certificate_bytes,
+            payload=payload,
+        )
+    else:
+        env = Signed(key_id=key_id, mac=frame_mac(key, key_id, payload, domain), payload=payload)
     return to_json(env) if encoding == JSON else pack(env)
 
 
@@ -62,6 +81,18 @@ def is_signed(data: bytes) -> bool:
 
 def _is_envelope(obj: Any) -> bool:
     return isinstance(obj, dict) and "mac" in obj and "payload" in obj
+
+
+def _pairs(pairs) -> dict:
+    """object_pairs_hook of both decoders: map keys must be strings, each once (no 'last one wins')."""
+    out: dict = {}
+    for k, v in pairs:
+        if not isinstance(k, str):
+            raise ValueError(f"map keys must be strings, got a {type(k).__name__} key")
+        if k in out:
+            raise ValueError(f"duplicate map key {k!r}")
+        out[k] = v
+    return out
 
 
 def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
@@ -79,9 +110,10 @@ def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
                 max_array_len=2 * limits.max_boxes + 64,
                 max_map_len=64,
                 max_ext_len=0,
+                object_pairs_hook=_pairs,
             )
         elif encoding == JSON:
-            obj = json.loads(data)
+            obj = json.loads(data, object_pairs_hook=_pairs)
         else:
             raise WireError(415, "unsupported_media_type", f"use {MSGPACK} or {JSON}", "content-type", encoding)
     except WireError:
@@ -120,15 +152,15 @@ def _frame_from(
     f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
     if not isinstance(obj, dict):
         raise invalid(where or "message", f"must be a map (a Frame or a Signed frame), got {type(obj).__name__}")
-    bound_to = None
+    signer = None
     if _is_envelope(obj):
-        env: Signed = _model(Signed, obj, where)
+        env = _envelope(obj, where)
         if keyring is not None:
             try:
-                bound_to = keyring.verify(env.key_id, env.mac, env.payload)
+                signer = keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, now)
             except AuthError as e:
-                if keyring.required or e.detail != f"unknown key id {env.key_id!r}":
-                    raise WireError(e.status, e.error, e.detail, f("mac"), "hmac-sha256") from None
+                if keyring.required or not e.unknown:
+                    raise WireError(e.status, e.error, e.detail, f("mac"), env.alg) from None
         obj = _unpack(env.payload, encoding, limits)
         if _is_envelope(obj):
             raise invalid(f("payload"), "a signed payload must be a Frame, not another envelope")
@@ -136,22 +168,42 @@ def _frame_from(
         raise WireError(
             401,
             "unauthenticated",
-            "frames must be signed (a Signed envelope with an HMAC-SHA256; see docs/security.md)",
+            "frames must be signed (a Signed envelope: ed25519 with a vehicle certificate, or hmac-sha256; see "
+            "docs/security.md)",
             where or "message",
-            "hmac-sha256",
+            ", ".join(keyring.algorithms),
         )
     _precheck(obj, limits, f)
     frame: Frame = _model(Frame, obj, where)
     validate_frame(frame, limits, where, now=now)
-    if bound_to is not None and frame.vehicle_id != bound_to:
-        raise WireError(
-            403,
-            "forbidden",
-            f"signed with {bound_to!r}'s key but claims vehicle id {frame.vehicle_id!r}",
-            f("vehicle_id"),
-            bound_to,
-        )
+    if signer is not None:
+        try:
+            keyring.authorize(signer, frame.vehicle_id)
+        except AuthError as e:
+            raise WireError(e.status, e.error, e.detail, f("vehicle_id"), signer) from None
     return frame
+
+
+def _envelope(obj: dict, where: str = "") -> Signed:
+    """A Signed model whose signature has the length its algorithm makes (and a certificate for ed25519)."""
+    env: Signed = _model(Signed, obj, where)
+    f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
+    want = SIGNATURE_BYTES if env.alg == "ed25519" else MAC_BYTES
+    if len(env.mac) != want:
+        raise invalid(f("mac"), f"{env.alg} signatures are {want} bytes, got {len(env.mac)}", want)
+    if (env.cert is None) != (env.alg != "ed25519"):
+        raise invalid(f("cert"), "ed25519 envelopes carry the signer's certificate; hmac-sha256 ones none")
+    return env
+
+
+def peek_signed(data: bytes, limits: Limits) -> Signed | None:
+    """The Signed envelope of a raw message, if it is one (its payload not decoded); None for anything else.
+    Cheap: what a door does before a message may take a place in an authenticated queue."""
+    try:
+        obj = _unpack(data, JSON if data[:1] == b"{" else MSGPACK, limits)
+        return _envelope(obj) if _is_envelope(obj) else None
+    except WireError:
+        return None
 
 
 def load_frame(
@@ -169,10 +221,11 @@ def load_align_request(
 ) -> AlignRequest:
     """Untrusted bytes -> an AlignRequest holding checked Frames (raises WireError)."""
     obj = _unpack(data, encoding, limits)
-    extra = sorted(set(obj) - {"schema_version", "peer", "ego"})
+    extra = sorted(set(obj) - {"schema_version", "peer", "ego"}, key=str)  # keys are str (_pairs); key=str anyway
     if extra:
         raise invalid(str(extra[0]), "Extra inputs are not permitted")
-    if obj.get("schema_version", SCHEMA_VERSION) != SCHEMA_VERSION:
+    version = obj.get("schema_version", SCHEMA_VERSION)
+    if type(version) is not int or version != SCHEMA_VERSION:  # strict: True is not 1
         raise invalid("schema_version", f"Input should be {SCHEMA_VERSION}", SCHEMA_VERSION)
     if "peer" not in obj:
         raise invalid("peer", "Field required")
@@ -181,7 +234,60 @@ def load_align_request(
     return AlignRequest(peer=peer, ego=ego)
 
 
-def load_result(data: bytes) -> Result:
-    """msgpack or JSON bytes -> Result (a JSON object starts with '{', never a msgpack map)."""
+class AnswerTrust:
+    """What a car trusts for the service's answers: ``trust`` (fleet authorities; the answer must be signed by the
+    ego's certificate, Ed25519) and/or ``fleet_key`` (HMAC-SHA256 with the shared fleet key: any fleet member
+    could forge it, documented in docs/security.md). ``ego_id``: the only ego accepted (else the Result's own
+    ego_id, which must be the signer's)."""
+
+    def __init__(
+        self, trust: TrustStore | None = None, fleet_key: bytes | str | None = None, ego_id: str | None = None
+    ):
+        if trust is None and fleet_key is None:
+            raise ValueError("AnswerTrust needs a fleet authority (trust) or the fleet key")
+        self.trust, self.ego_id = trust, ego_id
+        self._fleet = None if fleet_key is None else (fleet_key.encode() if isinstance(fleet_key, str) else fleet_key)
+
+    def signer(self, env: Signed, now: float | None = None) -> str:
+        """The vehicle id (ed25519) or ``"fleet"`` (hmac) that signed an answer; WireError 401 otherwise."""
+        if env.alg == "ed25519" and self.trust is not None:
+            try:
+                return self.trust.verify(RESULT_DOMAIN, env.key_id, env.payload, env.mac, env.cert or b"", now)
+            except IdentityError as e:
+                raise WireError(e.status, "unauthenticated", f"answer: {e.detail}", "mac", "ed25519") from None
+        if env.alg == "hmac-sha256" and self._fleet is not None and env.key_id == FLEET_KEY_ID:
+            if hmac.compare_digest(frame_mac(self._fleet, FLEET_KEY_ID, env.payload, RESULT_DOMAIN), env.mac):
+                return FLEET_KEY_ID
+            raise WireError(401, "unauthenticated", "answer: the HMAC does not match the fleet key", "mac", env.alg)
+        raise WireError(401, "unauthenticated", f"answer signed with {env.alg} by {env.key_id!r}: not trusted here")
+
+
+def sign_result(
+    result: Result, key: bytes | str | Credential | None, encoding: str = MSGPACK, key_id: str = FLEET_KEY_ID
+) -> bytes:
+    """An answer as sent: the encoded Result, in a Signed envelope (RESULT_DOMAIN) when the service has a key."""
+    data = to_json(result) if encoding == JSON else pack(result)
+    return data if key is None else sign(data, key, key_id, encoding, RESULT_DOMAIN)
+
+
+def load_result(data: bytes, trust: AnswerTrust | None = None) -> Result:
+    """msgpack or JSON bytes (a Result, or a Signed one) -> Result (a JSON object starts with '{', never a
+    msgpack map). With ``trust``: the answer must be signed by the ego it names (or the fleet key), else
+    WireError 401 (unsigned, forged) or 403 (signed by another vehicle than the Result's ego_id)."""
     encoding = JSON if data[:1] == b"{" else MSGPACK
-    return _model(Result, _unpack(data, encoding, Limits()))
+    limits = Limits()
+    obj = _unpack(data, encoding, limits)
+    signer = None
+    if _is_envelope(obj):
+        env = _envelope(obj)
+        signer = None if trust is None else trust.signer(env)
+        obj = _unpack(env.payload, encoding, limits)
+    elif trust is not None:
+        raise WireError(401, "unauthenticated", "the answer is not signed; refused (verification is on)", "result")
+    result: Result = _model(Result, obj)
+    if trust is not None:
+        if signer != FLEET_KEY_ID and result.ego_id != signer:
+            raise WireError(403, "forbidden", f"answer of {result.ego_id!r} signed by {signer!r}", "ego_id", signer)
+        if trust.ego_id is not None and result.ego_id != trust.ego_id:
+            raise WireError(403, "forbidden", f"answer from {result.ego_id!r}, expected {trust.ego_id!r}", "ego_id")
+    return result

@@ -22,6 +22,7 @@ class Limits(BaseModel):
 
     max_message_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="whole message (msgpack or JSON body)")
     max_image_px: int = Field(1024, ge=16, le=8192, description="BV image width/height, pixels")
+    min_image_px: int = Field(16, ge=1, le=1024, description="smallest BV image width/height, pixels (0x0 is no image)")
     max_png_ratio: float = Field(
         1032.0,
         gt=1,
@@ -60,8 +61,27 @@ class Limits(BaseModel):
         gt=0,
         description="a sender silent this long is forgotten (queues, replay state, metrics labels, bandwidth tallies)",
     )
-    intake_queue: int = Field(64, ge=1, description="raw Zenoh messages waiting for the gate (oldest dropped)")
-    intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes waiting for the gate")
+    engine_resolution_m: float | None = Field(
+        None,
+        gt=0,
+        description="the engine's BV cell size (the service sets it from align.bev): a peer image at another "
+        "resolution is resampled to it",
+    )
+    max_resampled_px: int | None = Field(
+        None,
+        ge=16,
+        description="largest image side after that resampling (the service sets it to its own BV image side): "
+        "a small frame at a coarse resolution cannot make the engine work on a huge image",
+    )
+    intake_queue: int = Field(
+        64, ge=1, description="signed Zenoh messages (signature verified at the door) waiting for the gate"
+    )
+    intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes of those")
+    intake_ego_queue: int = Field(16, ge=1, description="the ego's own messages waiting for the gate (own lane)")
+    intake_unverified_queue: int = Field(
+        64, ge=1, description="unsigned or unverifiable messages waiting for the gate (own lane: junk displaces junk)"
+    )
+    intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
 
     @model_validator(mode="after")
     def _replay_window_covers_eviction(self) -> Limits:

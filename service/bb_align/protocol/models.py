@@ -22,6 +22,7 @@ from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import rotation_rpy
 
 from .errors import invalid
+from .identity import MAX_CERT_BYTES, SIGNATURE_BYTES
 from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
 from .png import check_png
 from .signatures import MAC_BYTES
@@ -63,11 +64,21 @@ PngBytes = Annotated[
 ]
 
 
+def _exact_int(v: Any) -> Any:
+    if isinstance(v, bool):  # Literal[1] would take true (True == 1): not on the air
+        raise ValueError("must be the integer 1, not a boolean")
+    return v
+
+
+Version = Annotated[Literal[1], BeforeValidator(_exact_int)]
+
+
 Box = Annotated[list[float], Field(min_length=7, max_length=7, description="[x, y, z, l, w, h, yaw]")]
 
 
 class _Wire(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    # strict: no coercion on the air ("1" is not an int, true is not 1, bytes are not a str); ints are floats
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
 
 class BevMeta(_Wire):
@@ -77,7 +88,7 @@ class BevMeta(_Wire):
     resolution_m: float = Field(gt=0.01, le=5, description="cell size, metres per pixel")
     range_m: float = Field(gt=0, le=250, description="half width of the square image, metres")
     mode: Literal["max_height", "slices"] = "max_height"
-    ground_clearance_m: float = Field(0.3, ge=0, le=5)
+    ground_clearance_m: float = Field(0.3, ge=0, le=5, description="must be below max_height_m")
     max_height_m: float = Field(12.0, gt=0, le=100)
 
 
@@ -115,7 +126,7 @@ class Pose(_Wire):
 class Frame(_Wire):
     """One car's LiDAR sweep as sent on the air (Zenoh ``<prefix>/frames/<vehicle_id>`` or REST)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     vehicle_id: str = Field(pattern=VEHICLE_ID_PATTERN)
     seq: int = Field(0, ge=0, le=2**63 - 1, description="sender's frame counter")
     stamp: float = Field(ge=0, description="capture time, seconds (the cars' common clock)")
@@ -148,27 +159,50 @@ class Frame(_Wire):
 
 
 class Signed(_Wire):
-    """A signed frame: the frame's own encoded bytes (msgpack, or JSON inside a JSON envelope) with an
-    HMAC-SHA256 made with the key ``key_id`` names (bb_align.protocol.signatures): ``"fleet"`` or the sender's
-    vehicle id."""
+    """A signed frame (or a signed answer): the message's own encoded bytes (msgpack, or JSON inside a JSON
+    envelope) with an Ed25519 signature by the sender's certified key (``alg: "ed25519"``, ``cert``: its vehicle
+    certificate, bb_align.protocol.identity) or an HMAC-SHA256 made with the key ``key_id`` names
+    (bb_align.protocol.signatures): ``"fleet"`` or the sender's vehicle id."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
-    key_id: str = Field(pattern=VEHICLE_ID_PATTERN, description=f"{FLEET_KEY_ID!r} or the sender's vehicle id")
-    alg: Literal["hmac-sha256"] = "hmac-sha256"
+    schema_version: Version = SCHEMA_VERSION
+    key_id: str = Field(
+        pattern=VEHICLE_ID_PATTERN,
+        description=f"ed25519: the signer's vehicle id (its certificate's); hmac-sha256: {FLEET_KEY_ID!r} or the "
+        "sender's vehicle id",
+    )
+    alg: Literal["hmac-sha256", "ed25519"] = "hmac-sha256"
     mac: Annotated[
         bytes,
         BeforeValidator(_b64_if_str),
-        Field(min_length=MAC_BYTES, max_length=MAC_BYTES),
+        Field(min_length=MAC_BYTES, max_length=SIGNATURE_BYTES),
         _B64_JSON,
         WithJsonSchema(
             {
                 "type": "string",
                 "contentEncoding": "base64",
-                "description": "HMAC-SHA256(key, 'bb-align/frame/v1' 0x00 key_id 0x00 "
-                "payload), 32 bytes; msgpack: bin, JSON: base64",
+                "description": "hmac-sha256: HMAC-SHA256(key, domain key_id 0x00 payload), 32 bytes; ed25519: "
+                "Ed25519(vehicle key, domain key_id 0x00 payload), 64 bytes. domain: 'bb-align/frame/v1' 0x00 "
+                "(frames) or 'bb-align/result/v1' 0x00 (answers); msgpack: bin, JSON: base64",
             }
         ),
     ]
+    cert: (
+        Annotated[
+            bytes,
+            BeforeValidator(_b64_if_str),
+            Field(max_length=MAX_CERT_BYTES),
+            _B64_JSON,
+            WithJsonSchema(
+                {
+                    "type": "string",
+                    "contentEncoding": "base64",
+                    "description": "ed25519: the signer's vehicle certificate (bb_align.protocol.identity), issued "
+                    "by a fleet authority the receiver trusts; absent for hmac-sha256",
+                }
+            ),
+        ]
+        | None
+    ) = None
     payload: Annotated[
         bytes,
         BeforeValidator(_b64_if_str),
@@ -188,7 +222,7 @@ class AlignRequest(_Wire):
     """REST POST /v1/align: a peer frame and optionally the ego frame (else the service's cached one); each
     a Frame or a Signed frame (the service resolves envelopes: a loaded request holds Frames)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     peer: Frame | Signed
     ego: Frame | Signed | None = None
 
@@ -196,7 +230,7 @@ class AlignRequest(_Wire):
 class Result(_Wire):
     """T_ego_peer for one peer frame (Zenoh ``<prefix>/poses/<ego_id>/<peer_id>``, query replies, REST)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Version = SCHEMA_VERSION
     ego_id: str
     peer_id: str
     peer_seq: int

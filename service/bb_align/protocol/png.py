@@ -70,6 +70,8 @@ def _check_ihdr(body: bytes, size_px: int, limits: Limits, field: str) -> tuple[
     width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", body)
     if width > limits.max_image_px or height > limits.max_image_px:
         raise invalid(field, f"image {width}x{height} px exceeds {limits.max_image_px} px", limits.max_image_px)
+    if width < limits.min_image_px or height < limits.min_image_px:
+        raise invalid(field, f"image {width}x{height} px is below {limits.min_image_px} px", limits.min_image_px)
     if depth != 8 or colour != 0:
         raise invalid(
             field, f"PNG must be 8-bit greyscale (bit depth 8, colour type 0), got depth {depth}, colour type {colour}"

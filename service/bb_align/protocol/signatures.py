@@ -1,4 +1,5 @@
-"""Peer authentication: HMAC-SHA256 over each frame's bytes, with the fleet key or the sender's own key.
+"""Peer authentication: an Ed25519 signature with the sender's own certified key (bb_align.protocol.identity), or
+the simpler HMAC-SHA256 with the fleet key or a per-vehicle key.
 
 A signed frame travels in a :class:`bb_align.protocol.models.Signed` envelope: ``key_id``, ``mac`` and ``payload`` (the
 frame's own encoded bytes, msgpack or JSON). The MAC covers a domain tag, the key id and the payload::
@@ -15,40 +16,107 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import threading
+from collections import OrderedDict
 
+from .identity import FRAME_DOMAIN, IdentityError, TrustStore
 from .limits import FLEET_KEY_ID
 
 DOMAIN = b"bb-align/frame/v1\x00"
 MAC_BYTES = 32
 
 
-def frame_mac(key: bytes | str, key_id: str, payload: bytes) -> bytes:
-    """The 32-byte HMAC-SHA256 of one frame payload under ``key`` announced as ``key_id``."""
+def frame_mac(key: bytes | str, key_id: str, payload: bytes, domain: bytes = DOMAIN) -> bytes:
+    """The 32-byte HMAC-SHA256 of one frame payload (or, with ``identity.RESULT_DOMAIN``, one answer) under
+    ``key`` announced as ``key_id``."""
     key = key.encode() if isinstance(key, str) else key
-    return hmac.new(key, DOMAIN + key_id.encode() + b"\x00" + payload, hashlib.sha256).digest()
+    return hmac.new(key, domain + key_id.encode() + b"\x00" + payload, hashlib.sha256).digest()
 
 
 class AuthError(Exception):
     """Why a frame's signature is not accepted: ``status`` 401 (unsigned, unknown key, bad MAC) or 403."""
 
-    def __init__(self, status: int, error: str, detail: str):
+    def __init__(self, status: int, error: str, detail: str, unknown: bool = False):
         super().__init__(detail)
         self.status, self.error, self.detail = status, error, detail
+        self.unknown = unknown  # the receiver has nothing to check it with (tolerated when signing is optional)
 
 
 class Keyring:
-    """The keys a receiver accepts: key id (``"fleet"`` or a vehicle id) -> secret. ``required``: unsigned frames
-    are refused."""
+    """What a receiver accepts. ``keys``: HMAC key id (``"fleet"`` or a vehicle id) -> secret; ``trust``: the fleet
+    authorities whose vehicle certificates are accepted (Ed25519); ``pinned``: vehicle id -> the only public key
+    that may sign as it (the ego's own identity). ``required``: unsigned frames are refused.
 
-    def __init__(self, keys: dict[str, bytes | str], required: bool = True):
+    The fleet HMAC key is one secret shared by every car, so it cannot tell cars apart: it is refused for a vehicle
+    id that has an identity of its own (a pinned key, its own HMAC key, or a certificate already seen on the air),
+    so a fleet-key holder can neither sign as the ego nor as a car that signs for itself."""
+
+    def __init__(
+        self,
+        keys: dict[str, bytes | str],
+        required: bool = True,
+        *,
+        trust: TrustStore | None = None,
+        pinned: dict[str, bytes] | None = None,
+        max_certified: int = 4096,
+    ):
         self.required = required
         self._keys: dict[str, bytes] = {kid: k.encode() if isinstance(k, str) else bytes(k) for kid, k in keys.items()}
+        self.trust = trust
+        self.pinned = dict(pinned or {})
+        self._certified: OrderedDict[str, None] = OrderedDict()  # ids seen signing with a certificate
+        self._max_certified = max_certified
+        self._lock = threading.Lock()
+
+    @property
+    def algorithms(self) -> list[str]:
+        return (["ed25519"] if self.trust is not None else []) + (["hmac-sha256"] if self._keys else [])
+
+    def knows(self, key_id: str, alg: str) -> bool:
+        """Whether a signature under this key id and algorithm could verify here (cheap; no crypto)."""
+        return (alg == "ed25519" and self.trust is not None) or (alg == "hmac-sha256" and key_id in self._keys)
+
+    def verify_signed(self, key_id: str, alg: str, mac: bytes, payload: bytes, cert: bytes | None, now=None) -> str:
+        """Verify an envelope's signature on the raw payload; returns the vehicle id the signature is bound to
+        (``"fleet"`` for the fleet key). Raises AuthError."""
+        if alg == "ed25519":
+            if self.trust is None:
+                raise AuthError(
+                    401, "unauthenticated", "this receiver trusts no fleet authority (ed25519)", unknown=True
+                )
+            try:
+                vid = self.trust.verify(FRAME_DOMAIN, key_id, payload, mac, cert or b"", now)
+            except IdentityError as e:
+                raise AuthError(e.status, "unauthenticated" if e.status == 401 else "forbidden", e.detail) from None
+            pinned = self.pinned.get(vid)
+            if pinned is not None and self.trust.certificate(cert, now)[0].public_key != pinned:
+                raise AuthError(403, "forbidden", f"{vid!r} has its own pinned key; this certificate is not it")
+            with self._lock:
+                self._certified[vid] = None
+                self._certified.move_to_end(vid)
+                while len(self._certified) > self._max_certified:
+                    self._certified.popitem(last=False)
+            return vid
+        bound = self.verify(key_id, mac, payload)
+        return FLEET_KEY_ID if bound is None else bound
+
+    def authorize(self, signer: str, vehicle_id: str) -> None:
+        """May ``signer`` (a vehicle id, or ``"fleet"``) sign a frame of ``vehicle_id``? Raises AuthError 403."""
+        if signer == FLEET_KEY_ID:
+            with self._lock:
+                own = vehicle_id in self.pinned or vehicle_id in self._keys or vehicle_id in self._certified
+            if own:
+                raise AuthError(
+                    403, "forbidden", f"{vehicle_id!r} has its own identity: the shared fleet key cannot sign as it"
+                )
+        elif signer != vehicle_id:
+            raise AuthError(403, "forbidden", f"signed by {signer!r} but claims vehicle id {vehicle_id!r}")
 
     def verify(self, key_id: str, mac: bytes, payload: bytes) -> str | None:
         """The vehicle id the key is bound to (None for the fleet key); raises AuthError when not accepted."""
         key = self._keys.get(key_id)
         if key is None:
-            raise AuthError(401, "unauthenticated", f"unknown key id {key_id!r}")
+            raise AuthError(401, "unauthenticated", f"unknown key id {key_id!r}", unknown=True)
         if not hmac.compare_digest(frame_mac(key, key_id, payload), mac):
             raise AuthError(401, "unauthenticated", "the frame's HMAC-SHA256 does not match its key")
         return None if key_id == FLEET_KEY_ID else key_id

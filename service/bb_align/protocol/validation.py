@@ -39,7 +39,28 @@ def validate_frame(frame: Frame, limits: Limits, where: str = "", now: float | N
             )
     if frame.num_points is not None and frame.num_points > limits.max_points:
         raise invalid(f("num_points"), f"{frame.num_points} points exceed {limits.max_points}", limits.max_points)
+    if frame.bev.ground_clearance_m >= frame.bev.max_height_m:
+        raise invalid(
+            f("bev.ground_clearance_m"),
+            f"ground_clearance_m {frame.bev.ground_clearance_m} must be below max_height_m {frame.bev.max_height_m}",
+            frame.bev.max_height_m,
+        )
     n = image_size_px(BevConfig(range_m=frame.bev.range_m, resolution_m=frame.bev.resolution_m))
+    if n < limits.min_image_px:
+        raise invalid(
+            f("bev.range_m"),
+            f"range_m / resolution_m give a {n}x{n} px image, below {limits.min_image_px} px",
+            limits.min_image_px,
+        )
+    if limits.engine_resolution_m is not None and limits.max_resampled_px is not None:
+        resampled = int(round(n * frame.bev.resolution_m / limits.engine_resolution_m))
+        if resampled > limits.max_resampled_px:
+            raise invalid(
+                f("bev.resolution_m"),
+                f"a {n}x{n} px image at {frame.bev.resolution_m} m/px becomes {resampled}x{resampled} px at the "
+                f"engine's {limits.engine_resolution_m} m/px, more than max_resampled_px",
+                limits.max_resampled_px,
+            )
     check_png(frame.png, n, limits, f("png"))
     _check_boxes(frame, limits, f)
     if frame.pose is not None:

@@ -34,7 +34,6 @@ from bb_align.protocol import (
     WireError,
     load_align_request,
     load_frame,
-    pack,
 )
 
 from .bandwidth import BandwidthReport
@@ -139,10 +138,11 @@ async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
     return b"".join(chunks), _MEDIA_TYPES[media]
 
 
-def _result_response(request: Request, result: Result) -> Response:
-    if MSGPACK in request.headers.get("accept", "") or "application/x-msgpack" in request.headers.get("accept", ""):
-        return Response(pack(result), media_type=MSGPACK)
-    return JSONResponse(result.model_dump(mode="json"))
+def _result_response(request: Request, result: Result, service: AlignService) -> Response:
+    """The answer, signed by the service (a Signed envelope around the Result, docs/security.md) when it has a key."""
+    accept = request.headers.get("accept", "")
+    encoding = MSGPACK if MSGPACK in accept or "application/x-msgpack" in accept else JSON
+    return Response(service.encode_answer(result, encoding), media_type=encoding)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -168,7 +168,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if link is not None:
                 await asyncio.to_thread(link.close)
 
+    token = settings.auth.rest_token
+    guard = [_bearer(None if token is None else token.get_secret_value())]
+    # With a token, the schema and the interactive docs are behind it too (declared below with the guard).
+    docs = {} if token is None else {"docs_url": None, "redoc_url": None, "openapi_url": None}
     app = FastAPI(
+        **docs,
         title="bb-align",
         version=__version__,
         lifespan=lifespan,
@@ -179,8 +184,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.service = service
     app.state.link = None
     limits = settings.limits
-    token = settings.auth.rest_token
-    guard = [_bearer(None if token is None else token.get_secret_value())]
     keyring = service.keyring
 
     @app.exception_handler(WireError)
@@ -219,9 +222,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             received=received,
         )
         if not accepted:
-            raise WireError(
+            e = WireError(
                 503, "overloaded", "the request queue is full, retry later", "requests", settings.max_pending_requests
             )
+            e.counted = True  # the service counted it when it refused to queue the request
+            raise e
         try:
             outcome = await asyncio.wait_for(asyncio.wrap_future(future), settings.request_timeout_s)
         except TimeoutError:
@@ -232,7 +237,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise WireError(503, "unavailable", str(outcome))
         if isinstance(outcome, Exception):
             raise outcome
-        return _result_response(request, outcome)
+        return _result_response(request, outcome, service)
 
     @app.post(
         "/v1/frames",
@@ -320,4 +325,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi
+    if token is not None:
+        from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+
+        @app.get("/openapi.json", include_in_schema=False, dependencies=guard)
+        async def openapi_json() -> JSONResponse:
+            return JSONResponse(app.openapi())
+
+        @app.get("/docs", include_in_schema=False, dependencies=guard)
+        async def swagger() -> Response:
+            return get_swagger_ui_html(openapi_url="/openapi.json", title="bb-align")
+
+        @app.get("/redoc", include_in_schema=False, dependencies=guard)
+        async def redoc() -> Response:
+            return get_redoc_html(openapi_url="/openapi.json", title="bb-align")
+
     return app

@@ -74,11 +74,16 @@ def banner(settings) -> str:
         ]
     else:
         lines.append("  Zenoh   disabled")
-    if a.mode == "hmac":
-        keys = (["fleet key"] if a.fleet_key is not None else []) + [f"{len(a.peer_keys)} peer key(s)"] * bool(
-            a.peer_keys
+    if a.required:
+        keys = (
+            ([f"Ed25519 vehicle certificates from {a.ca_cert}"] if a.ca_cert is not None else [])
+            + (["HMAC fleet key"] if a.fleet_key is not None else [])
+            + [f"{len(a.peer_keys)} HMAC peer key(s)"] * bool(a.peer_keys)
         )
-        lines.append(f"  auth    frames must be signed (HMAC-SHA256: {', '.join(keys)}); replays refused")
+        lines.append(f"  auth    frames must be signed ({', '.join(keys)}); replays refused")
+        signer, key_id = a.answer_key()
+        how = "unsigned" if signer is None else ("Ed25519, " if key_id != "fleet" else "HMAC fleet key, ") + key_id
+        lines.append(f"  answers signed: {how}")
     for warning in settings.security_warnings():
         lines.append(f"  !!! {warning}")
     return "\n".join(lines)
@@ -115,6 +120,51 @@ def wire_schemas(
         typer.echo(str(p))
 
 
+keys_app = typer.Typer(
+    help="Fleet authority and vehicle credentials (Ed25519, docs/security.md).", no_args_is_help=True
+)
+
+
+@keys_app.command("init")
+def keys_init(
+    directory: Path = typer.Argument(..., help="where ca.pub and ca.key go"),
+    name: str = typer.Option("bb-align-fleet-ca", help="the authority's name (certificates name their issuer)"),
+    force: bool = typer.Option(False, help="replace an existing authority"),
+) -> None:
+    """Make a fleet authority: DIR/ca.pub (give it to every service and car) and DIR/ca.key (keep it offline)."""
+    from bb_align.protocol import FleetAuthority
+
+    if (directory / "ca.key").exists() and not force:
+        typer.secho(f"{directory / 'ca.key'} exists (use --force to replace it)", err=True, fg="red")
+        raise typer.Exit(2)
+    pub, key = FleetAuthority.generate(name).save(directory)
+    typer.echo(f"{pub} (trusted by services and cars)\n{key} (mode 0600: keep it offline)")
+
+
+@keys_app.command("issue")
+def keys_issue(
+    directory: Path = typer.Argument(..., help="the authority's directory (bb-align keys init)"),
+    vehicle_id: str = typer.Argument(..., help="the vehicle the credential is for"),
+    days: float = typer.Option(365.0, min=0.001, help="validity, days"),
+) -> None:
+    """Issue DIR/<VEHICLE_ID>.cred: a fresh Ed25519 key and its certificate (mode 0600; give it to that car only).
+    Prints, as shell, the settings that make a service use it as its own identity:
+    ``eval "$(bb-align keys issue DIR ego)"; bb-align serve``."""
+    from bb_align.protocol import FleetAuthority
+
+    try:
+        cred = FleetAuthority.load(directory).issue(vehicle_id, days=days)
+    except (OSError, ValueError) as e:
+        typer.secho(f"bb-align keys issue: {e}", err=True, fg="red")
+        raise typer.Exit(2) from None
+    path = cred.save(directory / f"{vehicle_id}.cred")
+    typer.echo(f"# wrote {path}; for a service whose ego id is {vehicle_id!r}:")
+    typer.echo(f"export BBALIGN_EGO_ID={vehicle_id}")
+    typer.echo(f"export BBALIGN_AUTH__CA_CERT={(directory / 'ca.pub').resolve()}")
+    typer.echo(f"export BBALIGN_AUTH__CREDENTIAL={path.resolve()}")
+
+
 def register(app: typer.Typer) -> None:
     app.command()(serve)
     app.command("wire-schemas")(wire_schemas)
+    app.add_typer(keys_app, name="keys")

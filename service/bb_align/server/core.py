@@ -30,13 +30,27 @@ import numpy as np
 from bb_align.engine.frame import PreparedFrame
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.result import AlignResult
-from bb_align.protocol import JSON, MSGPACK, Frame, Pose, Result, WireError, load_frame, pack, to_json
+from bb_align.protocol import (
+    FLEET_KEY_ID,
+    JSON,
+    MSGPACK,
+    Frame,
+    Pose,
+    Result,
+    WireError,
+    load_frame,
+    pack,
+    peek_signed,
+    sign_result,
+    to_json,
+)
+from bb_align.protocol.signatures import AuthError
 
 from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
 from .metrics import Metrics
 from .peers import PeerStatus, PeerTable
-from .scheduler import Intake, Job, Scheduler
+from .scheduler import EGO, SIGNED, UNVERIFIED_LANE, Intake, Job, Scheduler
 from .settings import Settings
 
 log = logging.getLogger("bb_align.server")
@@ -52,7 +66,9 @@ class ServiceReason(str, Enum):
 
 _EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
 UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
-STREAM, REQUEST = "stream", "request"  # replay channels
+# One replay window per sender across both doors and both REST routes: a frame taken from the Zenoh stream is not
+# accepted again as a query or by /v1/align, nor the other way round.
+STREAM = REQUEST = "frames"
 
 
 class Unavailable(RuntimeError):
@@ -108,11 +124,20 @@ class AlignService:
         self.aligner = Aligner(settings.align)
         self.cache = EgoCache(settings.ego_cache_size)
         self.keyring = settings.auth.keyring()
+        self._answer_key, self._answer_key_id = settings.auth.answer_key()
         # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
         self.scheduler = Scheduler(
             settings.peer_queue_depth, settings.max_pending_requests, priority=frozenset({settings.ego_id})
         )
-        self.intake = Intake(limits.intake_queue, limits.intake_bytes)
+        self.intake = Intake(
+            limits.intake_queue,
+            limits.intake_bytes,
+            lanes={
+                EGO: (limits.intake_ego_queue, limits.intake_bytes),
+                SIGNED: (limits.intake_queue, limits.intake_bytes),
+                UNVERIFIED_LANE: (limits.intake_unverified_queue, limits.intake_unverified_bytes),
+            },
+        )
         self.meter = BandwidthMeter(settings.bandwidth_window_s)
         self.peer_table = PeerTable(
             limits.max_peers,
@@ -176,6 +201,10 @@ class AlignService:
     def running(self) -> bool:
         return bool(self._threads) and all(t.is_alive() for t in self._threads)
 
+    def encode_answer(self, result: Result, encoding: str = MSGPACK) -> bytes:
+        """A Result as it leaves the service: signed with the ego's credential (or the fleet key), any door."""
+        return sign_result(result, self._answer_key, encoding, self._answer_key_id)
+
     # ---- doors -------------------------------------------------------------------------------------------------
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
         """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
@@ -236,14 +265,43 @@ class AlignService:
         )
         job.nbytes = len(_encode(frame, encoding))  # the peer frame alone, as it would go on the air
         try:
+            if ego is not None:  # an inline ego frame: the ego's own, and replay-checked like any other
+                if ego.vehicle_id != self.settings.ego_id:
+                    raise WireError(
+                        422,
+                        "invalid",
+                        f"the ego frame's vehicle_id {ego.vehicle_id!r} is not this service's ego id",
+                        "ego.vehicle_id",
+                        self.settings.ego_id,
+                    )
+                self.peer_table.admit(ego, REQUEST)
             self._admit(job, REQUEST)
         except WireError as e:
             self._refused(job, e)
             raise
         return self._queue_request(job)
 
+    def _lane(self, job: Job) -> str:
+        """Which intake lane a raw message may wait in: its signature is checked here, on the door's thread,
+        before it can take a place that authenticated traffic needs (Ed25519: tens of microseconds, the verified
+        certificate cached; HMAC: one pass over the bytes). Junk, unsigned frames and unknown keys: unverified."""
+        ego = self.settings.ego_id
+        if not self.keyring.required:  # demo: nothing is signed, lanes by the claimed sender
+            return EGO if job.sender == ego and job.reply is None else SIGNED
+        env = peek_signed(job.data, self.settings.limits) if job.data else None
+        if env is None or not self.keyring.knows(env.key_id, env.alg):
+            return UNVERIFIED_LANE
+        try:
+            signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
+            if job.reply is None:  # a stream frame: the key chunk names the sender; the signer must be allowed it
+                self.keyring.authorize(signer, job.sender)
+        except AuthError:
+            return UNVERIFIED_LANE
+        job.meta["signer"] = signer
+        return EGO if job.reply is None and job.sender == ego else SIGNED
+
     def _to_intake(self, job: Job) -> bool:
-        pushed_out = self.intake.put(job)
+        pushed_out = self.intake.put(job, self._lane(job) if not job.meta.get("refused") else UNVERIFIED_LANE)
         for old in pushed_out:
             if old is job and self.intake.closed:
                 if job.reply is not None:
@@ -261,10 +319,12 @@ class AlignService:
                     ),
                 )
                 self.metrics.rejected.labels(old.door, "overloaded").inc()
-            elif old.sender in self.peer_table:
-                self._count_drop(old.sender, "intake_dropped")
+            elif old.meta.get("signer") in (old.sender, FLEET_KEY_ID) and old.sender in self.peer_table:
+                self._count_drop(old.sender, "intake_dropped")  # only a drop of a frame signed for that id
             else:
                 self._count_drop(UNVERIFIED)
+            if not (old is job and self.intake.closed):
+                self.metrics.intake_dropped.labels(old.meta.get("lane", UNVERIFIED_LANE)).inc()
         return True
 
     # ---- the gate (one thread): authenticate, validate, admit, queue -----------------------------------------

@@ -57,6 +57,12 @@ class Metrics:
             ["peer"],
             registry=r,
         )
+        self.intake_dropped = Counter(
+            "bbalign_intake_dropped",
+            "Messages pushed out of a full intake lane before the gate (ego, signed, unverified)",
+            ["lane"],
+            registry=r,
+        )
         self.rejected = Counter(
             "bbalign_frames_rejected",
             "Messages refused, by error (too_large, undecodable, "

@@ -138,44 +138,72 @@ class Scheduler:
             return left
 
 
-class Intake:
-    """Raw messages from the Zenoh door waiting for the gate (authentication and validation), bounded by count
-    and bytes: when full, the oldest waiting message is pushed out and returned (the caller counts it)."""
+EGO, SIGNED, UNVERIFIED_LANE = "ego", "signed", "unverified"  # intake lanes, served in this order
 
+
+class _Lane:
     def __init__(self, max_jobs: int, max_bytes: int):
         self.max_jobs, self.max_bytes = max_jobs, max_bytes
+        self.jobs: deque[Job] = deque()
+        self.bytes = 0
+
+
+class Intake:
+    """Raw messages from the Zenoh door waiting for the gate (full authentication and validation), in separate
+    lanes bounded by count and bytes: the ego's own (reserved), signed (the signature verified at the door), and
+    unverified (everything else: junk, unsigned, unknown keys). A lane that is full pushes out its own oldest
+    message and returns it (the caller counts it): unverified junk only ever displaces other junk, and a signed
+    frame never waits behind it (lanes are served ego first, then signed, then unverified)."""
+
+    def __init__(self, max_jobs: int, max_bytes: int, lanes: dict[str, tuple[int, int]] | None = None):
+        self.max_jobs, self.max_bytes = max_jobs, max_bytes
+        lanes = lanes or {
+            EGO: (max_jobs, max_bytes),
+            SIGNED: (max_jobs, max_bytes),
+            UNVERIFIED_LANE: (max_jobs, max_bytes),
+        }
+        self._lanes = {name: _Lane(n, b) for name, (n, b) in lanes.items()}
         self._cv = threading.Condition()
-        self._jobs: deque[Job] = deque()
-        self._bytes = 0
         self._closed = False
 
-    def put(self, job: Job) -> list[Job]:
-        """Queue a message; returns the messages pushed out to make room (``[job]`` itself once closed)."""
+    def put(self, job: Job, lane: str = UNVERIFIED_LANE) -> list[Job]:
+        """Queue a message in ``lane``; returns the messages of that lane pushed out to make room (``[job]``
+        itself once closed)."""
         with self._cv:
             if self._closed:
                 return [job]
-            self._jobs.append(job)
-            self._bytes += job.nbytes
+            q = self._lanes[lane]
+            job.meta["lane"] = lane
+            q.jobs.append(job)
+            q.bytes += job.nbytes
             out = []
-            while len(self._jobs) > self.max_jobs or (self._bytes > self.max_bytes and len(self._jobs) > 1):
-                old = self._jobs.popleft()
-                self._bytes -= old.nbytes
+            while len(q.jobs) > q.max_jobs or (q.bytes > q.max_bytes and len(q.jobs) > 1):
+                old = q.jobs.popleft()
+                q.bytes -= old.nbytes
                 out.append(old)
             self._cv.notify()
             return out
 
     def get(self, timeout: float | None = None) -> Job | None:
-        """The oldest message; None on timeout or once closed and empty."""
+        """The oldest message of the first non-empty lane; None on timeout or once closed and empty."""
         with self._cv:
-            if not self._cv.wait_for(lambda: self._jobs or self._closed, timeout) or not self._jobs:
+            if not self._cv.wait_for(lambda: self._any() or self._closed, timeout) or not self._any():
                 return None
-            job = self._jobs.popleft()
-            self._bytes -= job.nbytes
+            q = next(q for q in self._lanes.values() if q.jobs)
+            job = q.jobs.popleft()
+            q.bytes -= job.nbytes
             return job
+
+    def _any(self) -> bool:
+        return any(q.jobs for q in self._lanes.values())
 
     def __len__(self) -> int:
         with self._cv:
-            return len(self._jobs)
+            return sum(len(q.jobs) for q in self._lanes.values())
+
+    def lengths(self) -> dict[str, int]:
+        with self._cv:
+            return {name: len(q.jobs) for name, q in self._lanes.items()}
 
     @property
     def closed(self) -> bool:
@@ -186,8 +214,9 @@ class Intake:
         """Refuse new messages; returns those still waiting."""
         with self._cv:
             self._closed = True
-            left = list(self._jobs)
-            self._jobs.clear()
-            self._bytes = 0
+            left = [j for q in self._lanes.values() for j in q.jobs]
+            for q in self._lanes.values():
+                q.jobs.clear()
+                q.bytes = 0
             self._cv.notify_all()
             return left

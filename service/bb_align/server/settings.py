@@ -6,20 +6,27 @@ default binds to loopback only: REST on 127.0.0.1, Zenoh listening on tcp/127.0.
 off. Opening the service to a vehicle network is an explicit choice (``--host``, ``--zenoh-listen``,
 ``--zenoh-connect``).
 
-Peer authentication is on by default (``auth.mode = "hmac"``): every frame must carry an HMAC-SHA256 made with
-the fleet key or the sender's own key (docs/security.md). Only the embedded demo profile (``profile = "demo"``,
-``bb-align serve --demo``, ``make run``) turns it off, and the service says so loudly when it starts.
+Peer authentication is on by default (``auth.mode = "signed"``): every frame must carry an Ed25519 signature by
+the sender's own certified key (``auth.ca_cert``: the fleet authority's ``ca.pub``) or, the simpler option, an
+HMAC-SHA256 made with the fleet key or the sender's own key (docs/security.md). ``auth.credential`` is the ego's
+own identity: only it can sign as the ego id, and it signs every answer. Only the embedded demo profile
+(``profile = "demo"``, ``bb-align serve --demo``, ``make run``) turns it off, and the service says so loudly
+when it starts.
 """
 
 from __future__ import annotations
 
 import re
+from functools import cached_property
+from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from bb_align.engine.bev import image_size_px
 from bb_align.engine.config import AlignConfig
+from bb_align.protocol.identity import Credential, TrustStore
 from bb_align.protocol.limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
 from bb_align.protocol.signatures import Keyring
 from bb_align.protocol.zenoh_config import ZenohSettings
@@ -28,11 +35,24 @@ MIN_KEY_CHARS = 16
 
 
 class AuthSettings(BaseModel):
-    """Peer authentication (HMAC-SHA256 over each frame) and the REST bearer token. Secrets never print."""
+    """Peer authentication (Ed25519 vehicle identities and/or HMAC-SHA256), the ego's own identity and the REST
+    bearer token. Secrets never print."""
 
     model_config = ConfigDict(extra="forbid")
 
-    mode: Literal["hmac", "off"] = Field("hmac", description="hmac: every frame must be signed; off: no checks")
+    mode: Literal["signed", "hmac", "off"] = Field(
+        "signed", description="signed (or its old name hmac): every frame must be signed; off: no checks (demo)"
+    )
+    ca_cert: Path | None = Field(
+        None,
+        description="the fleet authority's ca.pub (bb-align keys init): frames signed (Ed25519) with a vehicle "
+        "certificate it issued are accepted, each vehicle only as itself",
+    )
+    credential: Path | None = Field(
+        None,
+        description="this ego car's own credential (bb-align keys issue DIR <ego_id>): only this key may sign as "
+        "the ego id, and it signs every answer (Zenoh and REST)",
+    )
     fleet_key: SecretStr | None = Field(None, description=f"key shared by the fleet (key id {FLEET_KEY_ID!r})")
     peer_keys: dict[str, SecretStr] = Field(
         default_factory=dict,
@@ -61,14 +81,55 @@ class AuthSettings(BaseModel):
 
     @property
     def has_keys(self) -> bool:
-        return self.fleet_key is not None or bool(self.peer_keys)
+        return self.fleet_key is not None or bool(self.peer_keys) or self.ca_cert is not None
 
-    def keyring(self) -> Keyring:
-        """The protocol's keyring for these settings (fleet key under ``"fleet"``, peer keys under their ids)."""
+    @property
+    def required(self) -> bool:
+        return self.mode != "off"
+
+    @cached_property
+    def trust(self) -> TrustStore | None:
+        return None if self.ca_cert is None else TrustStore.load(self.ca_cert)
+
+    @cached_property
+    def ego_credential(self) -> Credential | None:
+        return None if self.credential is None else Credential.load(self.credential)
+
+    def keyring(self, ego_id: str | None = None) -> Keyring:
+        """The protocol's keyring for these settings: the trusted authorities, the ego's pinned key, the fleet key
+        under ``"fleet"`` and peer keys under their ids."""
         keys = {vid: k.get_secret_value() for vid, k in self.peer_keys.items()}
         if self.fleet_key is not None:
             keys[FLEET_KEY_ID] = self.fleet_key.get_secret_value()
-        return Keyring(keys, required=self.mode == "hmac")
+        cred = self.ego_credential
+        pinned = {} if cred is None else {cred.vehicle_id: cred.certificate.public_key}
+        return Keyring(keys, required=self.required, trust=self.trust, pinned=pinned)
+
+    def answer_key(self) -> tuple[Credential | str | None, str]:
+        """What signs the service's answers, and its key id: the ego's credential (Ed25519), else the fleet key
+        (HMAC: any fleet member could forge it), else nothing (demo)."""
+        if self.ego_credential is not None:
+            return self.ego_credential, self.ego_credential.vehicle_id
+        if self.fleet_key is not None:
+            return self.fleet_key.get_secret_value(), FLEET_KEY_ID
+        return None, FLEET_KEY_ID
+
+    def identity_problem(self, ego_id: str) -> str | None:
+        """Why the configured identity files cannot be used (None: fine)."""
+        try:
+            trust, cred = self.trust, self.ego_credential
+        except (OSError, ValueError, KeyError) as e:
+            return f"auth.ca_cert / auth.credential: {type(e).__name__}: {e}"
+        if cred is not None:
+            if cred.vehicle_id != ego_id:
+                return f"auth.credential is {cred.vehicle_id!r}'s, but this service's ego id is {ego_id!r}"
+            if trust is None:
+                return "auth.credential needs auth.ca_cert (the authority that issued it)"
+            try:
+                trust.certificate(cred.certificate_bytes)
+            except Exception as e:
+                return f"auth.credential is not valid under auth.ca_cert: {e}"
+        return None
 
 
 class Settings(BaseSettings):
@@ -114,19 +175,31 @@ class Settings(BaseSettings):
     def _demo_profile_turns_auth_off(self) -> Settings:
         if self.profile == "demo":
             self.auth = self.auth.model_copy(update={"mode": "off"})
+        if self.limits.engine_resolution_m is None or self.limits.max_resampled_px is None:
+            # a frame is never resampled beyond the engine's own image (finding: a 100 px PNG at 5 m/px became
+            # 1250 px at 0.4 m/px, seconds of CPU and a 300 MB filter bank per odd shape)
+            own = image_size_px(self.align.bev)
+            self.limits = self.limits.model_copy(
+                update={
+                    "engine_resolution_m": self.limits.engine_resolution_m or self.align.bev.resolution_m,
+                    "max_resampled_px": self.limits.max_resampled_px or own,
+                }
+            )
         if self.zenoh.max_message_bytes is None:  # Zenoh's own reassembly limit backs up the door's size check
             self.zenoh = self.zenoh.model_copy(update={"max_message_bytes": self.limits.max_message_bytes})
         return self
 
     def startup_problem(self) -> str | None:
         """Why the service must not start with these settings (None: fine)."""
-        if self.auth.mode == "hmac" and not self.auth.has_keys:
+        if self.auth.required and not self.auth.has_keys:
             return (
-                "authentication is on (auth.mode='hmac') but no key is configured: set "
-                "BBALIGN_AUTH__FLEET_KEY (or BBALIGN_AUTH__PEER_KEYS), or run the embedded demo without "
-                "authentication (bb-align serve --demo, BBALIGN_PROFILE=demo)"
+                "authentication is on (auth.mode='signed') but nothing to verify frames with is configured: "
+                "make credentials (bb-align keys init DIR; bb-align keys issue DIR <ego_id>) and set "
+                "BBALIGN_AUTH__CA_CERT=DIR/ca.pub BBALIGN_AUTH__CREDENTIAL=DIR/<ego_id>.cred (or the simpler "
+                "BBALIGN_AUTH__FLEET_KEY), or run the embedded demo without authentication (bb-align serve --demo, "
+                "BBALIGN_PROFILE=demo)"
             )
-        return None
+        return self.auth.identity_problem(self.ego_id)
 
     def security_warnings(self) -> list[str]:
         """What the startup banner must say loudly."""

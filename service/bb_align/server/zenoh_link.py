@@ -91,7 +91,7 @@ class ZenohLink:
         try:
             with query:
                 if isinstance(outcome, Result):
-                    query.reply(self.align_key, pack(outcome))
+                    query.reply(self.align_key, self.service.encode_answer(outcome))
                 else:
                     query.reply_err(pack(_error_body(outcome)))
         except Exception:
@@ -102,7 +102,7 @@ class ZenohLink:
         with self._lock:
             session = self.session
         if session is not None:
-            session.put(poses_key(self.prefix, result.ego_id, result.peer_id), pack(result))
+            session.put(poses_key(self.prefix, result.ego_id, result.peer_id), self.service.encode_answer(result))
 
 
 def _error_body(outcome: object) -> ErrorBody:
