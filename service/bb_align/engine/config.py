@@ -20,7 +20,15 @@ class _Frozen(BaseModel):
 class BevConfig(_Frozen):
     """Bird's-eye-view height image (paper Eq. 4)."""
 
-    range_m: float = Field(80.0, gt=0, le=250, description="half width R of the square image, metres")
+    range_m: float = Field(
+        100.0,
+        gt=0,
+        le=250,
+        description="half width R of the square image, metres (100: 500 x 500 "
+        "px; measured against 80 and 120 on the 200-pair simulated benchmark, docs/acquisition.md: "
+        "80 -> 100 raises 40-70 m pairs under 1 m & 1 deg from 20 % to 31 % (paper) and the multi "
+        "path's from 48 % to 66 % (gates open); 120 adds nothing over 100 at 2.25x the MIM cost)",
+    )
     resolution_m: float = Field(0.4, gt=0.01, le=5, description="cell size c, metres per pixel")
     mode: Literal["max_height", "slices"] = Field(
         "max_height", description="max_height: paper's max z per cell; slices: occupied z-slices (reference)"
@@ -216,6 +224,109 @@ class ConfidenceConfig(_Frozen):
     cap_stage2_failed: float = Field(0.5, ge=0, le=1, description="most confidence when only stage 2 failed")
 
 
+class AcquireConfig(_Frozen):
+    """Stage-1 acquisition (bb_align.engine.acquire). paper: one RANSAC fit on nearest-neighbour matches (the
+    paper's Algorithm 1). multi: top-k descriptor candidates, distinct pose hypotheses by pairwise voting, each
+    verified by the dense refinement, chosen with a margin over the runner-up."""
+
+    mode: Literal["paper", "multi"] = Field("multi", description="paper: single hypothesis; multi: see above")
+    top_k: int = Field(12, ge=1, le=32, description="nearest distinct ego keypoints kept per peer descriptor")
+    first_k: int = Field(3, ge=0, le=32, description="cheap first pass on the first_k nearest candidates only; 0: off")
+    first_pass_evidence: float = Field(
+        1.0,
+        ge=0,
+        description="the first pass decides only when margin x relative fitness reaches this (1.5x "
+        "min_evidence; wrong poses on the simulated benchmark stay below 0.7); else the full top_k search runs",
+    )
+    min_sample_dist_m: float = Field(3.0, ge=0, description="candidate pairs shorter than this do not vote")
+    length_tolerance_m: float = Field(1.5, gt=0, description="a pair votes only if its two lengths differ less")
+    vote_yaw_deg: float = Field(3.0, gt=0, le=30, description="yaw cell of the pose accumulator")
+    vote_t_m: float = Field(3.0, gt=0, le=20, description="translation cell of the pose accumulator")
+    peaks: int = Field(200, ge=1, le=5000, description="strongest accumulator cells examined (before deduplication)")
+    min_votes: float = Field(2.0, ge=0, description="accumulator cells with fewer (soft) votes are not examined")
+    max_refit_attempts: int = Field(
+        40,
+        ge=1,
+        le=1000,
+        description="accumulator peaks refitted at most (bounds the time when many peaks collapse onto the same poses)",
+    )
+    refits: int = Field(4, ge=0, le=20, description="Kabsch refits of a peak on its candidate inliers")
+    max_hypotheses: int = Field(32, ge=1, le=64, description="distinct hypotheses verified densely")
+    distinct_m: float = Field(2.0, gt=0, description="hypotheses closer than this and distinct_deg are one")
+    distinct_deg: float = Field(2.0, gt=0, description="see distinct_m")
+    min_hypothesis_inliers: int = Field(
+        6, ge=2, description="hypotheses with fewer distinct inlier keypoints are not verified"
+    )
+    coarse_points: int = Field(400, ge=50, description="peer pixels of the coarse verification refinement")
+    coarse_gates_m: tuple[float, ...] = Field((2.0, 1.0), description="gates of the coarse verification")
+    coarse_iters_per_gate: int = Field(2, ge=1, le=20)
+    finalists: int = Field(2, ge=1, le=64, description="best coarse hypotheses refined fully (refine config)")
+    covisible_m: float = Field(
+        2.0,
+        gt=0,
+        description="a peer pixel is co-visible when it lands within this of an "
+        "ego lit pixel; relative fitness = fitness / co-visible fraction",
+    )
+    score: Literal["fitness", "relative", "blend"] = Field(
+        "fitness", description="ranks hypotheses: dense overlap, relative fitness, or relative x sqrt(fitness)"
+    )
+    min_margin: float = Field(1.1, ge=1, description="the best score must exceed the runner-up's by this factor")
+    runner_up_floor: float = Field(
+        0.05,
+        ge=0.001,
+        le=1,
+        description="the runner-up's score is taken as at least "
+        "this (a wrong pose's dense overlap on the simulated pairs: 0.05-0.3), also when "
+        "there is no runner-up: a lone weak hypothesis has no margin",
+    )
+    min_evidence: float = Field(
+        0.65,
+        ge=0,
+        description="success needs margin x relative fitness >= this: a pose must both stand out from "
+        "the runner-up and explain the structure the two images can share (calibrated on the 200-pair simulated "
+        "benchmark, seed 2024: no wrong success; benchmarks/acquisition_range.py)",
+    )
+    min_relative_fitness: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="success needs relative fitness >= this (replaces success.min_refine_fitness in multi mode)",
+    )
+    min_fitness: float = Field(0.0, ge=0, le=1, description="absolute dense-overlap floor in multi mode")
+    stage2_required: bool = Field(
+        True,
+        description="multi mode: False lets a densely verified pose succeed when "
+        "stage 2 cannot verify it (no common boxes at long range); a box correction beyond "
+        "box.max_correction_* still fails",
+    )
+
+
+class CovarianceConfig(_Frozen):
+    """3x3 covariance of (yaw rad, tx m, ty m) from the refinement's point-to-line normal equations (see
+    bb_align.engine.covariance)."""
+
+    enabled: bool = True
+    inflation: float = Field(
+        450.0,
+        gt=0,
+        description="variance factor for correlated neighbouring pixels and model "
+        "error, calibrated on seeded simulated pairs (benchmarks/acquisition_range.py)",
+    )
+    max_sigma_m: float = Field(
+        1.0,
+        gt=0,
+        description="refuse a pose whose 1-sigma translation along its worst "
+        "direction exceeds this (degenerate scene, e.g. a straight corridor)",
+    )
+    max_sigma_deg: float = Field(1.0, gt=0, description="refuse a pose whose 1-sigma yaw exceeds this")
+    min_residual_sigma_m: float = Field(
+        0.1,
+        gt=0,
+        description="floor of the point-to-line residual sigma (pixel "
+        "centres are quantised: 0.4 m / sqrt(12) = 0.12 m for a uniform offset)",
+    )
+
+
 class TrackConfig(_Frozen):
     """Following a peer through time (bb_align.engine.tracker): process noise, gates, when to acquire again."""
 
@@ -272,6 +383,8 @@ class AlignConfig(_Frozen):
     box: BoxConfig = BoxConfig()
     success: SuccessRule = SuccessRule()
     confidence: ConfidenceConfig = ConfidenceConfig()
+    acquire: AcquireConfig = AcquireConfig()
+    covariance: CovarianceConfig = CovarianceConfig()
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
     min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
     seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")

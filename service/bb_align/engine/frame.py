@@ -30,6 +30,7 @@ class PreparedFrame:
     _maps: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # (MIM, max amplitude)
     _cloud: BevCloud | None = field(default=None, repr=False)
     _reference: np.ndarray | None = field(default=None, repr=False)
+    _derived: dict = field(default_factory=dict, repr=False)  # other per-frame products, built on first use
 
     def reference_descriptors(self, features: FeatureConfig, n_orient: int) -> np.ndarray:
         """What this frame offers when it is the side matched against (the ego frame): for each orientation
@@ -58,6 +59,12 @@ class PreparedFrame:
         if self._cloud is None:
             self._cloud = bev_cloud(self.bev, cfg)
         return self._cloud
+
+    def cached(self, key, build):
+        """A product of this frame that steps reuse (e.g. the acquisition's co-visibility mask), built once."""
+        if key not in self._derived:
+            self._derived[key] = build()
+        return self._derived[key]
 
     @property
     def lit_pixels(self) -> int:

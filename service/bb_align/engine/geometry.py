@@ -87,3 +87,9 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     y1, x1, y1t = se2_params(T_est)
     y2, x2, y2t = se2_params(T_true)
     return float(np.hypot(x1 - x2, y1t - y2t)), float(abs(np.degrees(wrap_angle(y1 - y2))))
+
+
+def worst_sigma_m(cov: np.ndarray) -> float:
+    """1-sigma of the translation along its worst direction: sqrt of the largest eigenvalue of the (tx, ty) block
+    of a (yaw, tx, ty) covariance."""
+    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(np.asarray(cov)[1:, 1:]).max()))))

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from .frame import PreparedFrame
 
 
-def _sq_distances(q: np.ndarray, t: np.ndarray, threads: int = 1) -> np.ndarray:
+def sq_distances(q: np.ndarray, t: np.ndarray, threads: int = 1) -> np.ndarray:
     """(Q, T) float32 squared L2 distances, |q|^2 + |t|^2 - 2 q.t, built in place (no large temporaries); with
     threads > 1 blocks of query rows are multiplied in parallel (the same numbers)."""
     d2 = np.empty((len(q), len(t)), dtype=np.float32)
@@ -46,7 +46,7 @@ def match_descriptors(
     t = np.asarray(desc_train, dtype=np.float32)
     if len(q) == 0 or len(t) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    d2 = _sq_distances(q, t, threads)
+    d2 = sq_distances(q, t, threads)
     nn = d2.argmin(axis=1)
     keep = (q * q).sum(1) > 0
     if ratio < 1.0 and t.shape[0] > 1:
@@ -79,7 +79,7 @@ def match_with_prior(
     if len(q) == 0 or len(t) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     k = min(top_k, len(t))
-    d2 = _sq_distances(q, t, threads)
+    d2 = sq_distances(q, t, threads)
     cand = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < len(t) else np.tile(np.arange(len(t)), (len(q), 1))
     pred = xy_query @ T_train_query[:2, :2].T + T_train_query[:2, 2]
     gate = max_translation + np.linalg.norm(xy_query, axis=1) * 2.0 * np.sin(max_yaw_rad / 2.0)

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from .acquire import Acquirer, pose_uncertainty
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes
 from .config import AlignConfig
@@ -64,6 +65,7 @@ class _Pair:
     result: AlignResult
     peer_pts: np.ndarray | None = None  # the peer's lit pixels sampled for the dense refinement
     refined: bool = False  # the refinement ran and its correction was accepted
+    multi: bool = False  # stage 1 ran the multi-hypothesis acquisition
 
 
 class Aligner:
@@ -75,9 +77,12 @@ class Aligner:
         self.ransac = RigidRansac(cfg.ransac, cfg.seed)
         self.refiner = Refiner(cfg.refine, cfg.seed)
         self.box_stage = BoxStage(cfg.box, cfg.seed)
+        self.acquirer = Acquirer(cfg) if cfg.acquire.mode == "multi" else None
         self.verdict = Verdict(
             cfg.success,
             cfg.confidence,
+            cfg.covariance,
+            cfg.acquire,
             min_points=cfg.min_points,
             min_keypoints=cfg.min_keypoints,
             box_max_correction_m=cfg.box.max_correction_m,
@@ -188,13 +193,24 @@ class Aligner:
             pair = _Pair(ego, peer, AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3)))
             reason = (
                 self.verdict.inputs(ego, peer)
-                or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv
-                or self._refine(pair)  # not in the paper: T_bv refined densely on the BV images
-                or self._stage2(pair)
-            )  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box
+                or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
+                or self._uncertainty(pair)  # not in the paper: the pose's covariance; a degenerate one is refused
+                or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box
+            )
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
 
     def _stage1(self, pair: _Pair, T_prior: np.ndarray | None) -> FailureReason | None:
+        """Lines 9-11 and the dense refinement. Without a prior, in multi mode: many pose hypotheses from the top-k
+        descriptor candidates, each verified densely (engine.acquire, not in the paper); else the paper's
+        nearest-neighbour matches and one RANSAC fit, then refined."""
+        if self.acquirer is not None and T_prior is None:
+            r = pair.result
+            reason, pair.peer_pts = self.acquirer(pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name))
+            pair.multi = pair.refined = True
+            return reason
+        return self._match_and_fit(pair, T_prior) or self._refine(pair)
+
+    def _match_and_fit(self, pair: _Pair, T_prior: np.ndarray | None) -> FailureReason | None:
         r, t = pair.result, pair.result.timings_ms
         with _timed(t, "matching"):
             pts_peer, pts_ego = self.matcher(pair.ego, pair.peer, T_prior)
@@ -208,6 +224,21 @@ class Aligner:
         r.T_bv, r.inliers_bv, r.ambiguity_bv = fit.T_dst_src, fit.num_inliers, fit.ambiguity
         r.inlier_xy_peer, r.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         return self.verdict.stage1(r)
+
+    def _uncertainty(self, pair: _Pair) -> FailureReason | None:
+        """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""
+        if not self.config.covariance.enabled or pair.peer_pts is None:
+            return None
+        r = pair.result
+        with _timed(r.timings_ms, "covariance"):
+            r.covariance = pose_uncertainty(
+                pair.ego.cloud(self.config.refine),
+                pair.peer_pts,
+                r.T_box @ r.T_bv,
+                self.config.refine.gates_m[-1],
+                self.config.covariance,
+            )
+        return self.verdict.uncertain(r)
 
     def _refine(self, pair: _Pair) -> FailureReason | None:
         """Dense point-to-line ICP of T_bv on the lit pixels; bounded (a correction that wanders is discarded)."""
@@ -230,9 +261,11 @@ class Aligner:
         with _timed(r.timings_ms, "boxes"):
             boxes = self.box_stage.align(pair.ego.boxes, pair.peer.boxes, r.T_bv)
         r.box_pairs, r.inliers_box = boxes.pairs, boxes.inliers
-        reason = self.verdict.stage2(r, boxes.T_box)
+        reason = self.verdict.stage2(r, boxes.T_box, densely_verified=pair.multi)
         if reason is None and self.verdict.boxes_verified(r):
             self._apply_box_correction(pair, boxes.T_box)
+            if r.stage2_applied:  # the pose moved: its uncertainty is the final pose's
+                return self._uncertainty(pair)
         return reason
 
     def _apply_box_correction(self, pair: _Pair, T_box: np.ndarray) -> None:

@@ -29,6 +29,10 @@ class AlignResult:
     stage2_applied: bool = False
     refine_fitness: float = 0.0  # fraction of peer BV pixels landing within the finest ICP gate of an ego pixel
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # 3x3 covariance of (yaw rad, tx m, ty m) of T_ego_peer's ground-plane part (None when not computed).
+    covariance: np.ndarray | None = None
+    # Multi-hypothesis acquisition: margin over the runner-up, relative fitness, hypotheses (engine.acquire).
+    acquisition: dict | None = field(default=None, repr=False)
     # Stage-1 inlier correspondences (metres, each car's sensor frame), for plots and diagnostics.
     inlier_xy_peer: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
     inlier_xy_ego: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
@@ -66,4 +70,8 @@ class AlignResult:
             "refine_fitness": float(self.refine_fitness),
             "notes": list(self.notes),
             "timings_ms": {k: float(v) for k, v in self.timings_ms.items()},
+            "covariance": None if self.covariance is None else np.asarray(self.covariance, dtype=float).tolist(),
+            "acquisition": None
+            if self.acquisition is None
+            else {k: v for k, v in self.acquisition.items() if k in ("candidates", "hypotheses", "margin", "best")},
         }

@@ -25,7 +25,7 @@ from enum import Enum
 import numpy as np
 
 from .config import TrackConfig
-from .geometry import se2, se2_params, wrap_angle
+from .geometry import se2, se2_params, worst_sigma_m, wrap_angle
 
 
 class TrackState(str, Enum):
@@ -68,11 +68,6 @@ def log_left(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     """The left increment d with T_a = se2(d) @ T_b (yaw wrapped)."""
     yaw, tx, ty = se2_params(T_a @ np.linalg.inv(T_b))
     return np.array([float(wrap_angle(yaw)), tx, ty])
-
-
-def worst_sigma_m(cov: np.ndarray) -> float:
-    """1-sigma of the translation along its worst direction."""
-    return float(np.sqrt(max(0.0, float(np.linalg.eigvalsh(np.asarray(cov)[1:, 1:]).max()))))
 
 
 class PeerTrack:

@@ -11,8 +11,8 @@ from enum import Enum
 
 import numpy as np
 
-from .config import ConfidenceConfig, SuccessRule
-from .geometry import se2_params, se3_from_se2
+from .config import AcquireConfig, ConfidenceConfig, CovarianceConfig, SuccessRule
+from .geometry import se2_params, se3_from_se2, worst_sigma_m
 from .result import AlignResult
 
 
@@ -26,6 +26,7 @@ class FailureReason(str, Enum):
     too_few_inliers_bv = "too_few_inliers_bv"  # stage 1 below the success rule
     ambiguous_bv = "ambiguous_bv"  # a distinct pose explains almost as many matches
     inconsistent_overlap = "inconsistent_overlap"  # after refinement too few BV pixels coincide (alias)
+    degenerate_pose = "degenerate_pose"  # the pose's 1-sigma along its worst direction is too large (corridor)
     no_boxes = "no_boxes"  # boxes were required but one side sent none
     no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
     too_few_inliers_box = "too_few_inliers_box"  # stage 2 below the success rule
@@ -46,6 +47,8 @@ class Verdict:
         self,
         rule: SuccessRule,
         confidence: ConfidenceConfig,
+        covariance: CovarianceConfig,
+        acquire: AcquireConfig,
         *,
         min_points: int,
         min_keypoints: int,
@@ -53,7 +56,7 @@ class Verdict:
         box_max_correction_deg: float,
         refine_enabled: bool,
     ):
-        self.rule, self.conf = rule, confidence
+        self.rule, self.conf, self.cov, self.acquire = rule, confidence, covariance, acquire
         self.min_points, self.min_keypoints = min_points, min_keypoints
         self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
         self.refine_enabled = refine_enabled
@@ -81,15 +84,26 @@ class Verdict:
         """After the dense refinement, enough of the peer's lit pixels must land on ego pixels."""
         return FailureReason.inconsistent_overlap if r.refine_fitness < self.rule.min_refine_fitness else None
 
+    def uncertain(self, r: AlignResult) -> FailureReason | None:
+        """A pose whose 1-sigma along its worst translation direction (or in yaw) exceeds the bounds is not a pose
+        to act on: a long straight street pins it across, not along."""
+        cov = np.asarray(r.covariance)
+        if (
+            worst_sigma_m(cov) > self.cov.max_sigma_m
+            or np.degrees(np.sqrt(max(0.0, cov[0, 0]))) > self.cov.max_sigma_deg
+        ):
+            return FailureReason.degenerate_pose
+        return None
+
     def without_boxes(self, r: AlignResult, missing: list[str]) -> FailureReason | None:
         if self.rule.require_boxes:
             return FailureReason.no_boxes
         r.notes.append("stage 2 skipped: no boxes from " + " and ".join(missing))
         return None
 
-    def stage2(self, r: AlignResult, T_box: np.ndarray) -> FailureReason | None:
-        """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone), and a
-        correction within bounds."""
+    def stage2(self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False) -> FailureReason | None:
+        """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone, or a densely
+        verified multi-hypothesis pose when acquire.stage2_required is off), and a correction within bounds."""
         failure = (
             FailureReason.no_box_overlap
             if r.box_pairs == 0
@@ -97,6 +111,11 @@ class Verdict:
             if r.inliers_box <= self.rule.min_inliers_box
             else None
         )
+        if failure is not None and densely_verified and not self.acquire.stage2_required:
+            r.notes.append(
+                f"stage 2 could not verify ({failure.value}); accepted on the dense multi-hypothesis verification"
+            )
+            return None
         if failure is not None:
             strong = self.rule.strong_inliers_bv
             if strong is not None and r.inliers_bv > strong:

@@ -256,6 +256,14 @@ class Result(_Wire):
     box_pairs: int = 0
     confidence: float = 0.0
     stage2_applied: bool = False
+    covariance: list[Annotated[list[float], Field(min_length=3, max_length=3)]] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="3x3 covariance of (yaw rad, tx m, ty m) of T_ego_peer, row-major, from the dense refinement "
+        "(None when not computed, e.g. no refinement or a failure before it); a success has a worst-direction "
+        "1-sigma within the engine's covariance.max_sigma_m",
+    )
     prior_used: bool = Field(False, description="roll, pitch, tz taken from the two reported poses")
     notes: list[str] = Field(default_factory=list)
     timings_ms: dict[str, float] = Field(default_factory=dict)

@@ -636,6 +636,7 @@ def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[s
         box_pairs=res.box_pairs,
         confidence=res.confidence,
         stage2_applied=res.stage2_applied,
+        covariance=None if res.covariance is None else np.asarray(res.covariance, dtype=float).tolist(),
         prior_used=prior_used,
         notes=list(res.notes),
         timings_ms={k: float(v) for k, v in timings.items()},

@@ -1,0 +1,499 @@
+"""Multi-hypothesis acquisition: stage 1 for pairs 40-100 m apart (not in the paper; docs/acquisition.md).
+
+At long range the nearest-neighbour descriptor match is right for only a few peer keypoints, but the true partner
+is usually among the few nearest. So, instead of the paper's one RANSAC fit on nearest neighbours:
+
+1. candidates: the ``top_k`` nearest ego keypoints (by descriptor, over all orientation offsets and 180-degree
+   copies) of every peer keypoint;
+2. hypotheses: every pair of candidates whose lengths agree votes for the rigid pose it implies, in a coarse
+   (yaw, tx, ty) accumulator (soft, 2x2x2 cells); the strongest distinct peaks are each refitted on their
+   candidate inliers (Kabsch), giving up to ``max_hypotheses`` distinct poses. Exhaustive over pairs and
+   deterministic (no sampling: a pose supported by 15 right candidates among 2000 still stands out);
+3. verification: each hypothesis is refined coarsely (dense point-to-line ICP on a small subset of the peer's lit
+   pixels) and scored by its dense overlap; the ``finalists`` best are refined fully and scored again;
+4. decision: the best must beat the runner-up (a distinct pose) by ``min_margin`` and its overlap must be a
+   sufficient fraction of what the two images can share at that pose (``relative fitness``), else failure.
+
+Everything here is config-driven (``AcquireConfig``) and reuses the ego frame's cached features.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numba import njit
+
+from .config import AcquireConfig, AlignConfig, CovarianceConfig
+from .covariance import params_covariance, pose_covariance
+from .geometry import se2, se2_params
+from .matching import sq_distances
+from .refine import BevCloud, bev_points, overlap_fitness, refine_icp
+from .result import AlignResult
+from .verdict import FailureReason
+
+# ---- 1. candidates -------------------------------------------------------------------------------------------
+
+
+def topk_candidates(
+    desc_peer: np.ndarray, desc_ref: np.ndarray, n_ego: int, k: int, threads: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """(peer rows with a usable descriptor (Q,), their ``k`` nearest distinct ego keypoints (Q, k), nearest
+    first). ``desc_ref`` holds several descriptions of each ego keypoint (row r describes keypoint r % n_ego);
+    the closest one counts."""
+    q = np.asarray(desc_peer, dtype=np.float32)
+    t = np.asarray(desc_ref, dtype=np.float32)
+    valid = np.flatnonzero((q * q).sum(1) > 0) if len(q) else np.zeros(0, np.int64)
+    if len(valid) == 0 or n_ego == 0:
+        return np.zeros(0, np.int64), np.zeros((0, max(1, min(k, n_ego))), np.int64)
+    d2 = sq_distances(q[valid], t, threads).reshape(len(valid), -1, n_ego).min(axis=1)  # (Q, n_ego)
+    k = min(k, n_ego)
+    cand = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < n_ego else np.tile(np.arange(n_ego), (len(valid), 1))
+    order = np.argsort(np.take_along_axis(d2, cand, axis=1), axis=1)
+    return valid, np.take_along_axis(cand, order, axis=1)
+
+
+# ---- 2. hypotheses -------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
+    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
+    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
+    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. Distances between ego keypoints are
+    computed once."""
+    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+    n_e = len(kp_dst)
+    d_e = np.empty((n_e, n_e), np.float32)
+    for i in range(n_e):
+        for j in range(n_e):
+            dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
+            d_e[i, j] = np.sqrt(dx * dx + dy * dy)
+    q, k = cand.shape
+    for a in range(q):
+        for b in range(a + 1, q):
+            sx, sy = kp_src[b, 0] - kp_src[a, 0], kp_src[b, 1] - kp_src[a, 1]
+            ds = np.sqrt(sx * sx + sy * sy)
+            if ds < min_d:
+                continue
+            msx, msy = 0.5 * (kp_src[a, 0] + kp_src[b, 0]), 0.5 * (kp_src[a, 1] + kp_src[b, 1])
+            for u in range(k):
+                i = cand[a, u]
+                for v in range(k):
+                    j = cand[b, v]
+                    if i == j or abs(ds - d_e[i, j]) > len_tol:
+                        continue
+                    dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
+                    cr, dt = sx * dy - sy * dx, sx * dx + sy * dy
+                    th = np.arctan2(cr, dt)
+                    nrm = np.sqrt(cr * cr + dt * dt)
+                    c, s = dt / nrm, cr / nrm
+                    mdx, mdy = 0.5 * (kp_dst[i, 0] + kp_dst[j, 0]), 0.5 * (kp_dst[i, 1] + kp_dst[j, 1])
+                    tx = mdx - (c * msx - s * msy)
+                    ty = mdy - (s * msx + c * msy)
+                    fy = (th + np.pi) / yaw_bin - 0.5
+                    fx = (tx + t_half) / t_bin - 0.5
+                    fz = (ty + t_half) / t_bin - 0.5
+                    y0, x0, z0 = int(np.floor(fy)), int(np.floor(fx)), int(np.floor(fz))
+                    ay, ax, az = fy - y0, fx - x0, fz - z0
+                    for e1 in range(2):
+                        yy = (y0 + e1) % n_yaw
+                        wy = ay if e1 else 1.0 - ay
+                        for e2 in range(2):
+                            xx = x0 + e2
+                            if xx < 0 or xx >= n_t:
+                                continue
+                            wx = ax if e2 else 1.0 - ax
+                            for e3 in range(2):
+                                zz = z0 + e3
+                                if zz < 0 or zz >= n_t:
+                                    continue
+                                acc[yy, xx, zz] += wy * wx * (az if e3 else 1.0 - az)
+    return acc
+
+
+@njit(cache=True, nogil=True)
+def _peak_support(kp_src, kp_dst, cand, yaw, tx, ty, thr2):
+    """For each pose (yaw[h], tx[h], ty[h]): the number of peer keypoints with a candidate within sqrt(thr2)."""
+    out = np.zeros(len(yaw), np.int64)
+    q, k = cand.shape
+    for h in range(len(yaw)):
+        c, s = np.cos(yaw[h]), np.sin(yaw[h])
+        n = 0
+        for a in range(q):
+            px = c * kp_src[a, 0] - s * kp_src[a, 1] + tx[h]
+            py = s * kp_src[a, 0] + c * kp_src[a, 1] + ty[h]
+            for u in range(k):
+                j = cand[a, u]
+                dx, dy = px - kp_dst[j, 0], py - kp_dst[j, 1]
+                if dx * dx + dy * dy < thr2:
+                    n += 1
+                    break
+        out[h] = n
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _refit(kp_src, kp_dst, cand, yaw, tx, ty, thr2_wide, thr2, refits):
+    """From a coarse pose: candidate inliers within sqrt(thr2_wide), then up to ``refits`` rigid least-squares
+    refits (2-D Kabsch) on the inliers within sqrt(thr2), stopping when the inlier set no longer changes.
+    Returns (yaw, tx, ty, distinct peer keypoints with an inlier, inlier mask over cand.ravel())."""
+    q, k = cand.shape
+    mask = np.zeros(q * k, np.bool_)
+    n = 0
+    for it in range(refits + 1):
+        c, s = np.cos(yaw), np.sin(yaw)
+        thr = thr2_wide if it == 0 else thr2
+        new = np.zeros(q * k, np.bool_)
+        n_new = 0
+        for a in range(q):
+            px = c * kp_src[a, 0] - s * kp_src[a, 1] + tx
+            py = s * kp_src[a, 0] + c * kp_src[a, 1] + ty
+            hit = False
+            for u in range(k):
+                j = cand[a, u]
+                dx, dy = px - kp_dst[j, 0], py - kp_dst[j, 1]
+                if dx * dx + dy * dy < thr:
+                    new[a * k + u] = True
+                    hit = True
+            if hit:
+                n_new += 1
+        if it > 0 and n_new < 2:
+            break
+        same = it > 0 and np.array_equal(new, mask)
+        mask, n = new, n_new
+        if same or it == refits:
+            break
+        # Kabsch on the inlier pairs.
+        m = 0
+        msx = msy = mdx = mdy = 0.0
+        for r in range(q * k):
+            if mask[r]:
+                a = r // k
+                j = cand[a, r % k]
+                msx += kp_src[a, 0]
+                msy += kp_src[a, 1]
+                mdx += kp_dst[j, 0]
+                mdy += kp_dst[j, 1]
+                m += 1
+        if m < 2:
+            break
+        msx /= m
+        msy /= m
+        mdx /= m
+        mdy /= m
+        sxx = sxy = 0.0
+        for r in range(q * k):
+            if mask[r]:
+                a = r // k
+                j = cand[a, r % k]
+                ax, ay = kp_src[a, 0] - msx, kp_src[a, 1] - msy
+                bx, by = kp_dst[j, 0] - mdx, kp_dst[j, 1] - mdy
+                sxx += ax * bx + ay * by
+                sxy += ax * by - ay * bx
+        yaw = np.arctan2(sxy, sxx)
+        c, s = np.cos(yaw), np.sin(yaw)
+        tx = mdx - (c * msx - s * msy)
+        ty = mdy - (s * msx + c * msy)
+    return yaw, tx, ty, n, mask
+
+
+@njit(cache=True, nogil=True)
+def _cells_above(flat, floor):
+    """Indices of the accumulator cells holding more than ``floor`` votes (one pass, no sort of the whole)."""
+    n = 0
+    for i in range(len(flat)):
+        if flat[i] > floor:
+            n += 1
+    out = np.empty(n, np.int64)
+    n = 0
+    for i in range(len(flat)):
+        if flat[i] > floor:
+            out[n] = i
+            n += 1
+    return out
+
+
+@dataclass
+class Hypothesis:
+    T: np.ndarray  # 3x3 ego <- peer
+    inliers: int  # distinct peer keypoints with a candidate within the inlier threshold
+    votes: float = 0.0
+    fitness: float = 0.0  # dense overlap (fraction of peer pixels within the finest gate)
+    covisible: float = 0.0  # fraction of peer pixels within AcquireConfig.covisible_m of ego structure
+    rmse_m: float = float("inf")
+    refined: bool = False
+    inlier_mask: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def relative_fitness(self) -> float:
+        return self.fitness / self.covisible if self.covisible > 0 else 0.0
+
+
+def _inliers(T, src, dst, k, thr2):
+    """Candidate inlier mask and the number of distinct peer keypoints with an inlier (rows come k per keypoint)."""
+    p = src @ T[:2, :2].T + T[:2, 2]
+    mask = ((p - dst) ** 2).sum(1) < thr2
+    return mask, int(mask.reshape(-1, k).any(axis=1).sum())
+
+
+def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float) -> bool:
+    yaw, tx, ty = se2_params(T)
+    for h in chosen:
+        y2, x2, z2 = se2_params(h.T)
+        dyaw = abs((yaw - y2 + np.pi) % (2 * np.pi) - np.pi)
+        if np.hypot(tx - x2, ty - z2) < dist_m and np.degrees(dyaw) < deg:
+            return False
+    return True
+
+
+def pose_hypotheses(
+    kp_peer: np.ndarray, kp_ego: np.ndarray, cand: np.ndarray, cfg: AcquireConfig, threshold: float, t_half: float
+) -> list[Hypothesis]:
+    """Up to cfg.max_hypotheses distinct poses (most inliers first) from the candidates ``cand`` (Q, k): row q
+    lists the ego keypoints that may be peer keypoint q's partner."""
+    q, k = cand.shape
+    if q < 2:
+        return []
+    yaw_bin = np.radians(cfg.vote_yaw_deg)
+    n_yaw = int(np.ceil(2 * np.pi / yaw_bin))
+    yaw_bin = 2 * np.pi / n_yaw
+    n_t = int(np.ceil(2 * t_half / cfg.vote_t_m))
+    acc = _vote(
+        np.ascontiguousarray(kp_peer, np.float64),
+        np.ascontiguousarray(kp_ego, np.float64),
+        np.ascontiguousarray(cand, np.int64),
+        cfg.min_sample_dist_m,
+        cfg.length_tolerance_m,
+        yaw_bin,
+        cfg.vote_t_m,
+        t_half,
+        n_yaw,
+        n_t,
+    )
+    flat = acc.ravel()
+    idx = _cells_above(flat, cfg.min_votes)
+    if len(idx) == 0:
+        return []
+    idx = idx[np.argsort(-flat[idx], kind="stable")[: cfg.peaks]]
+    iy, ix, iz = np.unravel_index(idx, acc.shape)
+    yaw = (iy + 0.5) * yaw_bin - np.pi
+    tx, ty = (ix + 0.5) * cfg.vote_t_m - t_half, (iz + 0.5) * cfg.vote_t_m - t_half
+    # The cell centres are coarse: score them all with a wide threshold (compiled, no (peaks x M) arrays), refit
+    # the strongest.
+    kp_src = np.ascontiguousarray(kp_peer, np.float64)
+    kp_dst = np.ascontiguousarray(kp_ego, np.float64)
+    cand_c = np.ascontiguousarray(cand, np.int64)
+    n_wide = _peak_support(kp_src, kp_dst, cand_c, yaw, tx, ty, (2 * threshold) ** 2)
+    thr2 = threshold * threshold
+    out: list[Hypothesis] = []
+    attempts = 0
+    for h in np.argsort(-n_wide, kind="stable"):
+        if (
+            len(out) >= cfg.max_hypotheses
+            or n_wide[h] < cfg.min_hypothesis_inliers
+            or attempts >= cfg.max_refit_attempts
+        ):
+            break
+        T = se2(yaw[h], tx[h], ty[h])
+        if not _distinct(T, out, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg):
+            continue  # a neighbouring cell of a pose already found
+        attempts += 1
+        y, x, z, n, mask = _refit(
+            kp_src, kp_dst, cand_c, float(yaw[h]), float(tx[h]), float(ty[h]), (2 * threshold) ** 2, thr2, cfg.refits
+        )
+        T = se2(y, x, z)
+        if n < cfg.min_hypothesis_inliers or not _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
+            continue
+        out.append(Hypothesis(T=T, inliers=n, votes=float(flat[idx[h]]), inlier_mask=mask))
+    out.sort(key=lambda h: -h.inliers)
+    return out
+
+
+# ---- 3. dense verification -------------------------------------------------------------------------------------
+
+
+def covisible_map(ego_image: np.ndarray, min_value: int, radius_px: int) -> np.ndarray:
+    """uint8 mask of the ego image's pixels within ``radius_px`` of a lit one: where the ego car saw structure."""
+    lit = (ego_image >= min_value).astype(np.uint8)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    return cv2.dilate(lit, k)
+
+
+def covisible_fraction(mask: np.ndarray, cloud: BevCloud, pts: np.ndarray, T: np.ndarray) -> float:
+    """Fraction of peer points that land, under T, where the ego car saw structure (its dilated lit pixels)."""
+    if len(pts) == 0:
+        return 0.0
+    p = pts @ T[:2, :2].T + T[:2, 2]
+    r = np.floor((cloud.range_m - p[:, 0]) / cloud.resolution_m).astype(np.int64)
+    c = np.floor((cloud.range_m - p[:, 1]) / cloud.resolution_m).astype(np.int64)
+    h, w = mask.shape
+    ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    return float(mask[r[ok], c[ok]].sum() / len(pts))
+
+
+@dataclass
+class Acquisition:
+    best: Hypothesis | None
+    runner_up: Hypothesis | None
+    hypotheses: list[Hypothesis]
+    candidates: int
+    margin: float  # best score / runner-up score (inf without a runner-up)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    def diagnostics(self) -> dict:
+        def h(x: Hypothesis | None):
+            if x is None:
+                return None
+            yaw, tx, ty = se2_params(x.T)
+            return {
+                "yaw_deg": float(np.degrees(yaw)),
+                "tx": float(tx),
+                "ty": float(ty),
+                "inliers": x.inliers,
+                "fitness": x.fitness,
+                "covisible": x.covisible,
+                "relative_fitness": x.relative_fitness,
+                "refined": x.refined,
+            }
+
+        return {
+            "candidates": self.candidates,
+            "hypotheses": len(self.hypotheses),
+            "margin": self.margin,
+            "best": h(self.best),
+            "runner_up": h(self.runner_up),
+            "all": [h(x) for x in self.hypotheses],
+        }
+
+
+def score(h: Hypothesis, cfg: AcquireConfig) -> float:
+    """What ranks verified hypotheses: dense overlap (optionally normalised by the co-visible fraction)."""
+    if cfg.score == "fitness":
+        return h.fitness
+    return h.relative_fitness * h.fitness**0.5 if cfg.score == "blend" else h.relative_fitness
+
+
+def verify(
+    hyps: list[Hypothesis], ego_cloud: BevCloud, covis: np.ndarray, peer_bev, config: AlignConfig, seed: int
+) -> None:
+    """Coarse dense refinement + score for every hypothesis, then a full refinement of the finalists (in place)."""
+    a, rf = config.acquire, config.refine
+    coarse_pts = bev_points(peer_bev, rf.min_pixel_value, a.coarse_points, seed=seed)
+    full_pts = bev_points(peer_bev, rf.min_pixel_value, rf.max_peer_points, seed=seed)
+    final_gate = rf.gates_m[-1]
+    coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
+    for h in hyps:
+        ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
+        h.T = ref.T
+        h.fitness, h.rmse_m = overlap_fitness(ego_cloud, coarse_pts, h.T, final_gate)
+        h.covisible = covisible_fraction(covis, ego_cloud, coarse_pts, h.T)
+    hyps.sort(key=lambda x: -score(x, a))
+    for h in hyps[: a.finalists]:
+        ref = refine_icp(ego_cloud, full_pts, h.T, rf)
+        h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
+        h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
+    finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
+    hyps[: a.finalists] = finals
+
+
+def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:
+    """The best score over the runner-up's (floored at cfg.runner_up_floor; the floor alone without a runner-up)."""
+    runner = runner_up_of(hyps, cfg)
+    s_runner = cfg.runner_up_floor if runner is None else max(score(runner, cfg), cfg.runner_up_floor)
+    return float(score(hyps[0], cfg) / s_runner)
+
+
+def runner_up_of(hyps: list[Hypothesis], cfg: AcquireConfig) -> Hypothesis | None:
+    """The best-scoring hypothesis distinct from the first (after refinement two may have met)."""
+    for h in hyps[1:]:
+        if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg):
+            return h
+    return None
+
+
+# ---- pipeline steps ------------------------------------------------------------------------------------------
+
+
+def pose_uncertainty(
+    ego_cloud: BevCloud, peer_pts: np.ndarray, T: np.ndarray, gate: float, cfg: CovarianceConfig
+) -> np.ndarray:
+    """3x3 covariance of (yaw, tx, ty) of the pose T (3x3 ego <- peer), from the refinement's normal equations."""
+    cov_left = pose_covariance(
+        ego_cloud, peer_pts, T, gate, inflation=cfg.inflation, min_sigma_m=cfg.min_residual_sigma_m
+    )
+    return params_covariance(cov_left, T)
+
+
+class Acquirer:
+    """Stage 1 in multi mode as a pipeline step, built once from the config: candidates, hypotheses by voting,
+    dense verification, decision by margin and relative fitness. ``__call__`` fills the result (T_bv, inliers,
+    fitness, acquisition diagnostics) and returns (FailureReason or None, the refinement's peer points)."""
+
+    def __init__(self, config: AlignConfig):
+        if not config.refine.enabled:
+            raise ValueError(
+                "acquire.mode='multi' verifies hypotheses with the dense refinement: refine.enabled must be True"
+            )
+        self.config = config
+
+    def __call__(self, ego, peer, result: AlignResult, timed) -> tuple[FailureReason | None, np.ndarray | None]:
+        cfg = self.config
+        a, rf = cfg.acquire, cfg.refine
+        with timed("matching"):
+            desc_ref = ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
+            rows, cand = topk_candidates(
+                peer.descriptors, desc_ref, len(ego.descriptors), a.top_k, threads=cfg.match.threads
+            )
+        result.matches_bv = int(cand.size)
+        if len(rows) < 2:
+            return FailureReason.too_few_matches, None
+        t_half = 1.5 * max(ego.bev.range_m, peer.bev.range_m)
+        kp = peer.keypoints_xy[rows]
+        ego_cloud = ego.cloud(rf)
+        covis = ego.cached(
+            ("covisible", a.covisible_m, rf.min_pixel_value),
+            lambda: covisible_map(
+                ego.bev.image, rf.min_pixel_value, max(1, int(round(a.covisible_m / ego.bev.resolution_m)))
+            ),
+        )
+
+        def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
+            with timed("hypotheses"):
+                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half)
+            if not hs:
+                return hs, 0.0
+            with timed("verify"):
+                verify(hs, ego_cloud, covis, peer.bev, cfg, seed=cfg.seed)
+            return hs, _margin(hs, a)
+
+        hyps: list[Hypothesis] = []
+        used = cand
+        if 0 < a.first_k < cand.shape[1]:
+            # Cheap first: the few nearest candidates only (a close pair needs no more); kept only when its
+            # evidence is far above the success threshold, else the full top-k search runs.
+            used = np.ascontiguousarray(cand[:, : a.first_k])
+            hyps, margin = run(used)
+            if not hyps or margin * hyps[0].relative_fitness < a.first_pass_evidence:
+                hyps = []
+            else:
+                result.notes.append(f"acquired on the first {a.first_k} candidates per keypoint")
+        if not hyps:
+            used = cand
+            hyps, margin = run(cand)
+        if not hyps:
+            return FailureReason.too_few_inliers_bv, None
+        best = hyps[0]
+        result.acquisition = Acquisition(best, runner_up_of(hyps, a), hyps, int(cand.size), margin).diagnostics()
+        result.T_bv, result.inliers_bv, result.refine_fitness = best.T, best.inliers, best.fitness
+        result.ambiguity_bv = 1.0 / max(1.0, margin)
+        mask = best.inlier_mask
+        result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
+        result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
+        full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
+        if margin < a.min_margin or margin * best.relative_fitness < a.min_evidence:
+            return FailureReason.ambiguous_bv, full_pts
+        if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
+            return FailureReason.inconsistent_overlap, full_pts
+        return None, full_pts
