@@ -76,7 +76,7 @@ def test_cli_align_json_and_plot(tmp_path, world):  # noqa: F811
 
 def test_cli_align_exits_3_on_a_failed_alignment_and_config_files_drive_it(tmp_path, world):  # noqa: F811
     """A failed alignment is a non-zero exit (3), with --json too; --config loads a saved AlignConfig (JSON or
-    YAML, missing fields default) and it changes the run: an impossible success rule turns success into failure."""
+    YAML, missing fields default) and it changes the run: an impossible uncertainty bound turns success into failure."""
     import yaml
 
     from bb_align.cli import ALIGN_FAILED
@@ -94,15 +94,15 @@ def test_cli_align_exits_3_on_a_failed_alignment_and_config_files_drive_it(tmp_p
     assert dumped.exit_code == 0
     assert AlignConfig.model_validate_json(dumped.stdout) == AlignConfig()  # the dump is the defaults, loadable
     strict = json.loads(dumped.stdout)
-    strict["success"]["min_inliers_bv"] = 100000
+    strict["covariance"]["max_sigma_m"] = 1e-6
     (tmp_path / "strict.json").write_text(json.dumps(strict))
-    (tmp_path / "strict.yaml").write_text(yaml.safe_dump({"success": {"min_inliers_bv": 100000}}))
+    (tmp_path / "strict.yaml").write_text(yaml.safe_dump({"covariance": {"max_sigma_m": 1e-6}}))
     for cfg_file in ("strict.json", "strict.yaml"):
         failed = runner.invoke(app, [*args, "--config", str(tmp_path / cfg_file)])
         assert failed.exit_code == ALIGN_FAILED == 3, failed.output
-        assert json.loads(failed.stdout)["reason"] == "too_few_inliers_bv"
+        assert json.loads(failed.stdout)["reason"] == "degenerate_pose"
     plain = runner.invoke(app, args[:3] + ["--config", str(tmp_path / "strict.yaml")])
-    assert plain.exit_code == 3 and "FAILED (too_few_inliers_bv)" in plain.stdout
+    assert plain.exit_code == 3 and "FAILED (degenerate_pose)" in plain.stdout
 
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"success": {"min_inliers_bv": -1}}))
     bad = runner.invoke(app, [*args, "--config", str(tmp_path / "bad.yaml")])
