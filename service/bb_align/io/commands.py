@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 
-def _parse_noise(text: str) -> tuple[float, float]:
+def parse_pose_noise(text: str) -> tuple[float, float]:
     try:
         parts = [float(v) for v in text.split(",")]
     except ValueError:
@@ -76,7 +76,7 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
             source = FolderDetections(detections)
         else:
             source = YamlDetections()
-        sigma_t, sigma_deg = _parse_noise(pose_noise) if pose_noise is not None else (0.0, 0.0)
+        sigma_t, sigma_deg = parse_pose_noise(pose_noise) if pose_noise is not None else (0.0, 0.0)
         try:
             align_cfg = load_align_config(config)
         except ValueError as exc:

@@ -35,16 +35,6 @@ def _git_commit() -> str | None:
         return None
 
 
-def _parse_noise(text: str) -> tuple[float, float]:
-    try:
-        parts = [float(v) for v in text.split(",")]
-    except ValueError:
-        parts = []
-    if len(parts) != 2 or min(parts) < 0:
-        raise typer.BadParameter("--pose-noise takes 'SIGMA_T_M,SIGMA_THETA_DEG', two numbers >= 0, e.g. 2,2")
-    return parts[0], parts[1]
-
-
 def _fmt(v, pct=False):
     if v is None:
         return "  fail"
@@ -166,11 +156,13 @@ def register(app: typer.Typer) -> None:
 
         Detections come from the yaml's 'detections', from --detections DIR, or (only with
         --simulate-detections) from the ground truth; the summary says which ('detections_used')."""
+        from bb_align.io.commands import parse_pose_noise
+
         from .plots import write_plots
         from .runner import EvalConfig, evaluate_dataset
         from .summary import summarize
 
-        sigma_t, sigma_deg = _parse_noise(pose_noise)
+        sigma_t, sigma_deg = parse_pose_noise(pose_noise)
         if detections is not None and simulate_detections:
             raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")
         cfg = EvalConfig(

@@ -13,19 +13,16 @@ holds ``odometry_pose`` (the car's odometry, same 6-vector format, in its own od
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from tqdm import tqdm
 
 from bb_align.engine.geometry import se2, se2_params
 from bb_align.io.dataset import world_to_x_pose
 
 from .scenario import Scenario, SimConfig
-from .writer import scenario_seed, write_scenario_frames
+from .writer import run_pool, scenario_seed, write_scenario_frames
 
 SWEEP_KINDS = ("receding", "approaching", "overtaking", "oncoming", "crossing")
 
@@ -196,20 +193,8 @@ def write_sweeps(
     if n_scenarios < 1 or frames < 2:
         raise ValueError(f"need n_scenarios >= 1 and frames >= 2, got {n_scenarios}, {frames}")
     Path(root).mkdir(parents=True, exist_ok=True)
-    workers = workers or min(2, os.cpu_count() or 1)
     args = [(str(root), seed, i, frames, dt, cfg) for i in range(n_scenarios)]
-    names = []
-    with tqdm(total=n_scenarios, desc="simulating sweeps", unit="sequence", disable=not progress) as bar:
-        if workers <= 1:
-            for a in args:
-                names.append(write_sweep(*a))
-                bar.update()
-        else:
-            with ProcessPoolExecutor(workers) as pool:
-                for name in pool.map(_write_sweep_star, args):
-                    names.append(name)
-                    bar.update()
-    return names
+    return run_pool(_write_sweep_star, args, workers, "simulating sweeps", "sequence", progress)
 
 
 def _write_sweep_star(a):

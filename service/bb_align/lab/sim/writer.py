@@ -114,21 +114,25 @@ def write_benchmark(
     if n_scenarios < 1:
         raise ValueError(f"n_scenarios must be >= 1, got {n_scenarios}")
     Path(root).mkdir(parents=True, exist_ok=True)
-    workers = workers or min(2, os.cpu_count() or 1)
     args = [(str(root), seed, i, n_scenarios, frames, n_agents, dt, config) for i in range(n_scenarios)]
-    bar = tqdm(total=n_scenarios, desc="simulating", unit="scenario", disable=not progress)
-    names = []
-    if workers <= 1:
-        for a in args:
-            names.append(write_scenario(*a))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            for name in pool.map(_write_star, args):
-                names.append(name)
+    return run_pool(_write_star, args, workers, "simulating", "scenario", progress)
+
+
+def run_pool(fn, args: list, workers: int | None, desc: str, unit: str, progress: bool = True) -> list:
+    """``fn`` over ``args`` in order, on ``workers`` processes (default: up to 2), with a progress bar."""
+    workers = workers or min(2, os.cpu_count() or 1)
+    out = []
+    with tqdm(total=len(args), desc=desc, unit=unit, disable=not progress) as bar:
+        if workers <= 1:
+            for a in args:
+                out.append(fn(a))
                 bar.update()
-    bar.close()
-    return names
+        else:
+            with ProcessPoolExecutor(workers) as pool:
+                for r in pool.map(fn, args):
+                    out.append(r)
+                    bar.update()
+    return out
 
 
 def _write_star(a):
