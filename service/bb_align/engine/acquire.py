@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .config import AcquireConfig, AlignConfig, CovarianceConfig
+from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
 from .geometry import se2, se2_params
 from .matching import sq_distances
@@ -376,14 +376,18 @@ def score(h: Hypothesis, cfg: AcquireConfig) -> float:
 
 
 def verify(
-    hyps: list[Hypothesis], ego_cloud: BevCloud, covis: np.ndarray, peer_bev, config: AlignConfig, seed: int
+    hyps: list[Hypothesis],
+    ego_cloud: BevCloud,
+    covis: np.ndarray,
+    coarse_pts: np.ndarray,
+    full_pts: np.ndarray,
+    config: AlignConfig,
+    coarse: RefineConfig,
 ) -> None:
-    """Coarse dense refinement + score for every hypothesis, then a full refinement of the finalists (in place)."""
+    """Coarse dense refinement (``coarse``, on ``coarse_pts``) + score for every hypothesis, then a full refinement
+    of the finalists on ``full_pts`` (in place)."""
     a, rf = config.acquire, config.refine
-    coarse_pts = bev_points(peer_bev, rf.min_pixel_value, a.coarse_points, seed=seed)
-    full_pts = bev_points(peer_bev, rf.min_pixel_value, rf.max_peer_points, seed=seed)
     final_gate = rf.gates_m[-1]
-    coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
     for h in hyps:
         ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
         h.T = ref.T
@@ -437,6 +441,8 @@ class Acquirer:
                 "acquire.mode='multi' verifies hypotheses with the dense refinement: refine.enabled must be True"
             )
         self.config = config
+        a, rf = config.acquire, config.refine
+        self.coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
 
     def __call__(self, ego, peer, result: AlignResult, timed) -> tuple[FailureReason | None, np.ndarray | None]:
         cfg = self.config
@@ -459,13 +465,17 @@ class Acquirer:
             ),
         )
 
+        # The peer's pixels, sampled once (seeded) for every verification of this frame.
+        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=cfg.seed)
+        full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
+
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
                 hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half)
             if not hs:
                 return hs, 0.0
             with timed("verify"):
-                verify(hs, ego_cloud, covis, peer.bev, cfg, seed=cfg.seed)
+                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse)
             return hs, _margin(hs, a)
 
         hyps: list[Hypothesis] = []
@@ -491,7 +501,6 @@ class Acquirer:
         mask = best.inlier_mask
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
-        full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
         if margin < a.min_margin or margin * best.relative_fitness < a.min_evidence:
             return FailureReason.ambiguous_bv, full_pts
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:

@@ -89,11 +89,11 @@ def sweep_scenario(seed: int, kind: str, duration_s: float, cfg: SweepConfig) ->
         start_xy = np.array(lane_e.pose_at(s_e0 + cfg.far_m)[:2])
         _drive(peer, lane_p, lane_p.nearest_s(start_xy)[0], max(1.0, 2 * cfg.far_m / T - v_e))
     elif kind == "crossing":
-        crossing = next((c for c in (_intersection(lane_e, r) for r in world.roads[1:]) if c is not None), None)
+        found = ((r, _intersection(lane_e, r)) for r in world.roads[1:])
+        road, crossing = next(((r, c) for r, c in found if c is not None), (None, None))
         if crossing is None:  # no crossing street in this world: the oncoming case instead
             return sweep_scenario(seed, "oncoming", duration_s, cfg)
         s_m, s_o = crossing
-        road = next(r for r in world.roads[1:] if _intersection(lane_e, r) == crossing)
         lane_p = road.lane(0, True)
         v_p = float(rng.uniform(*cfg.ego_speed_m_s))
         s_e0 = s_m - v_e * T / 2  # both reach the intersection around mid-sequence, the peer 1.5 s later
