@@ -191,9 +191,18 @@ def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
     assert res.success and "matches gated by the prior pose" in res.notes
     assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3
     liar = peer.T_world_sensor @ se3_from_se2(se2(np.radians(90.0), 35.0, 0.0))
+    T_lie = np.linalg.inv(ego.T_world_sensor) @ liar
+    # A car with no track yet: the acquisition is gated by the lie and finds nothing there.
+    p = encode_frame(peer.points, peer.boxes, vehicle_id="car7", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
+    res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
+    assert res.source == "acquisition"
+    assert not res.success, "a false reported pose must not produce a confident pose near it"
+    # A tracked car: the lie does not move the track (its pose comes from the images and its odometry/motion).
     p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
-    assert not res.success, "a false reported pose must not produce a confident pose near it"
+    assert res.source == "tracking" and res.success
+    assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3
+    assert pose_error(res.matrix(), T_lie)[0] > 30.0
 
 
 def test_peer_frame_arriving_before_its_ego_frame_still_gets_it(server, pair):

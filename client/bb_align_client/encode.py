@@ -48,11 +48,14 @@ def make_frame(
     stamp: float,
     seq: int = 0,
     pose: Any = None,
+    odometry: Any = None,
     scores=None,
     png_compression: int = 6,
     **bev_options,
 ) -> Frame:
-    """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame."""
+    """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame.
+    ``pose``: the reported (GNSS-grade) T_world_sensor; ``odometry``: the car's odometry pose T_odom_sensor (as
+    :func:`as_pose` reads either), which lets the service track the peer through time."""
     if isinstance(points, BevImage):
         bev, num_points = points, None
     else:
@@ -68,6 +71,7 @@ def make_frame(
         boxes=rows,
         scores=None if scores is None else [float(s) for s in scores],
         pose=as_pose(pose),
+        odometry=as_pose(odometry),
         num_points=num_points,
     )
 
@@ -80,6 +84,7 @@ def encode_frame(
     stamp: float,
     seq: int = 0,
     pose: Any = None,
+    odometry: Any = None,
     encoding: str = MSGPACK,
     key: bytes | str | Credential | None = None,
     key_id: str = FLEET_KEY_ID,
@@ -89,7 +94,9 @@ def encode_frame(
     ``key``: sign the frame: a vehicle Credential (Ed25519, the recommended way), or HMAC-SHA256 with the fleet
     key (``key_id="fleet"``) or the car's own key (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields
     (range_m, resolution_m, ...) plus ``scores`` and ``png_compression``."""
-    frame = make_frame(points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, **bev_options)
+    frame = make_frame(
+        points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, odometry=odometry, **bev_options
+    )
     if encoding == JSON:
         data = to_json(frame)
     elif encoding == MSGPACK:

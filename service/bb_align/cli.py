@@ -115,9 +115,10 @@ def _register_feature_commands() -> None:
     from bb_align.lab.bench.cli import register as bench  # bench
     from bb_align.lab.commands import register as lab  # demo, soak
     from bb_align.lab.evaluation.cli import register as evaluation  # sim, eval
+    from bb_align.lab.tracking.cli import register as tracking  # track
     from bb_align.server.commands import register as server  # serve, wire-schemas
 
-    for register in (server, lab, evaluation, bench):
+    for register in (server, lab, evaluation, tracking, bench):
         register(app)
     io(app, simulated_detections=_simulated_detections)
 

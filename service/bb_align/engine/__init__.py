@@ -5,6 +5,9 @@
     result = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, boxes_peer))
     result.T_ego_peer  # 4x4, maps peer-frame points into the ego frame
 
+    follower = Follower(aligner)  # through time: acquire once, then refine each frame from the prediction
+    result = follower.step(aligner.prepare(pts_ego, features=False), aligner.prepare(pts_peer, features=False), t)
+
 Imports nothing of the protocol, the server, io or lab (a test checks the import graph). The names below load on
 first use, so ``import bb_align.engine.bev`` (the BV encoder a sender needs) does not load the pipeline.
 """
@@ -24,6 +27,9 @@ _API = {
     "PreparedFrame": "frame",
     "AlignResult": "result",
     "FailureReason": "verdict",
+    "TrackConfig": "config",
+    "Follower": "follow",
+    "PeerTrack": "tracker",
 }
 __all__ = sorted(_API)
 

@@ -330,6 +330,17 @@ class CovarianceConfig(_Frozen):
 class TrackConfig(_Frozen):
     """Following a peer through time (bb_align.engine.tracker): process noise, gates, when to acquire again."""
 
+    enabled: bool = Field(
+        True, description="the service follows each peer (acquire once, then refine from the prediction)"
+    )
+    min_fitness: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="a tracking measurement whose refined overlap fitness is below this is no measurement (far "
+        "pairs share little: the Mahalanobis gate, not a fixed overlap, judges the rest)",
+    )
+
     odometry_drift_m_per_s: float = Field(
         0.05,
         gt=0,
@@ -385,6 +396,7 @@ class AlignConfig(_Frozen):
     confidence: ConfidenceConfig = ConfidenceConfig()
     acquire: AcquireConfig = AcquireConfig()
     covariance: CovarianceConfig = CovarianceConfig()
+    track: TrackConfig = TrackConfig()
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
     min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
     seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")

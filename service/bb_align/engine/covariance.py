@@ -16,6 +16,8 @@ success rule refuses a pose whose 1-sigma along its worst translation direction 
 
 from __future__ import annotations
 
+from math import erf, exp, radians, sqrt
+
 import numpy as np
 from numba import njit
 
@@ -71,10 +73,31 @@ def mahalanobis2(cov: np.ndarray, err: np.ndarray) -> float:
     return float(err @ np.linalg.solve(cov, err))
 
 
+def _params_jacobian(T: np.ndarray) -> np.ndarray:
+    tx, ty = float(T[0, 2]), float(T[1, 2])
+    return np.array([[1.0, 0.0, 0.0], [-ty, 1.0, 0.0], [tx, 0.0, 1.0]])
+
+
+def left_covariance(cov_params: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`params_covariance`: a covariance of T's parameters as one of left increments."""
+    J_inv = np.linalg.inv(_params_jacobian(T))
+    cov = J_inv @ np.asarray(cov_params, dtype=float) @ J_inv.T
+    return 0.5 * (cov + cov.T)
+
+
+def probability_within(cov: np.ndarray, max_m: float, max_deg: float) -> float:
+    """A lower bound on the probability that a pose with this (yaw, tx, ty) covariance is within ``max_m`` and
+    ``max_deg`` of the truth: yaw by its normal law, translation as if both axes had the worst direction's variance
+    (Rayleigh), the two taken as independent."""
+    cov = np.asarray(cov, dtype=float)
+    var_yaw = max(float(cov[0, 0]), 1e-300)
+    var_t = max(float(np.linalg.eigvalsh(cov[1:, 1:]).max()), 1e-300)
+    return erf(radians(max_deg) / sqrt(2.0 * var_yaw)) * (1.0 - exp(-(max_m**2) / (2.0 * var_t)))
+
+
 def params_covariance(cov_left: np.ndarray, T: np.ndarray) -> np.ndarray:
     """The covariance of a left increment (yaw, tx, ty) applied to T, carried to T's own parameters
     (yaw, tx, ty): a yaw increment also moves the translation by yaw x (-ty, tx)."""
-    tx, ty = float(T[0, 2]), float(T[1, 2])
-    J = np.array([[1.0, 0.0, 0.0], [-ty, 1.0, 0.0], [tx, 0.0, 1.0]])
-    cov = J @ cov_left @ J.T
+    J = _params_jacobian(T)
+    cov = J @ np.asarray(cov_left, dtype=float) @ J.T
     return 0.5 * (cov + cov.T)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,16 +15,24 @@ from .parallel import run_parts
 from .refine import BevCloud, bev_cloud
 
 
+def _no_features() -> np.ndarray:
+    return np.zeros((0, 2))
+
+
 @dataclass
 class PreparedFrame:
-    """One car's frame with its engine features computed (reusable against many other frames)."""
+    """One car's frame with its engine features computed (reusable against many other frames).
+
+    A frame prepared for tracking only (``Aligner.prepare(..., features=False)``) has its BV image and boxes but
+    no MIM, keypoints or descriptors yet: the dense refinement needs none of them. ``ensure_features`` computes them
+    the first time an acquisition needs them (once, whichever thread asks first)."""
 
     bev: BevImage
     boxes: np.ndarray  # (K, 7) [x, y, z, l, w, h, yaw], sensor frame
-    keypoints_rc: np.ndarray  # (K, 2) pixels (row, col)
-    keypoints_xy: np.ndarray  # (K, 2) metres in the sensor frame
-    descriptors: np.ndarray  # (K, D)
-    descriptors_flipped: np.ndarray  # (K, D) the same patches rotated by 180 deg
+    keypoints_rc: np.ndarray = field(default_factory=_no_features)  # (K, 2) pixels (row, col)
+    keypoints_xy: np.ndarray = field(default_factory=_no_features)  # (K, 2) metres in the sensor frame
+    descriptors: np.ndarray = field(default_factory=_no_features)  # (K, D)
+    descriptors_flipped: np.ndarray = field(default_factory=_no_features)  # (K, D) the same patches rotated 180 deg
     orientations: np.ndarray | None = None  # (K,) dominant MIM orientation of each keypoint (1..No, 0: none)
     mim: np.ndarray | None = None  # kept for plots when keep_maps=True
     num_points: int | None = None  # raw cloud size when known
@@ -31,6 +41,23 @@ class PreparedFrame:
     _cloud: BevCloud | None = field(default=None, repr=False)
     _reference: np.ndarray | None = field(default=None, repr=False)
     _derived: dict = field(default_factory=dict, repr=False)  # other per-frame products, built on first use
+    _features: Callable[[BevImage], dict] | None = field(default=None, repr=False)  # pending: computes them
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def has_features(self) -> bool:
+        return self._features is None
+
+    def ensure_features(self) -> PreparedFrame:
+        """Compute the MIM, keypoints and descriptors now if this frame was prepared without them."""
+        if self._features is not None:
+            with self._lock:
+                if self._features is not None:
+                    fields = self._features(self.bev)
+                    for name, value in fields.items():
+                        setattr(self, name, value)
+                    self._features = None
+        return self
 
     def reference_descriptors(self, features: FeatureConfig, n_orient: int) -> np.ndarray:
         """What this frame offers when it is the side matched against (the ego frame): for each orientation

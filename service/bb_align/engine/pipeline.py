@@ -27,7 +27,7 @@ from .boxes import BoxStage, as_boxes
 from .config import AlignConfig
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
-from .geometry import se2_params
+from .geometry import se2, se2_params
 from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
 from .matching import Matcher
@@ -91,55 +91,58 @@ class Aligner:
         )
 
     # ---- Algorithm 1, lines 6-8: per car -------------------------------------------------------------
-    def prepare(self, frame: BevImage | np.ndarray, boxes=None, *, keep_maps: bool = False) -> PreparedFrame:
-        """A BV image (or a raw (N, 3+) cloud, made into one with config.bev) and its boxes -> features."""
+    def prepare(
+        self, frame: BevImage | np.ndarray, boxes=None, *, keep_maps: bool = False, features: bool = True
+    ) -> PreparedFrame:
+        """A BV image (or a raw (N, 3+) cloud, made into one with config.bev) and its boxes -> features.
+
+        ``features=False``: the image only, for tracking (the dense refinement needs no MIM, keypoints or
+        descriptors); they are computed on first need (``PreparedFrame.ensure_features``, done by ``align``)."""
         with _single_threaded_blas():
-            return self._prepare(frame, boxes, keep_maps)
+            timings: dict[str, float] = {}
+            num_points = None
+            if not isinstance(frame, BevImage):
+                pts = np.asarray(frame)
+                num_points = int(len(pts))
+                with _timed(timings, "bev"):
+                    frame = make_bev(pts, self.config.bev)
+            prepared = PreparedFrame(
+                bev=self._at_resolution(frame), boxes=as_boxes(boxes), num_points=num_points, timings_ms=timings
+            )
+            prepared._features = lambda bev: self._features(bev, keep_maps, timings)
+            return prepared.ensure_features() if features else prepared
 
-    def _prepare(self, frame: BevImage | np.ndarray, boxes, keep_maps: bool) -> PreparedFrame:
+    def _features(self, bev: BevImage, keep_maps: bool, timings: dict[str, float]) -> dict:
         cfg = self.config
-        timings: dict[str, float] = {}
-        num_points = None
-        if not isinstance(frame, BevImage):
-            pts = np.asarray(frame)
-            num_points = int(len(pts))
-            with _timed(timings, "bev"):
-                frame = make_bev(pts, cfg.bev)
-        bev = self._at_resolution(frame)
-        with _timed(timings, "mim"):
-            mim, amp = maximum_index_map(bev.image, cfg.mim)
-        with _timed(timings, "keypoints"):
-            rc = detect_keypoints(bev.image, cfg.features)
-        with _timed(timings, "descriptors"):
+        with _single_threaded_blas():
+            with _timed(timings, "mim"):
+                mim, amp = maximum_index_map(bev.image, cfg.mim)
+            with _timed(timings, "keypoints"):
+                rc = detect_keypoints(bev.image, cfg.features)
+            with _timed(timings, "descriptors"):
 
-            def describe(part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                m = keypoint_orientations(mim, amp, part, cfg.features, cfg.mim.n_orient)
-                return m, bvft_descriptors(mim, amp, part, cfg.features, cfg.mim.n_orient, orientations=m)
+                def describe(part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    m = keypoint_orientations(mim, amp, part, cfg.features, cfg.mim.n_orient)
+                    return m, bvft_descriptors(mim, amp, part, cfg.features, cfg.mim.n_orient, orientations=m)
 
-            parts = [p for p in np.array_split(rc, cfg.features.threads) if len(p)] or [rc]
-            described = run_parts(describe, parts)
-            orientations = np.concatenate([m for m, _ in described])
-            desc = np.concatenate([d for _, d in described])
-            desc_flip = flip_180(desc, cfg.features)
-        return PreparedFrame(
-            bev=bev,
-            boxes=as_boxes(boxes),
-            keypoints_rc=rc,
-            keypoints_xy=bev.pixel_to_metre(rc),
-            descriptors=desc,
-            descriptors_flipped=desc_flip,
-            orientations=orientations,
-            mim=mim if keep_maps else None,
-            num_points=num_points,
-            timings_ms=timings,
-            _maps=(mim, amp),
-        )
+                parts = [p for p in np.array_split(rc, cfg.features.threads) if len(p)] or [rc]
+                described = run_parts(describe, parts)
+                desc = np.concatenate([d for _, d in described])
+        return {
+            "keypoints_rc": rc,
+            "keypoints_xy": bev.pixel_to_metre(rc),
+            "descriptors": desc,
+            "descriptors_flipped": flip_180(desc, cfg.features),
+            "orientations": np.concatenate([m for m, _ in described]),
+            "mim": mim if keep_maps else None,
+            "_maps": (mim, amp),
+        }
 
     def warm(self, prepared: PreparedFrame) -> PreparedFrame:
         """Build now what a frame needs as the matched-against (ego) side: the reference descriptors and the
         lit-pixel cloud of the refinement. Otherwise the first alignment against it pays for them."""
         with _single_threaded_blas():
-            prepared.reference_descriptors(self.config.features, self.config.mim.n_orient)
+            prepared.ensure_features().reference_descriptors(self.config.features, self.config.mim.n_orient)
             if self.config.refine.enabled:
                 prepared.cloud(self.config.refine)
         return prepared
@@ -190,6 +193,7 @@ class Aligner:
         ``T_prior`` (3x3 or 4x4 ego <- peer, e.g. from both cars' reported poses) is optional: when given,
         descriptor matches are gated by it (config.prior); without it every yaw and shift is searched."""
         with _single_threaded_blas():
+            ego.ensure_features(), peer.ensure_features()
             pair = _Pair(ego, peer, AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3)))
             reason = (
                 self.verdict.inputs(ego, peer)
@@ -198,6 +202,32 @@ class Aligner:
                 or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box
             )
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
+
+    # ---- tracking (not in the paper): one measurement from a predicted pose ------------------------------
+    def measure(self, ego: PreparedFrame, peer: PreparedFrame, T_pred: np.ndarray) -> AlignResult:
+        """The dense refinement started at a predicted T_ego_peer (3x3 or 4x4) and the refined pose's covariance:
+        what a tracker fuses (bb_align.engine.follow). Needs no MIM, keypoints or descriptors. ``success``: the
+        refinement stayed within its bounds on enough overlap (track.min_fitness); whether the pose agrees with the
+        prediction is the tracker's judgement. ``T_ego_peer`` is the ground-plane pose lifted with no tz, roll or
+        pitch (the follower sets them)."""
+        cfg = self.config
+        T_pred = np.asarray(T_pred, dtype=float)
+        T_pred = se2(se2_params(T_pred)[0], T_pred[0, -1], T_pred[1, -1]) if T_pred.shape == (4, 4) else T_pred
+        r = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=T_pred, T_box=np.eye(3))
+        with _single_threaded_blas():
+            reason = self.verdict.images(ego, peer)
+            if reason is None:
+                with _timed(r.timings_ms, "refine"):
+                    pts = peer.cached(("refine_sample", self.config.seed), lambda: self.refiner.sample(peer.bev))
+                    ego_cloud = ego.cloud(cfg.refine)
+                    ref = self.refiner.refine(ego_cloud, pts, T_pred)
+                r.T_bv, r.refine_fitness = ref.T, ref.fitness
+                reason = self.verdict.measured(ref.accepted, ref.fitness, cfg.track.min_fitness)
+            if reason is None and cfg.covariance.enabled:
+                with _timed(r.timings_ms, "covariance"):
+                    r.covariance = pose_uncertainty(ego_cloud, pts, r.T_bv, cfg.refine.gates_m[-1], cfg.covariance)
+            r.notes.append("tracking measurement: refined from the predicted pose")
+            return self.verdict.finish(r, reason, tz=0.0, roll=0.0, pitch=0.0)
 
     def _stage1(self, pair: _Pair, T_prior: np.ndarray | None) -> FailureReason | None:
         """Lines 9-11 and the dense refinement. Without a prior, in multi mode: many pose hypotheses from the top-k

@@ -31,6 +31,11 @@ class AlignResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     # 3x3 covariance of (yaw rad, tx m, ty m) of T_ego_peer's ground-plane part (None when not computed).
     covariance: np.ndarray | None = None
+    # Tracking (bb_align.engine.follow): where the answer came from ("acquisition", "tracking" or "prediction"),
+    # the peer's track state and, when it changed this frame, why.
+    source: str = "acquisition"
+    track_state: str | None = None
+    track_event: str | None = None
     # Multi-hypothesis acquisition: margin over the runner-up, relative fitness, hypotheses (engine.acquire).
     acquisition: dict | None = field(default=None, repr=False)
     # Stage-1 inlier correspondences (metres, each car's sensor frame), for plots and diagnostics.
@@ -70,6 +75,9 @@ class AlignResult:
             "refine_fitness": float(self.refine_fitness),
             "notes": list(self.notes),
             "timings_ms": {k: float(v) for k, v in self.timings_ms.items()},
+            "source": self.source,
+            "track_state": self.track_state,
+            "track_event": self.track_event,
             "covariance": None if self.covariance is None else np.asarray(self.covariance, dtype=float).tolist(),
             "acquisition": None
             if self.acquisition is None

@@ -104,6 +104,8 @@ class PeerTrack:
         event = None
         if self.X is not None and odometry != self.with_odometry:
             event = self._drop("odometry appeared or disappeared")
+        elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
+            event = self._drop(f"the stream restarted {self.stamp - stamp:.1f} s earlier")
         elif self.X is not None and stamp < self.stamp:
             return self._answer(stamp, "none", False, None, None, "frame older than the track: ignored")
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
@@ -133,11 +135,17 @@ class PeerTrack:
         increment of T_ego_peer)."""
         c = self.cfg
         if self.with_odometry:
-            q = (
+            # Each car's odometry drifts in its own body frame: the ego's error is a left increment of T_ego_peer,
+            # the peer's a right one (at the peer, up to 100 m away: its yaw drift moves the peer sideways in the
+            # ego frame). Both carried to left increments of X = O_e T O_p^-1.
+            q = np.diag(
                 np.array([np.radians(c.odometry_drift_deg_per_s), c.odometry_drift_m_per_s, c.odometry_drift_m_per_s])
                 ** 2
+                * dt
             )
-            X, P = self.X, self.P + np.diag(q) * dt  # the offset stays; its uncertainty diffuses with the drift
+            T_prev = np.linalg.inv(O_e) @ self.X @ O_p
+            Ad_T, A = adjoint(T_prev), adjoint(O_e)
+            X, P = self.X, self.P + A @ (q + Ad_T @ q @ Ad_T.T) @ A.T  # the offset stays; its uncertainty grows
             H = adjoint(np.linalg.inv(O_e))
         else:
             X = se2(*(self.w * dt)) @ self.X

@@ -31,6 +31,11 @@ class FailureReason(str, Enum):
     no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
     too_few_inliers_box = "too_few_inliers_box"  # stage 2 below the success rule
     box_correction_too_large = "box_correction_too_large"  # stage 2 disagrees with stage 1 by too much
+    # Tracking (bb_align.engine.follow), not in the paper:
+    refinement_diverged = "refinement_diverged"  # the refinement from the prediction moved beyond its bounds
+    outside_track_gate = "outside_track_gate"  # the measurement disagrees with the track's prediction
+    track_uncertain = "track_uncertain"  # no usable measurement, and the prediction is too old or too uncertain
+    out_of_order = "out_of_order"  # a frame older than the track's last one
 
 
 # Stage 1 stands but stage 2 could not confirm it (confidence capped at cap_stage2_failed, not cap_stage1_failed).
@@ -63,14 +68,25 @@ class Verdict:
 
     def inputs(self, *frames) -> FailureReason | None:
         """Nothing to match: too few points, an empty image, (almost) no keypoints."""
+        reason = self.images(*frames)
+        if reason is None and any(len(f.keypoints_rc) < self.min_keypoints for f in frames):
+            return FailureReason.no_keypoints
+        return reason
+
+    def images(self, *frames) -> FailureReason | None:
+        """What a tracking measurement needs: enough points (when known) and a lit image on each side."""
         for f in frames:
             if f.num_points is not None and f.num_points < self.min_points:
                 return FailureReason.too_few_points
             if f.lit_pixels == 0:
                 return FailureReason.empty_image
-            if len(f.keypoints_rc) < self.min_keypoints:
-                return FailureReason.no_keypoints
         return None
+
+    def measured(self, accepted: bool, fitness: float, min_fitness: float) -> FailureReason | None:
+        """A tracking measurement: the refinement within its bounds, on at least min_fitness overlap."""
+        if not accepted:
+            return FailureReason.refinement_diverged
+        return FailureReason.inconsistent_overlap if fitness < min_fitness else None
 
     def stage1(self, r: AlignResult) -> FailureReason | None:
         """Inliers_bv above the rule's minimum, and no distinct runner-up pose nearly as good."""

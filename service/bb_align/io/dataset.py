@@ -208,17 +208,22 @@ def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
 
     Scenarios are found by :func:`find_scenarios` (directly under ``root`` or in split folders)."""
     for name, scen in find_scenarios(root):
-        agent_dirs = {p.name: p for p in scen.iterdir() if p.is_dir()}
-        stamps: dict[str, list[str]] = {}
-        for a in agent_order(agent_dirs):
-            for y in agent_dirs[a].glob("*.yaml"):
-                if y.with_suffix(".pcd").exists():
-                    stamps.setdefault(y.stem, []).append(a)
-        for ts in sorted(stamps):
-            agents = stamps[ts]
-            if len(agents) < min_agents:
-                continue
-            yield FrameGroup(name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", name, a) for a in agents})
+        yield from iter_scenario_frames(name, scen, min_agents)
+
+
+def iter_scenario_frames(name: str, scen: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
+    """One scenario folder's frames in time order (as :func:`iter_frames`)."""
+    agent_dirs = {p.name: p for p in Path(scen).iterdir() if p.is_dir()}
+    stamps: dict[str, list[str]] = {}
+    for a in agent_order(agent_dirs):
+        for y in agent_dirs[a].glob("*.yaml"):
+            if y.with_suffix(".pcd").exists():
+                stamps.setdefault(y.stem, []).append(a)
+    for ts in sorted(stamps):
+        agents = stamps[ts]
+        if len(agents) < min_agents:
+            continue
+        yield FrameGroup(name, ts, {a: read_agent_frame(agent_dirs[a] / f"{ts}.yaml", name, a) for a in agents})
 
 
 # ---- writing -----------------------------------------------------------------------------------------------

@@ -138,7 +138,13 @@ class Frame(_Wire):
         "metres and radians; (x, y, z) is the box centre, l along the heading",
     )
     scores: list[Annotated[float, Field(ge=0, le=1)]] | None = Field(None, description="one per box")
-    pose: Pose | None = Field(None, description="reported T_world_sensor (GNSS/odometry); optional")
+    pose: Pose | None = Field(None, description="reported T_world_sensor (GNSS-grade); optional")
+    odometry: Pose | None = Field(
+        None,
+        description="the car's own odometry pose T_odom_sensor (LiDAR/wheel/IMU odometry: locally accurate, slowly "
+        "drifting, in the car's own odometry frame; optional). With it on both the ego's and the peer's frames the "
+        "service tracks the offset between the two odometry frames, which holds where the images are weak",
+    )
     num_points: int | None = Field(None, ge=0, description="points in the raw sweep (bandwidth accounting)")
 
     def bev_image(self, limits: Limits | None = None) -> BevImage:
@@ -265,6 +271,16 @@ class Result(_Wire):
         "1-sigma within the engine's covariance.max_sigma_m",
     )
     prior_used: bool = Field(False, description="roll, pitch, tz taken from the two reported poses")
+    source: Literal["acquisition", "tracking", "prediction"] | None = Field(
+        None,
+        description="acquisition: the full two-stage method ran on this frame; tracking: the dense refinement from "
+        "the track's prediction, fused with it; prediction: no usable measurement this frame, the track's "
+        "prediction (None: tracking off)",
+    )
+    track_state: Literal["acquiring", "tracking", "lost"] | None = Field(
+        None, description="the peer's track after this frame (None: tracking off)"
+    )
+    track_event: str | None = Field(None, description="why the track's state changed on this frame, if it did")
     notes: list[str] = Field(default_factory=list)
     timings_ms: dict[str, float] = Field(default_factory=dict)
     latency_ms: float | None = Field(None, description="service: message received -> result ready")

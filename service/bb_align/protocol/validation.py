@@ -63,10 +63,11 @@ def validate_frame(frame: Frame, limits: Limits, where: str = "", now: float | N
             )
     check_png(frame.png, n, limits, f("png"))
     _check_boxes(frame, limits, f)
-    if frame.pose is not None:
-        for name in ("x", "y", "z"):
-            if abs(getattr(frame.pose, name)) > limits.max_pose_m:
-                raise invalid(f(f"pose.{name}"), f"|{name}| exceeds {limits.max_pose_m} m", limits.max_pose_m)
+    for field_name in ("pose", "odometry"):
+        pose = getattr(frame, field_name)
+        for name in ("x", "y", "z") if pose is not None else ():
+            if abs(getattr(pose, name)) > limits.max_pose_m:
+                raise invalid(f(f"{field_name}.{name}"), f"|{name}| exceeds {limits.max_pose_m} m", limits.max_pose_m)
 
 
 def _check_boxes(frame: Frame, limits: Limits, f) -> None:

@@ -52,6 +52,7 @@ from .metrics import Metrics
 from .peers import PeerStatus, PeerTable
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE, Intake, Job, Scheduler
 from .settings import Settings
+from .tracks import PeerTracks
 
 log = logging.getLogger("bb_align.server")
 
@@ -153,6 +154,7 @@ class AlignService:
             lambda: len(self.peer_table),
             lambda: len(self.intake),
         )
+        self.tracks = PeerTracks(self.aligner, limits.max_peers)  # bounded like the peer table, forgotten with it
         self.publishers: list[Callable[[Result], None]] = []
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
@@ -437,6 +439,7 @@ class AlignService:
         for _ in self.scheduler.forget(vehicle_id):
             self.metrics.dropped.labels(UNVERIFIED).inc()  # its own label is about to go
         self.meter.forget(vehicle_id)
+        self.tracks.forget(vehicle_id)
         self.metrics.forget_peer(vehicle_id, entry.outcomes)
         log.info("forgot peer %s (idle for more than %.0f s)", vehicle_id, self.settings.limits.peer_idle_s)
 
@@ -501,14 +504,24 @@ class AlignService:
             ),
         )
 
+    @property
+    def tracking(self) -> bool:
+        return self.settings.align.track.enabled
+
     def _prepare_entry(self, entry) -> PreparedFrame:
-        return self.aligner.warm(self._prepare(entry.frame, "prepare_ego", entry.bev))
+        """An ego frame: with tracking, only what the refinement uses (MIM and descriptors are built if and when
+        an acquisition needs them); without, everything an alignment against it needs."""
+        prepared = self._prepare(entry.frame, "prepare_ego", entry.bev)
+        if self.tracking:
+            prepared.cloud(self.settings.align.refine)
+            return prepared
+        return self.aligner.warm(prepared)
 
     def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:
         t0 = time.perf_counter()
         bev = bev if bev is not None else frame.bev_image(self.settings.limits)
         t_png = (time.perf_counter() - t0) * 1e3
-        prepared = self.aligner.prepare(bev, frame.boxes_array())
+        prepared = self.aligner.prepare(bev, frame.boxes_array(), features=not self.tracking)
         prepared = dataclasses.replace(
             prepared, num_points=frame.num_points, timings_ms={"decode_png": t_png, **prepared.timings_ms}
         )
@@ -553,10 +566,30 @@ class AlignService:
         tz, roll, pitch = prior if prior is not None else (0.0, 0.0, 0.0)
         t0 = time.perf_counter()
         T_prior = reported_relative_pose(ego_frame, peer) if self.settings.use_pose_prior else None
-        res = self.aligner.align(ego_prep, peer_prep, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior)
+        if self.tracking:
+            res = self._follow(ego_frame, ego_prep, peer, peer_prep, T_prior, tz, roll, pitch)
+        else:
+            res = self.aligner.align(ego_prep, peer_prep, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior)
         self.metrics.engine.labels("align").observe(time.perf_counter() - t0)
         timings.update({f"peer_{k}": v for k, v in peer_prep.timings_ms.items()}, **res.timings_ms)
         return self._finish(job, _from_engine(res, base, prior is not None, timings))
+
+    def _follow(self, ego_frame: Frame, ego_prep, peer: Frame, peer_prep, T_prior, tz, roll, pitch) -> AlignResult:
+        """The peer's track, one step: acquisition when it has none, else the refinement from its prediction."""
+        odometry = ego_frame.odometry is not None and peer.odometry is not None
+        track = self.tracks.get(peer.vehicle_id)
+        with track.lock:
+            return track.follower.step(
+                ego_prep,
+                peer_prep,
+                peer.stamp,
+                O_ego=ego_frame.odometry.matrix() if odometry else None,
+                O_peer=peer.odometry.matrix() if odometry else None,
+                T_prior=T_prior,
+                tz=tz,
+                roll=roll,
+                pitch=pitch,
+            )
 
     def _pick_ego(self, peer: Frame, job: Job, base: dict, timings: dict, wait: bool):
         """(ego frame, its features) nearest in time to the peer frame, or a failed Result saying why."""
@@ -638,6 +671,9 @@ def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[s
         stage2_applied=res.stage2_applied,
         covariance=None if res.covariance is None else np.asarray(res.covariance, dtype=float).tolist(),
         prior_used=prior_used,
+        source=None if res.track_state is None else res.source,
+        track_state=res.track_state,
+        track_event=res.track_event,
         notes=list(res.notes),
         timings_ms={k: float(v) for k, v in timings.items()},
     )

@@ -1,0 +1,115 @@
+"""Following one peer through time with the engine: the tracker's two steps on prepared frames.
+
+    follower = Follower(aligner)                                     # one per ego-peer pair
+    result = follower.step(ego, peer, stamp, O_ego=..., O_peer=...)  # once per peer frame, in time order
+
+``acquire`` is the full method (``Aligner.align``, with the caller's reported-pose prior if any; without one the
+multi-hypothesis acquisition searches every pose, and the track judges whether it agrees); ``measure`` is the
+dense refinement from the track's prediction (``Aligner.measure``: no MIM or descriptors). The tracker
+(bb_align.engine.tracker) predicts, gates and fuses; its answer comes back as an AlignResult whose ``source`` says
+where it came from and whose covariance is the track's.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .config import TrackConfig
+from .covariance import left_covariance, params_covariance, probability_within
+from .frame import PreparedFrame
+from .geometry import se2, se2_params, se3_from_se2
+from .pipeline import Aligner
+from .result import AlignResult
+from .tracker import Measurement, PeerTrack, TrackAnswer
+from .verdict import FailureReason
+
+
+def ground_pose(T: np.ndarray | None) -> np.ndarray | None:
+    """A 4x4 (or 3x3) pose's ground-plane part as 3x3 (yaw about z, x, y)."""
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=float)
+    return T if T.shape == (3, 3) else se2(se2_params(T)[0], T[0, 3], T[1, 3])
+
+
+def as_measurement(r: AlignResult) -> Measurement:
+    """An engine result as the tracker's evidence: the ground-plane pose and its covariance of left increments."""
+    if not r.success or r.covariance is None:
+        return Measurement(False, reason=r.reason or "no covariance")
+    T = r.T_box @ r.T_bv
+    return Measurement(True, T, left_covariance(r.covariance, T))
+
+
+class Follower:
+    """The track of one peer and the engine steps it runs. Not thread-safe: one peer's frames in order."""
+
+    def __init__(self, aligner: Aligner, cfg: TrackConfig | None = None):
+        self.aligner = aligner
+        self.cfg = cfg or aligner.config.track
+        self.track = PeerTrack(self.cfg)
+
+    def step(
+        self,
+        ego: PreparedFrame,
+        peer: PreparedFrame,
+        stamp: float,
+        *,
+        O_ego: np.ndarray | None = None,
+        O_peer: np.ndarray | None = None,
+        T_prior: np.ndarray | None = None,
+        tz: float = 0.0,
+        roll: float = 0.0,
+        pitch: float = 0.0,
+    ) -> AlignResult:
+        """One peer frame at ``stamp`` (s) against the ego frame of (about) that time. ``O_ego`` / ``O_peer``: the
+        two cars' odometry poses (4x4 or 3x3; both or neither). ``T_prior``: a reported T_ego_peer (e.g. from GNSS)
+        that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants."""
+        runs: list[AlignResult] = []
+        acquired_ms: list[float] = []
+
+        def measure(T_pred: np.ndarray) -> Measurement:
+            runs.append(self.aligner.measure(ego, peer, T_pred))
+            runs[-1].source = "tracking"
+            return as_measurement(runs[-1])
+
+        def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
+            t = time.perf_counter()
+            runs.append(self.aligner.align(ego, peer, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior))
+            acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
+            return as_measurement(runs[-1])
+
+        t0 = time.perf_counter()
+        answer = self.track.step(stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer))
+        r = self._result(answer, runs, (time.perf_counter() - t0) * 1e3, tz, roll, pitch)
+        if acquired_ms:
+            r.timings_ms["acquire"] = sum(acquired_ms)
+        return r
+
+    def _result(self, a: TrackAnswer, runs: list[AlignResult], ms: float, tz, roll, pitch) -> AlignResult:
+        """The track's answer as an AlignResult: the evidence of the engine run it rests on, the track's pose and
+        covariance, and success only when the track says the pose is valid."""
+        r = runs[-1] if runs else AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
+        r.timings_ms = {k: v for run in runs for k, v in run.timings_ms.items()} | {"track_total": ms}
+        r.source, r.track_state, r.track_event = a.source, a.state.value, a.event
+        own = a.source == "acquisition" and a.valid  # the acquisition's own verdict stands
+        if a.T_ego_peer is not None:
+            r.T_ego_peer = se3_from_se2(a.T_ego_peer, tz=tz, roll=roll, pitch=pitch)
+            r.covariance = params_covariance(a.covariance, a.T_ego_peer)
+        r.success = bool(a.valid)
+        r.reason = None if a.valid else self._reason(a, r)
+        if not own:
+            p = 0.0 if r.covariance is None else probability_within(r.covariance, 1.0, 1.0)
+            cap = self.aligner.config.confidence.cap_stage1_failed
+            r.confidence = float(p if a.valid else min(p, cap))
+        return r
+
+    def _reason(self, a: TrackAnswer, r: AlignResult) -> str:
+        if a.event and "older than the track" in a.event:
+            return FailureReason.out_of_order.value
+        if a.mahalanobis2 is not None and a.mahalanobis2 > self.cfg.gate_chi2:
+            return FailureReason.outside_track_gate.value
+        if a.source == "prediction":
+            return FailureReason.track_uncertain.value
+        return r.reason or FailureReason.track_uncertain.value
