@@ -371,6 +371,19 @@ class TrackConfig(_Frozen):
         description="a prediction whose worst-direction 1-sigma exceeds this "
         "triggers an acquisition, and is not a valid answer on its own",
     )
+    answer_sigma_m: float = Field(
+        0.35,
+        gt=0,
+        description="a tracked answer is valid only while its worst-direction 1-sigma is within this (3 sigma ~ the "
+        "1 m target: a valid answer is within 1 m with high probability when the covariance is honest)",
+    )
+    answer_sigma_deg: float = Field(0.35, gt=0, description="likewise for its yaw 1-sigma, degrees")
+    measurement_inflation: float = Field(
+        1.0,
+        gt=0,
+        description="the tracking measurement's covariance is multiplied by this before fusion: successive "
+        "refinements of nearly the same view share their errors, so they are not independent evidence",
+    )
     crosscheck_s: float = Field(
         5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"
     )

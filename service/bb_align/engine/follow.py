@@ -34,12 +34,13 @@ def ground_pose(T: np.ndarray | None) -> np.ndarray | None:
     return T if T.shape == (3, 3) else se2(se2_params(T)[0], T[0, 3], T[1, 3])
 
 
-def as_measurement(r: AlignResult) -> Measurement:
-    """An engine result as the tracker's evidence: the ground-plane pose and its covariance of left increments."""
+def as_measurement(r: AlignResult, inflation: float = 1.0) -> Measurement:
+    """An engine result as the tracker's evidence: the ground-plane pose and its covariance of left increments
+    (times ``inflation``)."""
     if not r.success or r.covariance is None:
         return Measurement(False, reason=r.reason or "no covariance")
     T = r.T_box @ r.T_bv
-    return Measurement(True, T, left_covariance(r.covariance, T))
+    return Measurement(True, T, inflation * left_covariance(r.covariance, T))
 
 
 class Follower:
@@ -49,6 +50,9 @@ class Follower:
         self.aligner = aligner
         self.cfg = cfg or aligner.config.track
         self.track = PeerTrack(self.cfg)
+        # The last engine run's own pose (3x3) and covariance (of its parameters) before the track fused it:
+        # for diagnostics and calibration (bb_align.lab.tracking).
+        self.last_measured: tuple[np.ndarray, np.ndarray | None] | None = None
 
     def step(
         self,
@@ -72,7 +76,7 @@ class Follower:
         def measure(T_pred: np.ndarray) -> Measurement:
             runs.append(self.aligner.measure(ego, peer, T_pred))
             runs[-1].source = "tracking"
-            return as_measurement(runs[-1])
+            return as_measurement(runs[-1], self.cfg.measurement_inflation)
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
@@ -91,6 +95,7 @@ class Follower:
         """The track's answer as an AlignResult: the evidence of the engine run it rests on, the track's pose and
         covariance, and success only when the track says the pose is valid."""
         r = runs[-1] if runs else AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
+        self.last_measured = (r.T_box @ r.T_bv, r.covariance) if runs and r.success else None
         r.timings_ms = {k: v for run in runs for k, v in run.timings_ms.items()} | {"track_total": ms}
         r.source, r.track_state, r.track_event = a.source, a.state.value, a.event
         own = a.source == "acquisition" and a.valid  # the acquisition's own verdict stands

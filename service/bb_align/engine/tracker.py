@@ -189,19 +189,15 @@ class PeerTrack:
         P = (np.eye(len(P)) - K @ H) @ P
         self._keep(stamp, X, 0.5 * (P + P.T))
         self.last_fused = stamp
-        T = np.linalg.inv(O_e) @ X @ O_p
-        return self._answer(stamp, source, True, T, H @ self.P @ H.T, None, d2)
+        T, P_T = np.linalg.inv(O_e) @ X @ O_p, H @ self.P @ H.T
+        return self._answer(stamp, source, self._confident(P_T), T, P_T, None, d2)
 
     def _coast(self, stamp, X, P, T_pred, P_T, why: str, rejected: bool, d2: float | None = None) -> TrackAnswer:
         """No usable measurement this frame: the prediction stands. It is a valid answer only when nothing
         contradicted it (the measurement failed, it was not rejected), shortly after the last fused measurement,
         and while its uncertainty is in bounds."""
         self._keep(stamp, X, P)
-        valid = (
-            not rejected
-            and stamp - self.last_fused <= self.cfg.max_coast_s
-            and worst_sigma_m(P_T) <= self.cfg.max_sigma_m
-        )
+        valid = not rejected and stamp - self.last_fused <= self.cfg.max_coast_s and self._confident(P_T)
         return self._answer(stamp, "prediction", valid, T_pred, P_T, why, d2)
 
     def _acquire(self, stamp, m: Measurement, O_e, O_p, odometry: bool, event: str | None) -> TrackAnswer:
@@ -231,6 +227,12 @@ class PeerTrack:
             event = (event + "; acquired") if event else "acquired"
         self.last_event = event or self.last_event
         return self._answer(stamp, "acquisition", True, m.T_ego_peer, np.asarray(m.covariance, float), event)
+
+    def _confident(self, P_T: np.ndarray) -> bool:
+        """A pose to act on: its 1-sigma within answer_sigma_m (worst translation direction) and answer_sigma_deg."""
+        return worst_sigma_m(P_T) <= self.cfg.answer_sigma_m and np.degrees(np.sqrt(P_T[0, 0])) <= (
+            self.cfg.answer_sigma_deg
+        )
 
     # ---- bookkeeping -------------------------------------------------------------------------------------------
     def _keep(self, stamp: float, X: np.ndarray, P: np.ndarray) -> None:

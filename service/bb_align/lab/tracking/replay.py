@@ -72,7 +72,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         t_err, r_err = pose_error(r.T_ego_peer, T_true)
         err = _error_components(r.T_ego_peer, T_true)
         # The engine run's own pose (the refinement's measurement, or the acquisition) before the track fused it.
-        measured = r.T_box @ r.T_bv if r.track_state is not None and r.source != "prediction" else None
+        measured, measured_cov = follower.last_measured or (None, None)
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(r.covariance), 0.0)).tolist()
         records.append(
             {
@@ -91,6 +91,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "r_err_deg": r_err,
                 "err": err,  # (yaw rad, tx m, ty m), estimate - truth
                 "measured_err": None if measured is None else _error_components(measured, T_true),
+                "measured_cov": None if measured_cov is None else np.asarray(measured_cov).tolist(),
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 "ran_acquisition": "acquire" in r.timings_ms,

@@ -1,0 +1,107 @@
+"""The engine's follower on a simulated swept sequence, against the simulator's truth: one acquisition, then tracked
+frames that need no descriptors; a 2 s silence survived; an odometry jump loses the track and it is re-acquired.
+(The filter alone, with a noisy oracle instead of the engine, is tested in test_tracker.py.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bb_align.engine import Aligner, Follower
+from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2, wrap_angle
+from bb_align.io.dataset import iter_scenario_frames, parse_lidar_pose
+from bb_align.lab.sim.sweep import write_sweep
+
+FRAMES = 40  # 4 s of a receding sweep: the peer pulls away from ~5 m
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweep")
+    name = write_sweep(root, seed=5, index=0, frames=FRAMES)
+    aligner = Aligner()
+    frames = []
+    for g in iter_scenario_frames(name, root / name):
+        ego, peer = g.ego, g.peers[0]
+        frames.append(
+            {
+                "stamp": float(peer.extra["timestamp_s"]),
+                "ego": (ego.load_points(), ego.detections),
+                "peer": (peer.load_points(), peer.detections),
+                "O_ego": parse_lidar_pose(ego.extra["odometry_pose"]),
+                "O_peer": parse_lidar_pose(peer.extra["odometry_pose"]),
+                "T_true": np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor,
+            }
+        )
+    return aligner, frames
+
+
+def _step(follower: Follower, aligner: Aligner, f: dict, O_peer=None):
+    ego = aligner.prepare(*f["ego"], features=False)
+    peer = aligner.prepare(*f["peer"], features=False)
+    r = follower.step(ego, peer, f["stamp"], O_ego=f["O_ego"], O_peer=f["O_peer"] if O_peer is None else O_peer)
+    return r, ego, peer
+
+
+def test_acquires_once_then_tracks_without_descriptors(sequence):
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    first, *rest = [_step(follower, aligner, f) for f in frames[:15]]
+    r, _, _ = first
+    assert r.source == "acquisition" and r.success and r.track_state == "tracking" and r.track_event == "acquired"
+    for (r, ego, peer), f in zip(rest, frames[1:15]):
+        t_err, r_err = pose_error(r.T_ego_peer, f["T_true"])
+        assert r.source == "tracking" and r.success, (r.reason, r.track_event)
+        assert t_err < 0.5 and r_err < 0.5, (f["stamp"], t_err, r_err)
+        assert not ego.has_features and not peer.has_features  # no MIM, keypoints or descriptors were made
+        assert "acquire" not in r.timings_ms
+        assert r.covariance is not None and 0 < r.confidence <= 1
+
+
+def test_the_track_covers_its_true_error(sequence):
+    """The 3-sigma band of each tracked answer holds its true error in (yaw, tx, ty)."""
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    inside = []
+    for f in frames:
+        r, _, _ = _step(follower, aligner, f)
+        if r.success:
+            (yaw, tx, ty), (yaw_t, tx_t, ty_t) = se2_params(r.T_ego_peer), se2_params(f["T_true"])
+            err = np.array([wrap_angle(yaw - yaw_t), tx - tx_t, ty - ty_t])
+            inside.append(bool(np.all(np.abs(err) <= 3 * np.sqrt(np.diag(r.covariance)))))
+    assert len(inside) >= FRAMES - 2 and np.mean(inside) >= 0.9, inside
+
+
+def test_a_two_second_silence_is_survived(sequence):
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    for f in frames[:10]:
+        _step(follower, aligner, f)
+    assert frames[30]["stamp"] - frames[9]["stamp"] >= 2.0
+    for f in frames[30:36]:
+        r, _, _ = _step(follower, aligner, f)
+        assert r.source == "tracking" and r.success and r.track_event is None, (r.source, r.track_event)
+        assert pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
+
+
+def test_an_odometry_jump_loses_the_track_and_it_is_acquired_again(sequence):
+    """The peer's odometry jumps 6 m / 8 deg (a relocalisation): the refinement from the now wrong prediction is
+    refused by the gate, the track is lost after max_rejects frames, and a fresh acquisition takes over."""
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    jump = se3_from_se2(se2(np.radians(8.0), 6.0, -3.0))
+    events, after = [], []
+    for k, f in enumerate(frames[:25]):
+        r, _, _ = _step(follower, aligner, f, O_peer=jump @ f["O_peer"] if k >= 8 else None)
+        events.append((k, r.source, r.success, r.track_event, r.reason))
+        if k >= 8:
+            after.append((r, f))
+            if r.success:  # never a confident wrong pose while the odometry lies
+                assert pose_error(r.T_ego_peer, f["T_true"])[0] < 1.0, events[-1]
+    lost = [e for e in events if e[3] and e[3].startswith("lost")]
+    assert lost and lost[0][0] >= 8, events
+    assert any(e[4] == "outside_track_gate" for e in events[8:]), events
+    reacquired = [e for e in events if e[0] > lost[0][0] and e[1] == "acquisition" and e[2]]
+    assert reacquired, events
+    r, f = after[-1]
+    assert r.success and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
