@@ -6,10 +6,12 @@ from bb_align.protocol import ErrorBody, Refusal
 
 
 class ServiceError(RuntimeError):
-    """The service answered with an error: ``status`` (HTTP status, or None over Zenoh) and its ErrorBody."""
+    """The service answered with an error: ``status`` (HTTP status, or None over Zenoh) and its ErrorBody
+    (``field``, ``limit``, and ``setting``: the environment variable of the setting that governs it)."""
 
     def __init__(self, status: int | None, body: ErrorBody):
-        where = f" ({body.field}, limit {body.limit})" if body.field else ""
+        setting = f", set by {body.setting}" if body.setting and body.setting not in body.detail else ""
+        where = f" ({body.field}, limit {body.limit}{setting})" if body.field else ""
         super().__init__(f"{status or 'zenoh'} {body.error}{where}: {body.detail}")
         self.status = status
         self.body = body
