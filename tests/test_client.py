@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import math
 
 import msgpack
 import numpy as np
@@ -58,6 +60,21 @@ def test_pose_forms_and_json_encoding(pair):
         encode_frame(ego.points, vehicle_id="a", stamp=0, pose=[1, 2, 3], range_m=RANGE_M)
     with pytest.raises(ValueError, match="encoding"):
         encode_frame(ego.points, vehicle_id="a", stamp=0, encoding="xml", range_m=RANGE_M)
+
+
+def test_encode_frame_takes_any_finite_yaw_wrapped_and_names_a_non_finite_one(pair):
+    """Issue 14: a dataset's yaw in [0, 2 pi) or beyond goes on the air wrapped into [-pi, pi) (read from the raw
+    bytes, not through the model that would wrap it again); nan is refused before anything is sent."""
+    _, ego, _ = pair[0]
+    boxes = ego.boxes[:2].copy()
+    boxes[0, 6], boxes[1, 6] = 7.0, -math.pi
+    on_air = msgpack.unpackb(encode_frame(ego.points, boxes, vehicle_id="a", stamp=0, range_m=RANGE_M))
+    assert [b[6] for b in on_air["boxes"]] == [7.0 - 2 * math.pi, -math.pi]
+    as_json = json.loads(encode_frame(ego.points, boxes, vehicle_id="a", stamp=0, range_m=RANGE_M, encoding=JSON))
+    assert as_json["boxes"][0][6] == 7.0 - 2 * math.pi
+    boxes[1, 6] = np.nan
+    with pytest.raises(ValueError, match=r"boxes\[1\] yaw is nan"):
+        encode_frame(ego.points, boxes, vehicle_id="a", stamp=0, range_m=RANGE_M)
 
 
 def test_decode_result_reads_both_encodings():

@@ -13,8 +13,16 @@ import pytest
 
 from bb_align.engine.geometry import pose_error
 from bb_align.protocol import MSGPACK, json_align_request, load_result, pack_align_request
-from bb_align_client import encode_frame
-from service_support import RANGE_M, moving_pair, running_service, service_settings, true_T_ego_peer
+from bb_align_client import AlignClient, ServiceError, encode_frame
+from service_support import (
+    FLEET_KEY,
+    RANGE_M,
+    moving_pair,
+    running_service,
+    secure_settings,
+    service_settings,
+    true_T_ego_peer,
+)
 
 JSON_CT = {"content-type": "application/json"}
 MSGPACK_CT = {"content-type": MSGPACK}
@@ -235,3 +243,108 @@ def test_peer_frame_arriving_before_its_ego_frame_still_gets_it(server, pair):
     assert res.success and res.ego_seq == 1, (res.reason, res.ego_seq)  # seq 1: the late ego frame
     t_err, r_err = pose_error(res.matrix(), true_T_ego_peer(ego1, peer1))
     assert t_err < 0.3 and r_err < 0.3
+
+
+# ---- issue 14: box yaw, inline ego bandwidth, the replay profile -----------------------------------------------
+def _with_yaw(car, yaw: float) -> np.ndarray:
+    boxes = car.boxes.copy()
+    boxes[0, 6] = yaw
+    return boxes
+
+
+def test_a_yaw_of_7_rad_gives_the_engine_the_same_input_as_7_minus_2_pi(server, pair):
+    """Any finite yaw is taken and wrapped: the engine's input (the boxes handed to Aligner.prepare) and the
+    answer are those of the wrapped twin, bit for bit (7.0 - 2 pi is the independent truth)."""
+    app, http = server
+    service = app.state.service
+    stamp, ego, peer = pair[1]
+    seen, original = [], service.aligner.prepare
+
+    def recording_prepare(bev, boxes=None, *args, **kw):
+        seen.append(None if boxes is None else np.array(boxes, copy=True))
+        return original(bev, boxes, *args, **kw)
+
+    service.aligner.prepare = recording_prepare
+    answers = []
+    try:
+        for seq, yaw in enumerate((7.0, 7.0 - 2 * np.pi)):
+            p = encode_frame(
+                peer.points, _with_yaw(peer, yaw), vehicle_id="car1", stamp=stamp, seq=seq, range_m=RANGE_M
+            )
+            body = pack_align_request(p, _enc(ego, "ego", stamp, seq))
+            r = http.post("/v1/align", content=body, headers=MSGPACK_CT)
+            assert r.status_code == 200, r.text
+            answers.append(load_result(r.content))
+    finally:
+        service.aligner.prepare = original
+    peer_inputs = [
+        b for b in seen if b is not None and len(b) == len(peer.boxes) and np.allclose(b[1:], peer.boxes[1:])
+    ]
+    assert len(peer_inputs) == 2
+    assert peer_inputs[0][0, 6] == 7.0 - 2 * np.pi and np.array_equal(peer_inputs[0], peer_inputs[1])
+    assert answers[0].success == answers[1].success
+    np.testing.assert_allclose(answers[0].matrix(), answers[1].matrix(), atol=1e-9)
+
+
+def test_a_nan_yaw_over_rest_is_422_naming_the_field(server, pair):
+    _, http = server
+    stamp, _, peer = pair[0]
+    d = msgpack.unpackb(_enc(peer, "car1", stamp, 0))
+    d["boxes"][0][6] = float("nan")
+    r = http.post("/v1/align", content=pack_align_request(msgpack.packb(d)), headers=MSGPACK_CT)
+    assert r.status_code == 422 and r.json()["field"] == "peer.boxes.0.6" and "yaw is nan" in r.json()["detail"]
+
+
+def test_an_inline_ego_frame_counts_in_bandwidth(server, pair):
+    """The bytes counted grow by the inline ego frame's size (under the ego id), besides the peer frame's."""
+    _, http = server
+    stamp, ego, peer = pair[0]
+    p, e = _enc(peer, "car1", stamp, 0), _enc(ego, "ego", stamp, 0)
+    before = http.get("/v1/bandwidth").json()
+    assert http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).status_code == 200
+    after = http.get("/v1/bandwidth").json()
+    assert after["total"]["bytes"] - before["total"]["bytes"] == len(p) + len(e)
+    assert after["total"]["messages"] - before["total"]["messages"] == 2
+    ego_bw = after["peers"]["ego"]
+    assert (ego_bw["bytes"], ego_bw["messages"], ego_bw["frames_decoded"]) == (len(e), 1, 1)
+    assert ego_bw["raw_points_bytes"] == 16 * len(ego.points)
+
+
+def _signed(car, name, stamp, seq):
+    return encode_frame(car.points, car.boxes, vehicle_id=name, stamp=stamp, seq=seq, range_m=RANGE_M, key=FLEET_KEY)
+
+
+def test_the_replay_profile_accepts_a_recording_played_twice(pair):
+    """Frames stamped from 0 s (a recording, decades before the receiver's clock), signed, sent twice in a row
+    through /v1/align with the ego inline: both passes accepted and aligned to the true pose."""
+    settings = secure_settings(zenoh=False, limits={"replay": True})
+    assert not settings.limits.clock_checked
+    with running_service(settings) as (_, url):
+        with AlignClient(url, key=FLEET_KEY) as client:
+            for _ in range(2):
+                for seq, (stamp, ego, peer) in enumerate(pair[:2]):
+                    res = client.align(_signed(peer, "car1", stamp, seq), _signed(ego, "ego", stamp, seq))
+                    assert (res.peer_seq, res.ego_seq) == (seq, seq)
+                    assert res.success and pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3
+            assert client.peers()["car1"]["sequence_restarts"] == 1
+
+
+def test_without_the_replay_profile_old_stamps_and_a_second_pass_are_refused_naming_the_setting(pair):
+    stamp, ego, _ = pair[0]
+    with running_service(secure_settings(zenoh=False)) as (_, url):
+        with AlignClient(url, key=FLEET_KEY) as client:
+            with pytest.raises(ServiceError) as e:
+                client.post_frame(_signed(ego, "ego", stamp, 0))
+    body = e.value.body
+    assert (e.value.status, body.field, body.setting) == (422, "stamp", "BBALIGN_LIMITS__MAX_STAMP_AGE_S")
+    assert "BBALIGN_LIMITS__REPLAY=true" in body.detail and "bb-align serve --replay" in body.detail
+    # stamps not checked against the clock, but replays still refused: the second pass is a replay
+    with running_service(secure_settings(zenoh=False, limits={"check_stamp_clock": False})) as (_, url):
+        with AlignClient(url, key=FLEET_KEY) as client:
+            for seq, (stamp, ego, _) in enumerate(pair[:2]):
+                assert client.post_frame(_signed(ego, "ego", stamp, seq))["accepted"]
+            with pytest.raises(ServiceError) as e:
+                client.post_frame(_signed(pair[0][1], "ego", pair[0][0], 0))
+    body = e.value.body
+    assert (e.value.status, body.error, body.setting) == (409, "replayed", "BBALIGN_LIMITS__REPLAY")
+    assert "bb-align serve --replay" in body.detail

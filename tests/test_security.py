@@ -184,7 +184,7 @@ def test_stamps_far_from_the_receivers_clock_are_refused():
         ({"vehicle_id": "x" * 65}, "vehicle_id"),
         ({"seq": -1}, "seq"),
         ({"seq": 2**63}, "seq"),
-        ({"boxes": [[1, 2, 0, 4, 2, 1.5, 7.0]]}, "boxes.0"),  # yaw beyond 2 pi
+        ({"boxes": [[1, 2, 0, 4, 2, 1.5, float("nan")]]}, "boxes.0.6"),  # any finite yaw is taken, not nan
         ({"bev": {"resolution_m": 0.4, "range_m": 20, "max_height_m": float("inf")}}, "bev.max_height_m"),
     ],
 )

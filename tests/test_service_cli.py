@@ -86,6 +86,24 @@ def test_banner_says_loudly_what_is_not_secured():
     assert "NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION" in open_net and "not encrypted" in open_net
 
 
+def test_serve_replay_turns_on_the_replay_profile_on_top_of_the_environment(monkeypatch):
+    """`bb-align serve --replay` = BBALIGN_LIMITS__REPLAY=true, merged with the other BBALIGN_LIMITS__* given in
+    the environment; the banner says what it gives up."""
+    from bb_align.server import commands
+
+    _clear_env(monkeypatch)
+    monkeypatch.setenv("BBALIGN_LIMITS__MAX_BOXES", "32")
+    started = []
+    monkeypatch.setattr(commands, "run_server", lambda settings, log_level="info": started.append(settings))
+    r = CliRunner().invoke(app, ["serve", "--demo", "--replay", "--no-zenoh"])
+    assert r.exit_code == 0, r.output
+    (settings,) = started
+    assert settings.limits.replay and not settings.limits.clock_checked and settings.limits.max_boxes == 32
+    assert "replay  recorded or simulated data" in r.output and "!!! REPLAY PROFILE" in r.output
+    monkeypatch.setenv("BBALIGN_LIMITS__REPLAY", "true")  # the same, from the environment
+    assert Settings(profile="demo").limits.replay
+
+
 def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
     _clear_env(monkeypatch)
     port, zport = free_port(), free_port()

@@ -1,4 +1,5 @@
-"""Latest-only queues, request bounds, fair order, and the ego cache's nearest-in-time choice."""
+"""Latest-only queues, request bounds, fair order, the ego cache's nearest-in-time choice, replay passes and
+refusal notices."""
 
 from __future__ import annotations
 
@@ -7,8 +8,10 @@ import time
 
 import numpy as np
 
-from bb_align.protocol import BevMeta, Frame
+from bb_align.protocol import BevMeta, Frame, Limits, WireError, pack
 from bb_align.server.cache import EgoCache
+from bb_align.server.peers import PeerTable
+from bb_align.server.refusals import RefusalNotices
 from bb_align.server.scheduler import Job, Scheduler
 
 
@@ -170,3 +173,62 @@ def test_wait_until_ready_reports_an_early_exit_and_a_timeout(tmp_path):
         mute.kill()
         mute.wait(10)
     assert stopped, "the timeout stops the child"
+
+
+# ---- issue 14: the replay profile's passes, and which refusals are told to their sender -----------------------
+def _frame(vid, stamp, seq):
+    return Frame(vehicle_id=vid, seq=seq, stamp=stamp, png=b"", bev=BevMeta(resolution_m=0.4, range_m=20))
+
+
+def _admit_all(table, frames):
+    out = []
+    for f in frames:
+        try:
+            out.append("new pass" if table.admit(f, "frames") else "ok")
+        except WireError as e:
+            out.append(e.error)
+    return out
+
+
+def test_a_recording_played_again_is_a_new_pass_only_in_the_replay_profile():
+    recording = [_frame("car1", 100.0 + 0.1 * k, k) for k in range(3)]
+    normal = PeerTable(8, 60.0, reserved="ego", refuse_replays=True)
+    assert _admit_all(normal, recording * 2) == ["ok"] * 3 + ["replayed"] * 3
+    replay = PeerTable(8, 60.0, reserved="ego", refuse_replays=True, new_pass_on_rewind=True)
+    assert _admit_all(replay, recording * 2) == ["ok", "ok", "ok", "new pass", "ok", "ok"]
+    assert _admit_all(replay, [_frame("car1", 100.3, 3)]) == ["ok"]  # the pass goes on
+    assert _admit_all(replay, [_frame("car1", 100.3, 3)]) == ["new pass"]  # never refused as a replay here
+    assert replay.statuses()["car1"].sequence_restarts == 2
+
+
+def test_an_ego_restart_drops_the_previous_pass_from_the_cache():
+    cache = EgoCache(size=5)
+    for seq, stamp in enumerate([10.0, 10.1, 10.2]):
+        cache.add(_ego(stamp, seq), bev=None)
+    assert cache.rewind(10.05) == 2 and cache.stamps() == [10.0]
+    cache.add(_ego(10.05, 3), bev=None)
+    assert cache.nearest(10.2).frame.seq == 3
+
+
+def test_only_signed_stream_frames_are_told_why_and_at_a_bounded_rate():
+    clock = [0.0]
+    notices = RefusalNotices("ego", min_interval_s=0.1, max_tracked=2, clock=lambda: clock[0])
+    e = WireError(422, "invalid", "stamp too old", "stamp", 30.0, "BBALIGN_LIMITS__MAX_STAMP_AGE_S")
+    frame = pack(_frame("car1", 5.0, 7))
+
+    def job(sender="car1", signer="fleet", reply=None):
+        return Job(sender, 0.0, "zenoh", data=frame, reply=reply, meta={"signer": signer} if signer else {})
+
+    n = notices.notice(job(), e, Limits())
+    assert (n.peer_id, n.peer_seq, n.peer_stamp, n.status) == ("car1", 7, 5.0, 422)
+    assert n.refused.setting == "BBALIGN_LIMITS__MAX_STAMP_AGE_S" and n.ego_id == "ego"
+    assert notices.notice(job(signer=None), e, Limits()) is None  # no valid signature: no answer
+    assert notices.notice(job(reply=lambda _: None), e, Limits()) is None  # queries get their own error reply
+    assert notices.notice(job(), e, Limits()) is None  # again within 0.1 s
+    assert notices.notice(job("car2"), e, Limits()) is not None
+    assert notices.notice(job("car3"), e, Limits()) is None  # two senders within the interval: bounded
+    clock[0] = 0.2
+    assert notices.notice(job(), e, Limits()) is not None and notices.notice(job("car3"), e, Limits()) is not None
+    garbled = Job("car1", 0.0, "zenoh", data=b"\xc1", meta={"signer": "fleet"})
+    clock[0] = 1.0
+    assert notices.notice(garbled, e, Limits()).peer_seq is None  # told, even when its seq cannot be read

@@ -40,6 +40,11 @@ def test_short_soak_accounts_for_every_message(tmp_path):
     assert report["service"]["rejected_total"] == sent["attacks"]  # every attack refused, no valid frame
     assert report["service"]["results_received"] > 0 and report["latency_ms"]["p50"] > 0
     assert report["service"]["peers_tracked_end"] <= 3  # junk sender ids never became peers
+    # signed attacks (replays, NaN boxes, PNG bombs, spoofed ids) are told to their sender; junk never is
+    notices = report["service"]["refusal_notices"]
+    assert set(notices) <= {"replayed", "invalid"} and report["checks"]["no_refusal_notice_for_unsigned_junk"]
+    signed_attacks = sum(sent["by_kind"].get(k, 0) for k in ("replay", "nan_box", "png_bomb", "spoofed_id"))
+    assert (sum(notices.values()) > 0) == (signed_attacks > 0)
     assert report["rss_mb"]["start"] > 50 and report["exit_code"] == 0
 
 

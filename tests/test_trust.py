@@ -34,7 +34,7 @@ from bb_align.protocol import (
     sign_result,
 )
 from bb_align.server.settings import AuthSettings
-from bb_align_client import AlignClient, ServiceError, ZenohPeer, encode_frame
+from bb_align_client import AlignClient, FrameRefused, ServiceError, ZenohPeer, encode_frame
 from service_support import FLEET_KEY, RANGE_M, free_port, moving_pair, running_service, secure_settings, wait_for
 
 LIMITS = Limits()
@@ -378,3 +378,27 @@ def test_the_filter_bank_cache_is_bounded_in_bytes():
         assert _blocks.cache_bytes() <= 40 * 2**20
     assert _blocks.cache_bytes() > 0 and filter_bank.cache_bytes() == 0  # the full banks are not kept
     _blocks.cache_clear()
+
+
+# ---- issue 14: refusals of a certified car's pub/sub frames reach that car -------------------------------------
+def test_a_certified_car_hears_why_its_replayed_frame_was_refused(fleet, pair):
+    """Ed25519 credentials: car1 publishes a frame, then the same signed bytes again. The first gets a Result
+    (no ego frame yet: answered without engine work), the second a Refusal signed by the ego's credential,
+    verified against ca.pub by ZenohPeer and raised as FrameRefused naming the replay setting."""
+    settings = _settings(fleet, fleet_key=None)
+    car1 = Credential.load(fleet / "car1.cred")
+    with running_service(settings):
+        with ZenohPeer(
+            "car1", connect=settings.zenoh.listen, key=car1, trust=fleet / "ca.pub", block_when_congested=True
+        ) as car:
+            poses = car.poses("ego")
+            assert car.wait_for_subscriber(10)
+            time.sleep(0.2)
+            on_air = _enc(pair[0][2], "car1", 5, key=car1)
+            car.publish(on_air)
+            assert poses.get(timeout=20).reason == "no_ego_frame"
+            car.publish(on_air)
+            with pytest.raises(FrameRefused) as e:
+                poses.get(timeout=20)
+    assert (e.value.status, e.value.body.error, e.value.body.setting) == (409, "replayed", "BBALIGN_LIMITS__REPLAY")
+    assert e.value.peer_seq == 5 and "bb-align serve --replay" in e.value.body.detail

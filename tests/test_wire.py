@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import math
 import struct
 import zlib
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -350,3 +352,39 @@ def test_committed_json_schemas_match_the_models():
         path = REPO / "proto_schemas" / f"{name}.schema.json"
         assert path.exists(), f"{path} missing: run `bb-align wire-schemas`"
         assert json.loads(path.read_text()) == schema, f"{path} is stale: run `bb-align wire-schemas`"
+
+
+# ---- box yaw: any finite angle, wrapped into [-pi, pi) (issue 14) ----------------------------------------------
+@given(st.floats(allow_nan=False, allow_infinity=False))
+def test_any_finite_box_yaw_is_taken_and_wrapped_into_minus_pi_pi(yaw):
+    """Independent truth in exact rational arithmetic: the wrapped yaw is in [-pi, pi) and a whole number of
+    turns (of the float 2 pi) from the sent one, so the heading the engine sees is the sent heading."""
+    box = [10.0, -2.0, 0.8, 4.5, 1.9, 1.6, yaw]
+    wrapped = load_frame(msgpack.packb({**_fields(_frame()), "boxes": [box], "scores": None}), LIMITS).boxes[0][6]
+    assert -math.pi <= wrapped < math.pi
+    turns = (Fraction(yaw) - Fraction(wrapped)) / Fraction(math.tau)
+    assert turns.denominator == 1, (yaw, wrapped, turns)
+
+
+def test_a_yaw_of_7_rad_arrives_as_exactly_7_minus_2_pi():
+    def sent(yaw):
+        box = [10.0, -2.0, 0.8, 4.5, 1.9, 1.6, yaw]
+        return load_frame(msgpack.packb({**_fields(_frame()), "boxes": [box], "scores": None}), LIMITS)
+
+    assert sent(7.0).boxes[0][6] == 7.0 - 2 * math.pi  # bit for bit: the same engine input
+    assert pack(sent(7.0)) == pack(sent(7.0 - 2 * math.pi))
+    assert sent(math.pi).boxes[0][6] == -math.pi  # the half-open end
+    assert sent(-7.5).boxes[0][6] == pytest.approx(-7.5 + 2 * math.pi, abs=1e-15)
+
+
+@pytest.mark.parametrize("encoding", [MSGPACK, JSON])
+def test_a_non_finite_yaw_is_refused_naming_the_box_component(encoding):
+    d = _frame().model_dump(mode="json" if encoding == JSON else "python")
+    d["boxes"][1][6] = float("nan")
+    e = _refused(json.dumps(d).encode() if encoding == JSON else msgpack.packb(d), encoding)
+    assert (e.status, e.field) == (422, "boxes.1.6") and "yaw" in e.detail and "nan" in e.detail
+
+
+def test_the_schema_says_any_finite_yaw_is_wrapped():
+    schema = json.dumps(json_schemas()["frame"])
+    assert "any finite angle, radians, wrapped" in schema and "2 pi" not in schema

@@ -11,8 +11,17 @@ import numpy as np
 import pytest
 
 from bb_align.engine.geometry import pose_error
-from bb_align_client import ServiceError, ZenohPeer, encode_frame
-from service_support import RANGE_M, moving_pair, running_service, service_settings, service_threads, true_T_ego_peer
+from bb_align_client import FrameRefused, ServiceError, ZenohPeer, encode_frame, sign_frame
+from service_support import (
+    FLEET_KEY,
+    RANGE_M,
+    moving_pair,
+    running_service,
+    secure_settings,
+    service_settings,
+    service_threads,
+    true_T_ego_peer,
+)
 
 
 @pytest.fixture(scope="module")
@@ -191,3 +200,46 @@ def test_oversized_messages_are_refused_at_the_door(pair):
                 what="the refusal",
             )
         assert app.state.service.meter.peer("car1") is None  # never admitted, never queued
+
+
+def test_a_refused_signed_frame_reaches_its_sender_and_unsigned_junk_gets_no_answer(pair):
+    """Issue 14: a signed frame stamped 812 s ago, published over pub/sub, used to be a counted drop the car never
+    heard of (it only saw a timeout). Now its sender gets a signed Refusal on its results key naming the field,
+    the limit and the setting; unsigned or wrongly signed frames get nothing (no amplification)."""
+    settings = secure_settings()
+    stamp, ego, peer = pair[0]
+    ep = _endpoint(settings)
+    with running_service(settings) as (app, url):
+        with (
+            ZenohPeer("car1", connect=ep, key=FLEET_KEY, block_when_congested=True) as car,
+            ZenohPeer("car2", connect=ep, verify_answers=False, block_when_congested=True) as keyless,
+        ):
+            poses, junk_answers = car.poses("ego"), keyless.poses("ego")
+            assert car.wait_for_subscriber(10) and keyless.wait_for_subscriber(10)
+            time.sleep(0.2)  # the pose subscriptions reach the service
+            t = time.time()
+            car.publish(_enc(peer, "car1", t - 812, 3))  # signed by the peer's key
+            with pytest.raises(FrameRefused) as e:
+                poses.get(timeout=20)
+            body = e.value.body
+            assert (e.value.status, body.error, body.field) == (422, "invalid", "stamp")
+            assert (body.setting, body.limit) == ("BBALIGN_LIMITS__MAX_STAMP_AGE_S", settings.limits.max_stamp_age_s)
+            assert "bb-align serve --replay" in body.detail and "812." in body.detail
+            assert (e.value.peer_seq, e.value.peer_stamp) == (3, pytest.approx(t - 812))
+            keyless.publish(_enc(peer, "car2", t - 812, 3))  # unsigned
+            keyless.publish(sign_frame(_enc(peer, "car2", t, 4), "not-the-fleet-key-0123456789"))  # wrong key
+            _wait(lambda: 'error="unauthenticated"} 2.0' in httpx.get(f"{url}/metrics").text, what="both refusals")
+            with pytest.raises(TimeoutError):
+                junk_answers.get(timeout=1.0)
+            # the car's stream goes on: its next frame, stamped now, gets a Result
+            ego_frame = encode_frame(
+                ego.points, ego.boxes, vehicle_id="ego", stamp=t, seq=0, range_m=RANGE_M, key=FLEET_KEY
+            )
+            r = httpx.post(f"{url}/v1/frames", content=ego_frame, headers={"content-type": "application/msgpack"})
+            assert r.status_code == 202, r.text
+            car.publish(_enc(peer, "car1", t, 4))
+            res = poses.get(timeout=30)
+            assert res.peer_seq == 4 and res.success
+            metrics = httpx.get(f"{url}/metrics").text
+        assert 'bbalign_refusal_notices_total{error="invalid"} 1.0' in metrics
+        assert 'bbalign_refusal_notices_total{error="unauthenticated"}' not in metrics

@@ -14,12 +14,13 @@ first used (a REST-only harness never loads it).
 from bb_align.protocol import Result
 
 from .encode import decode_result, encode_frame, sign_frame
-from .errors import ServiceError
+from .errors import FrameRefused, ServiceError
 from .rest import AlignClient, AsyncAlignClient
 
 __all__ = [
     "AlignClient",
     "AsyncAlignClient",
+    "FrameRefused",
     "PoseStream",
     "Result",
     "ServiceError",

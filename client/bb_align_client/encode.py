@@ -23,6 +23,7 @@ from bb_align.protocol import (
     pack,
     sign,
     to_json,
+    wrap_yaw,
 )
 
 
@@ -54,6 +55,8 @@ def make_frame(
     **bev_options,
 ) -> Frame:
     """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame.
+    Any finite yaw is taken (a dataset's [0, 2 pi) or degrees-turned-radians beyond it) and wrapped into
+    [-pi, pi); a non-finite box number is a ValueError naming the box and the component.
     ``pose``: the reported (GNSS-grade) T_world_sensor; ``odometry``: the car's odometry pose T_odom_sensor (as
     :func:`as_pose` reads either), which lets the service track the peer through time."""
     if isinstance(points, BevImage):
@@ -61,7 +64,7 @@ def make_frame(
     else:
         pts = np.asarray(points)
         bev, num_points = make_bev(pts, BevConfig(**bev_options)), int(len(pts))
-    rows = as_boxes(boxes).tolist()
+    rows = [[*row[:6], wrap_yaw(row[6])] for row in as_boxes(boxes).tolist()]
     return Frame(
         vehicle_id=vehicle_id,
         seq=seq,

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bb_align.protocol import FLEET_KEY_ID, AnswerTrust, Credential, Result, TrustStore, WireError, load_result
+from bb_align.protocol import (
+    FLEET_KEY_ID,
+    AnswerTrust,
+    Credential,
+    Refusal,
+    Result,
+    TrustStore,
+    WireError,
+    load_answer,
+    load_result,
+)
 
 
 def answer_trust(
@@ -32,9 +42,12 @@ def answer_trust(
     )
 
 
-def read_answer(data: bytes, trust: AnswerTrust | None, ego_id: str | None = None) -> Result:
-    """Decode (and, with ``trust``, verify) one answer; with ``ego_id``, it must come from that ego."""
-    result = load_result(data, trust)
-    if trust is not None and ego_id is not None and result.ego_id != ego_id:
-        raise WireError(403, "forbidden", f"answer from {result.ego_id!r}, expected {ego_id!r}", "ego_id", ego_id)
-    return result
+def read_answer(
+    data: bytes, trust: AnswerTrust | None, ego_id: str | None = None, refusals: bool = False
+) -> Result | Refusal:
+    """Decode (and, with ``trust``, verify) one answer; with ``ego_id``, it must come from that ego.
+    ``refusals``: a Refusal is a valid answer too (a results key carries them); otherwise only a Result is."""
+    answer = load_answer(data, trust) if refusals else load_result(data, trust)
+    if trust is not None and ego_id is not None and answer.ego_id != ego_id:
+        raise WireError(403, "forbidden", f"answer from {answer.ego_id!r}, expected {ego_id!r}", "ego_id", ego_id)
+    return answer

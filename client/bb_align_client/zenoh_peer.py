@@ -15,6 +15,7 @@ from bb_align.protocol import (
     AnswerTrust,
     Credential,
     ErrorBody,
+    Refusal,
     Result,
     TrustStore,
     ZenohSettings,
@@ -25,7 +26,7 @@ from bb_align.protocol import (
 )
 
 from .encode import sign_frame
-from .errors import ServiceError
+from .errors import FrameRefused, ServiceError
 from .trust import answer_trust, read_answer
 
 
@@ -45,7 +46,8 @@ class ArrivalLog:
 
 
 class PoseStream:
-    """Results the ego service publishes (``<prefix>/poses/<ego_id>/<peer_id>``), buffered for ``get``."""
+    """Results the ego service publishes (``<prefix>/poses/<ego_id>/<peer_id>``), buffered for ``get``. The same
+    key carries the service's refusals of this car's signed frames: ``get`` raises them as FrameRefused."""
 
     def __init__(
         self,
@@ -68,11 +70,17 @@ class PoseStream:
 
     def get(self, timeout: float | None = None) -> Result:
         """The next result, verified (WireError 401/403 for an unsigned or forged one, unless the peer was made
-        with ``verify_answers=False``); raises TimeoutError after ``timeout`` seconds."""
+        with ``verify_answers=False``). Raises FrameRefused (a ServiceError: ``.body.field``, ``.body.limit``,
+        ``.body.setting``, ``.peer_seq``) when the next answer is the service's refusal of one of this car's
+        frames, and TimeoutError after ``timeout`` seconds without an answer."""
         try:
-            return read_answer(self._queue.get(timeout=timeout), self._trust, self._ego_id)
+            data = self._queue.get(timeout=timeout)
         except queue.Empty:
             raise TimeoutError(f"no result on {self.key} within {timeout} s") from None
+        answer = read_answer(data, self._trust, self._ego_id, refusals=True)
+        if isinstance(answer, Refusal):
+            raise FrameRefused(answer)
+        return answer
 
     def close(self) -> None:
         self._subscriber.undeclare()

@@ -28,8 +28,10 @@ def as_boxes(boxes) -> np.ndarray:
         return np.zeros((0, 7))
     if arr.ndim != 2 or arr.shape[1] != 7:
         raise ValueError(f"boxes must be (K, 7) rows of {list(BOX_FIELDS)}, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError("boxes must hold finite numbers only")
+    bad = np.argwhere(~np.isfinite(arr))
+    if len(bad):
+        i, j = (int(v) for v in bad[0])
+        raise ValueError(f"boxes[{i}] {BOX_FIELDS[j]} is {arr[i, j]}: boxes must hold finite numbers only")
     return arr
 
 

@@ -218,7 +218,7 @@ def run_demo(
     service's results against the truth. Every wait is bounded by timeout_s. ``key``: the fleet key, when the
     service requires signed frames."""
     from bb_align.protocol import pack
-    from bb_align_client import ZenohPeer
+    from bb_align_client import FrameRefused, ZenohPeer
     from bb_align_client.encode import make_frame
 
     from .sim import Scenario
@@ -249,6 +249,10 @@ def run_demo(
                 res = stream.get(timeout=max(0.0, deadline - time.monotonic()))
             except TimeoutError:
                 return
+            except FrameRefused as e:  # one of the cars' frames was refused: say why, wait no longer for it
+                console.print(f"[red]{e.refusal.peer_id} frame {e.peer_seq} refused: {e}[/red]")
+                expected.discard((e.refusal.peer_id, e.peer_seq))
+                continue
             if (res.peer_id, res.peer_seq) not in sent:  # not this run's frame
                 continue
             rows.append(_row(res, truth, sent, time.perf_counter()))

@@ -10,7 +10,8 @@ own counters (/v1/peers, /metrics) against what was sent:
 
 - every message is accounted for: sent = accepted + rejected + dropped before the gate;
 - every accepted stream frame has a result (success or a failure reason) or is counted as dropped (latest-only);
-- every result the service produced reached the listener; every attack was refused;
+- every result the service produced reached the listener; every attack was refused; refusal notices went only
+  to signed frames (never to unsigned or undecodable junk);
 - the service is still ready, its memory grew less than ``rss_growth_mb``, and (when started here) SIGTERM
   makes it drain and exit 0.
 """
@@ -182,7 +183,7 @@ def run_soak(
     import zenoh
     from tqdm import tqdm
 
-    from bb_align.protocol import ZenohSettings, load_result, poses_key
+    from bb_align.protocol import Refusal, ZenohSettings, load_answer, poses_key
     from bb_align_client import ZenohPeer
     from bb_align_client.zenoh_peer import ArrivalLog
 
@@ -286,8 +287,12 @@ def run_soak(
     got = Counter()
     latency = []
     outcomes = Counter()
+    notices = Counter()  # refusals told to the sender of a signed frame, by error
     for t_recv, data in items:
-        r = load_result(data)
+        r = load_answer(data)
+        if isinstance(r, Refusal):
+            notices[r.refused.error] += 1
+            continue
         got[r.peer_id] += 1
         outcomes["success" if r.success else r.reason] += 1
         t_sent = sent_at.get((r.peer_id, r.peer_seq))
@@ -327,6 +332,7 @@ def run_soak(
         )
         and sum(rejected.values()) == attacks_sent,
         "no_valid_frame_refused": sum(rejected.values()) == attacks_sent,
+        "no_refusal_notice_for_unsigned_junk": not set(notices) & {"unauthenticated", "undecodable", "too_large"},
         "peers_tracked_bounded": metrics.get("bbalign_peers_tracked", 1e9) <= n_peers + 1,
         "rss_growth_within_bound": None
         if rss_start is None or rss_end is None
@@ -360,6 +366,7 @@ def run_soak(
             "results_produced": sum(p["results"] for p in peers.values()),
             "results_received": sum(got.values()),
             "outcomes": dict(outcomes),
+            "refusal_notices": dict(notices),
             "peers_tracked_end": metrics.get("bbalign_peers_tracked"),
         },
         "per_peer": per_peer,

@@ -10,10 +10,12 @@ from .codec import (
     is_signed,
     json_align_request,
     load_align_request,
+    load_answer,
     load_frame,
     load_result,
     pack,
     pack_align_request,
+    peek_seq_stamp,
     peek_signed,
     sign,
     sign_result,
@@ -30,7 +32,7 @@ from .identity import (
     TrustStore,
 )
 from .keys import align_key, frames_key, poses_key
-from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits
+from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN, Limits, limit_env, setting_env
 from .models import (
     JSON,
     MSGPACK,
@@ -41,8 +43,10 @@ from .models import (
     ErrorBody,
     Frame,
     Pose,
+    Refusal,
     Result,
     Signed,
+    wrap_yaw,
 )
 from .png import check_png
 from .schemas import json_schemas, write_json_schemas
@@ -74,6 +78,7 @@ __all__ = [
     "Keyring",
     "Limits",
     "Pose",
+    "Refusal",
     "Result",
     "Signed",
     "WireError",
@@ -87,14 +92,19 @@ __all__ = [
     "json_align_request",
     "json_schemas",
     "load_align_request",
+    "load_answer",
     "load_frame",
     "load_result",
     "pack",
     "pack_align_request",
+    "limit_env",
+    "peek_seq_stamp",
     "peek_signed",
     "poses_key",
+    "setting_env",
     "sign",
     "to_json",
     "validate_frame",
+    "wrap_yaw",
     "write_json_schemas",
 ]

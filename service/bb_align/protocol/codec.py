@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hmac
 import json
+import math
 from typing import Any
 
 import msgpack
@@ -16,8 +17,8 @@ from pydantic import BaseModel, ValidationError
 
 from .errors import WireError, invalid, too_large
 from .identity import FRAME_DOMAIN, RESULT_DOMAIN, SIGNATURE_BYTES, Credential, IdentityError, TrustStore
-from .limits import FLEET_KEY_ID, Limits
-from .models import JSON, MSGPACK, SCHEMA_VERSION, AlignRequest, Frame, Result, Signed
+from .limits import FLEET_KEY_ID, Limits, limit_env
+from .models import BOX_FIELDS, JSON, MSGPACK, SCHEMA_VERSION, AlignRequest, Frame, Refusal, Result, Signed
 from .signatures import MAC_BYTES, AuthError, Keyring, frame_mac
 from .validation import validate_frame
 
@@ -98,7 +99,7 @@ def _pairs(pairs) -> dict:
 def _unpack(data: bytes, encoding: str, limits: Limits) -> dict:
     """Bytes -> a plain dict, refusing oversized or undecodable messages before any model is built."""
     if len(data) > limits.max_message_bytes:
-        raise too_large("message", len(data), limits.max_message_bytes)
+        raise too_large("message", len(data), limits.max_message_bytes, limit_env("max_message_bytes"))
     try:
         if encoding == MSGPACK:
             obj = msgpack.unpackb(
@@ -138,11 +139,20 @@ def _model(cls: type[BaseModel], obj: Any, where: str = ""):
 
 
 def _precheck(obj: dict, limits: Limits, f) -> None:
-    """Counts that must be refused before a model is built for them (e.g. 10^6 boxes)."""
+    """Counts that must be refused before a model is built for them (e.g. 10^6 boxes), and non-finite box
+    numbers, refused here with the box component named (the model would only say 'finite number')."""
     for name in ("boxes", "scores"):
         v = obj.get(name)
         if isinstance(v, (list, tuple)) and len(v) > limits.max_boxes:
-            raise invalid(f(name), f"{len(v)} {name} exceed {limits.max_boxes}", limits.max_boxes)
+            raise invalid(
+                f(name), f"{len(v)} {name} exceed {limits.max_boxes}", limits.max_boxes, limit_env("max_boxes")
+            )
+    boxes = obj.get("boxes")
+    for i, row in enumerate(boxes if isinstance(boxes, list) else ()):
+        for j, v in enumerate(row[: len(BOX_FIELDS)] if isinstance(row, list) else ()):
+            if isinstance(v, float) and not math.isfinite(v):
+                what = "any finite angle in radians is taken" if BOX_FIELDS[j] == "yaw" else "numbers must be finite"
+                raise invalid(f(f"boxes.{i}.{j}"), f"box {i}'s {BOX_FIELDS[j]} is {v}: {what}")
 
 
 def _frame_from(
@@ -270,10 +280,11 @@ def sign_result(
     return data if key is None else sign(data, key, key_id, encoding, RESULT_DOMAIN)
 
 
-def load_result(data: bytes, trust: AnswerTrust | None = None) -> Result:
-    """msgpack or JSON bytes (a Result, or a Signed one) -> Result (a JSON object starts with '{', never a
-    msgpack map). With ``trust``: the answer must be signed by the ego it names (or the fleet key), else
-    WireError 401 (unsigned, forged) or 403 (signed by another vehicle than the Result's ego_id)."""
+def load_answer(data: bytes, trust: AnswerTrust | None = None) -> Result | Refusal:
+    """msgpack or JSON bytes (a Result or a Refusal, signed or not) -> the answer (a JSON object starts with '{',
+    never a msgpack map). A Refusal is what a car's results key carries when the service refused one of its
+    signed frames (a map with ``refused``). With ``trust``: the answer must be signed by the ego it names (or
+    the fleet key), else WireError 401 (unsigned, forged) or 403 (signed by another vehicle than its ego_id)."""
     encoding = JSON if data[:1] == b"{" else MSGPACK
     limits = Limits()
     obj = _unpack(data, encoding, limits)
@@ -284,10 +295,34 @@ def load_result(data: bytes, trust: AnswerTrust | None = None) -> Result:
         obj = _unpack(env.payload, encoding, limits)
     elif trust is not None:
         raise WireError(401, "unauthenticated", "the answer is not signed; refused (verification is on)", "result")
-    result: Result = _model(Result, obj)
+    answer: Result | Refusal = _model(Refusal if "refused" in obj else Result, obj)
     if trust is not None:
-        if signer != FLEET_KEY_ID and result.ego_id != signer:
-            raise WireError(403, "forbidden", f"answer of {result.ego_id!r} signed by {signer!r}", "ego_id", signer)
-        if trust.ego_id is not None and result.ego_id != trust.ego_id:
-            raise WireError(403, "forbidden", f"answer from {result.ego_id!r}, expected {trust.ego_id!r}", "ego_id")
-    return result
+        if signer != FLEET_KEY_ID and answer.ego_id != signer:
+            raise WireError(403, "forbidden", f"answer of {answer.ego_id!r} signed by {signer!r}", "ego_id", signer)
+        if trust.ego_id is not None and answer.ego_id != trust.ego_id:
+            raise WireError(403, "forbidden", f"answer from {answer.ego_id!r}, expected {trust.ego_id!r}", "ego_id")
+    return answer
+
+
+def load_result(data: bytes, trust: AnswerTrust | None = None) -> Result:
+    """Like :func:`load_answer`, for where only a Result can come (REST answers, query replies)."""
+    answer = load_answer(data, trust)
+    if isinstance(answer, Refusal):
+        raise invalid("refused", "expected a Result, got a Refusal")
+    return answer
+
+
+def peek_seq_stamp(data: bytes, limits: Limits) -> tuple[int | None, float | None]:
+    """The seq and stamp a raw frame (or the frame inside a Signed envelope) claims, when they can be read, for
+    telling a sender which of its frames was refused; (None, None) otherwise. Never raises."""
+    try:
+        encoding = JSON if data[:1] == b"{" else MSGPACK
+        obj = _unpack(data, encoding, limits)
+        if _is_envelope(obj):
+            obj = _unpack(_envelope(obj).payload, encoding, limits)
+    except WireError:
+        return None, None
+    seq, stamp = obj.get("seq"), obj.get("stamp")
+    seq_ok = type(seq) is int and 0 <= seq < 2**63
+    stamp_ok = type(stamp) in (int, float) and math.isfinite(stamp) and stamp >= 0
+    return (seq if seq_ok else None), (float(stamp) if stamp_ok else None)

@@ -14,6 +14,25 @@ VEHICLE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"  # one Zenoh key chunk
 FLEET_KEY_ID = "fleet"  # the key id of the shared fleet key (per-peer keys use the vehicle id)
 
 
+SETTINGS_PREFIX = "BBALIGN_"  # the service's environment prefix (bb_align.server.settings); Limits sit under LIMITS
+
+
+REPLAY_HINT = "for recorded or simulated data: BBALIGN_LIMITS__REPLAY=true, i.e. `bb-align serve --replay`"
+
+
+def setting_env(name: str) -> str:
+    """The environment variable of a service setting given by its dotted path (``limits.max_boxes`` ->
+    ``BBALIGN_LIMITS__MAX_BOXES``): what refusals name, so the user knows which knob governs them."""
+    return SETTINGS_PREFIX + name.replace(".", "__").upper()
+
+
+def limit_env(name: str) -> str:
+    """The environment variable of a Limits field (checked, so a renamed field cannot leave a stale name)."""
+    if name not in Limits.model_fields:
+        raise KeyError(f"Limits has no field {name!r}")
+    return setting_env(f"limits.{name}")
+
+
 class Limits(BaseModel):
     """What a frame may hold. Every message from either door (Zenoh, REST) is checked against these in
     ``bb_align.protocol`` (load_frame -> validate_frame) before any pixel is decoded."""
@@ -38,7 +57,13 @@ class Limits(BaseModel):
     check_stamp_clock: bool = Field(
         True,
         description="refuse stamps far from the receiver's clock (False for "
-        "replays of recorded or simulated data on their own clock)",
+        "replays of recorded or simulated data on their own clock; replay implies False)",
+    )
+    replay: bool = Field(
+        False,
+        description="recorded or simulated data (bb-align serve --replay): stamps are not compared with the "
+        "receiver's clock, and a sender whose (stamp, seq) goes back (a recording played again) starts a new "
+        "pass instead of being refused as a replay. Gives up replay protection (docs/security.md)",
     )
     max_stamp_age_s: float = Field(
         30.0, gt=0, description="a frame stamped this much before the receiver's clock is refused"
@@ -83,9 +108,14 @@ class Limits(BaseModel):
     )
     intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
 
+    @property
+    def clock_checked(self) -> bool:
+        """Whether stamps are compared with the receiver's clock (not in the replay profile)."""
+        return self.check_stamp_clock and not self.replay
+
     @model_validator(mode="after")
     def _replay_window_covers_eviction(self) -> Limits:
-        if self.check_stamp_clock and self.peer_idle_s < self.max_stamp_age_s:
+        if self.clock_checked and self.peer_idle_s < self.max_stamp_age_s:
             raise ValueError(
                 f"peer_idle_s ({self.peer_idle_s}) must be at least max_stamp_age_s "
                 f"({self.max_stamp_age_s}): a forgotten peer's old frames must be too old to replay"

@@ -15,7 +15,7 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, WithJsonSchema
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, WithJsonSchema
 
 from bb_align.engine.bev import BevImage, decode_png, image_size_px
 from bb_align.engine.config import BevConfig
@@ -73,7 +73,31 @@ def _exact_int(v: Any) -> Any:
 Version = Annotated[Literal[1], BeforeValidator(_exact_int)]
 
 
-Box = Annotated[list[float], Field(min_length=7, max_length=7, description="[x, y, z, l, w, h, yaw]")]
+def wrap_yaw(yaw: float) -> float:
+    """Radians -> [-pi, pi). math.remainder is exact (no rounding), so 7.0 and 7.0 - 2 pi give the same float:
+    a dataset's yaw in [0, 2 pi) or beyond reaches the engine exactly as its wrapped twin would."""
+    wrapped = math.remainder(yaw, math.tau)
+    return -math.pi if wrapped >= math.pi else wrapped
+
+
+def _wrap_box_yaw(box: list[float]) -> list[float]:
+    return [*box[:6], wrap_yaw(box[6])]
+
+
+BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")  # the order of a box row (engine.boxes has the same)
+
+
+BOX_DESCRIPTION = (
+    "[x, y, z, l, w, h, yaw]: centre (metres, sensor frame), length along the heading, width, height, heading "
+    "(yaw: any finite angle, radians, wrapped into [-pi, pi) on receipt)"
+)
+
+
+Box = Annotated[
+    list[float],
+    Field(min_length=7, max_length=7, description=BOX_DESCRIPTION),
+    AfterValidator(_wrap_box_yaw),
+]
 
 
 class _Wire(BaseModel):
@@ -135,7 +159,8 @@ class Frame(_Wire):
     boxes: list[Box] = Field(
         default_factory=list,
         description="rows [x, y, z, l, w, h, yaw], sensor frame, "
-        "metres and radians; (x, y, z) is the box centre, l along the heading",
+        "metres and radians; (x, y, z) is the box centre, l along the heading; yaw: any finite angle, radians, "
+        "wrapped into [-pi, pi)",
     )
     scores: list[Annotated[float, Field(ge=0, le=1)]] | None = Field(None, description="one per box")
     pose: Pose | None = Field(None, description="reported T_world_sensor (GNSS-grade); optional")
@@ -310,6 +335,25 @@ class ErrorBody(_Wire):
     detail: str
     field: str | None = Field(None, description="the offending field, dotted path")
     limit: float | int | str | None = Field(None, description="the limit that was exceeded")
+    setting: str | None = Field(
+        None,
+        description="the service setting that governs the refusal, as its environment variable (e.g. "
+        "BBALIGN_LIMITS__MAX_STAMP_AGE_S); None when no setting does",
+    )
+
+
+class Refusal(_Wire):
+    """A frame the ego service refused, told to its sender on the sender's results key
+    (``<prefix>/poses/<ego_id>/<peer_id>``, signed like a Result) when the frame came over Zenoh pub/sub with a
+    valid signature for that sender. Unauthenticated messages are never answered (no amplification)."""
+
+    schema_version: Version = SCHEMA_VERSION
+    ego_id: str
+    peer_id: str = Field(description="the sender: the key's last chunk, which the frame's signature was checked for")
+    peer_seq: int | None = Field(None, description="the refused frame's seq, when it could be read")
+    peer_stamp: float | None = Field(None, description="the refused frame's stamp, when it could be read")
+    status: int = Field(description="the HTTP status the same refusal gets over REST (409 replayed, 422 invalid, ...)")
+    refused: ErrorBody
 
 
 WIRE_MODELS: dict[str, type[BaseModel]] = {
@@ -318,4 +362,5 @@ WIRE_MODELS: dict[str, type[BaseModel]] = {
     "align_request": AlignRequest,
     "result": Result,
     "error": ErrorBody,
+    "refusal": Refusal,
 }

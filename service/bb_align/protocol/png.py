@@ -8,7 +8,7 @@ import zlib
 import numpy as np
 
 from .errors import invalid
-from .limits import Limits
+from .limits import Limits, limit_env
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -42,7 +42,12 @@ def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> 
             raise invalid(field, f"PNG {what} checksum mismatch")
         chunks += 1
         if chunks > limits.max_png_chunks:
-            raise invalid(field, f"more than {limits.max_png_chunks} PNG chunks", limits.max_png_chunks)
+            raise invalid(
+                field,
+                f"more than {limits.max_png_chunks} PNG chunks",
+                limits.max_png_chunks,
+                limit_env("max_png_chunks"),
+            )
         if chunks == 1:
             if ctype != b"IHDR" or length != 13:
                 raise invalid(field, "PNG must start with a 13-byte IHDR chunk")
@@ -69,9 +74,19 @@ def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> 
 def _check_ihdr(body: bytes, size_px: int, limits: Limits, field: str) -> tuple[int, int]:
     width, height, depth, colour, compression, filtering, interlace = struct.unpack(">IIBBBBB", body)
     if width > limits.max_image_px or height > limits.max_image_px:
-        raise invalid(field, f"image {width}x{height} px exceeds {limits.max_image_px} px", limits.max_image_px)
+        raise invalid(
+            field,
+            f"image {width}x{height} px exceeds {limits.max_image_px} px",
+            limits.max_image_px,
+            limit_env("max_image_px"),
+        )
     if width < limits.min_image_px or height < limits.min_image_px:
-        raise invalid(field, f"image {width}x{height} px is below {limits.min_image_px} px", limits.min_image_px)
+        raise invalid(
+            field,
+            f"image {width}x{height} px is below {limits.min_image_px} px",
+            limits.min_image_px,
+            limit_env("min_image_px"),
+        )
     if depth != 8 or colour != 0:
         raise invalid(
             field, f"PNG must be 8-bit greyscale (bit depth 8, colour type 0), got depth {depth}, colour type {colour}"
@@ -98,6 +113,7 @@ def _check_image_data(idat: list[bytes], total: int, width: int, height: int, li
             f"{total} bytes of image data cannot hold a {width}x{height} image (ratio "
             f"{expected / total:.0f} over {limits.max_png_ratio:g})",
             limits.max_png_ratio,
+            limit_env("max_png_ratio"),
         )
     stored_max = expected + 5 * (expected // 16383 + 1) + 6  # deflate's uncompressed blocks plus zlib framing
     if total > stored_max:

@@ -34,6 +34,7 @@ from bb_align.protocol import (
     WireError,
     load_align_request,
     load_frame,
+    setting_env,
 )
 
 from .bandwidth import BandwidthReport
@@ -223,7 +224,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         if not accepted:
             e = WireError(
-                503, "overloaded", "the request queue is full, retry later", "requests", settings.max_pending_requests
+                503,
+                "overloaded",
+                "the request queue is full, retry later",
+                "requests",
+                settings.max_pending_requests,
+                setting_env("max_pending_requests"),
             )
             e.counted = True  # the service counted it when it refused to queue the request
             raise e

@@ -51,6 +51,15 @@ class EgoCache:
             self._entries.append(entry)
         return entry
 
+    def rewind(self, stamp: float) -> int:
+        """The ego's recording started over at ``stamp`` (replay profile): frames of the previous pass stamped
+        later are dropped, so the nearest-in-time choice never reaches across passes. Returns how many."""
+        with self._lock:
+            keep = [e for e in self._entries if e.stamp <= stamp]
+            dropped = len(self._entries) - len(keep)
+            self._entries = deque(keep, maxlen=self._entries.maxlen)
+        return dropped
+
     def nearest(self, stamp: float) -> EgoEntry | None:
         """The entry nearest in time to ``stamp`` (the newer one on a tie); None when the cache is empty."""
         with self._lock:

@@ -26,12 +26,19 @@ def serve(
         help="the embedded demo profile: authentication OFF "
         "(= BBALIGN_PROFILE=demo); otherwise frames must be signed (BBALIGN_AUTH__FLEET_KEY)",
     ),
+    replay: bool = typer.Option(
+        False,
+        "--replay",
+        help="recorded or simulated data (= BBALIGN_LIMITS__REPLAY=true): stamps are not checked against this "
+        "machine's clock and a sender whose (stamp, seq) goes back starts a new pass; replay protection is OFF",
+    ),
     log_level: str = typer.Option("info", help="uvicorn log level"),
 ) -> None:
     """Run the ego-side service: REST and Zenoh doors, ego-frame cache, engine workers (env: BBALIGN_*).
 
-    Frames must be signed (HMAC-SHA256, docs/security.md) unless --demo. SIGTERM/SIGINT: stop taking messages,
-    finish or answer what was accepted, close Zenoh, exit 0."""
+    Frames must be signed (Ed25519 vehicle certificates or HMAC, docs/security.md) unless --demo. --replay is for
+    recorded or simulated data (stamps on their own clock, a recording played more than once). SIGTERM/SIGINT:
+    stop taking messages, finish or answer what was accepted, close Zenoh, exit 0."""
     from pydantic import ValidationError
 
     from .settings import Settings
@@ -44,6 +51,8 @@ def serve(
     }
     if demo:
         given["profile"] = "demo"
+    if replay:  # merged with BBALIGN_LIMITS__* from the environment (pydantic-settings merges nested values)
+        given["limits"] = {"replay": True}
     try:
         settings = Settings(**given, **({"zenoh": zenoh} if zenoh else {}))
     except ValidationError as e:
@@ -84,6 +93,11 @@ def banner(settings) -> str:
         signer, key_id = a.answer_key()
         how = "unsigned" if signer is None else ("Ed25519, " if key_id != "fleet" else "HMAC fleet key, ") + key_id
         lines.append(f"  answers signed: {how}")
+    if settings.limits.replay:
+        lines.append(
+            "  replay  recorded or simulated data: stamps not checked against this clock; a sender going back "
+            "starts a new pass"
+        )
     for warning in settings.security_warnings():
         lines.append(f"  !!! {warning}")
     return "\n".join(lines)

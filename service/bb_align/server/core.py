@@ -13,7 +13,8 @@ evicted). Ego frames go into the cache at once (a PNG decode; their engine featu
 worker, see cache.py); peer frames wait in per-sender latest-only queues, requests in one bounded FIFO. Workers
 (at most ``settings.workers``, the only threads that run the engine) align peer frames against the cached ego
 frame nearest in time; each result (success or not, never a pose from a stale ego frame) goes to the publishers
-(the Zenoh link) or to the request's reply.
+(the Zenoh link) or to the request's reply. A stream frame the gate refuses is answered only when its signature
+was valid for its sender: a Refusal on that sender's results key (refusals.py).
 """
 
 from __future__ import annotations
@@ -36,11 +37,14 @@ from bb_align.protocol import (
     MSGPACK,
     Frame,
     Pose,
+    Refusal,
     Result,
     WireError,
+    limit_env,
     load_frame,
     pack,
     peek_signed,
+    setting_env,
     sign_result,
     to_json,
 )
@@ -50,6 +54,7 @@ from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
 from .metrics import Metrics
 from .peers import PeerStatus, PeerTable
+from .refusals import RefusalNotices
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE, Intake, Job, Scheduler
 from .settings import Settings
 from .tracks import PeerTracks
@@ -145,8 +150,10 @@ class AlignService:
             limits.peer_idle_s,
             reserved=settings.ego_id,
             refuse_replays=self.keyring.required,
+            new_pass_on_rewind=limits.replay,
             on_evict=self._forget,
         )
+        self.notices = RefusalNotices(settings.ego_id, settings.refusal_notice_interval_s, limits.max_peers + 1)
         self.metrics = Metrics(
             self.meter.report,
             lambda: len(self.cache),
@@ -155,7 +162,7 @@ class AlignService:
             lambda: len(self.intake),
         )
         self.tracks = PeerTracks(self.aligner, limits.max_peers)  # bounded like the peer table, forgotten with it
-        self.publishers: list[Callable[[Result], None]] = []
+        self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
 
@@ -203,9 +210,10 @@ class AlignService:
     def running(self) -> bool:
         return bool(self._threads) and all(t.is_alive() for t in self._threads)
 
-    def encode_answer(self, result: Result, encoding: str = MSGPACK) -> bytes:
-        """A Result as it leaves the service: signed with the ego's credential (or the fleet key), any door."""
-        return sign_result(result, self._answer_key, encoding, self._answer_key_id)
+    def encode_answer(self, answer: Result | Refusal, encoding: str = MSGPACK) -> bytes:
+        """A Result (or a Refusal notice) as it leaves the service: signed with the ego's credential (or the fleet
+        key), any door."""
+        return sign_result(answer, self._answer_key, encoding, self._answer_key_id)
 
     # ---- doors -------------------------------------------------------------------------------------------------
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
@@ -275,8 +283,10 @@ class AlignService:
                         f"the ego frame's vehicle_id {ego.vehicle_id!r} is not this service's ego id",
                         "ego.vehicle_id",
                         self.settings.ego_id,
+                        setting_env("ego_id"),
                     )
                 self.peer_table.admit(ego, REQUEST)
+                self._count_inline_ego(ego, encoding)
             self._admit(job, REQUEST)
         except WireError as e:
             self._refused(job, e)
@@ -318,6 +328,7 @@ class AlignService:
                         "the intake queue is full, retry later",
                         "intake",
                         self.settings.limits.intake_queue,
+                        limit_env("intake_queue"),
                     ),
                 )
                 self.metrics.rejected.labels(old.door, "overloaded").inc()
@@ -368,12 +379,15 @@ class AlignService:
                                 "the request queue is full, retry later",
                                 "requests",
                                 self.settings.max_pending_requests,
+                                setting_env("max_pending_requests"),
                             ),
                         )
             except WireError as e:
                 self._refused(job, e)
                 if job.reply is not None:
                     _answer(job, e)
+                else:
+                    self._tell_sender(job, e)
             except Exception as e:  # a bug must not stop the gate; the message is refused and logged
                 log.exception("the gate failed on a message from %s", job.sender or "?")
                 self.metrics.rejected.labels(job.door, "internal").inc()
@@ -382,8 +396,34 @@ class AlignService:
 
     def _admit(self, job: Job, channel: str) -> None:
         """Track the sender (replays and a full table refused) and account the message's bytes."""
-        self.peer_table.admit(job.frame, channel)
+        job.meta["new_pass"] = self.peer_table.admit(job.frame, channel)
+        if job.meta["new_pass"] and job.frame.vehicle_id == self.settings.ego_id:
+            self.tracks.clear()  # the ego's recording started over: every track starts afresh
+        elif job.meta["new_pass"]:
+            self.tracks.forget(job.frame.vehicle_id)  # a peer's recording played again: its track starts afresh
         self.meter.record_message(job.frame.vehicle_id, job.nbytes)
+
+    def _count_inline_ego(self, ego: Frame, encoding: str) -> None:
+        """An admitted ego frame sent inline in /v1/align: its bytes count under the ego id like a streamed ego
+        frame's (the frame alone, as it would go on the air, as the request's peer frame is counted)."""
+        nbytes = len(_encode(ego, encoding))
+        self.meter.record_message(ego.vehicle_id, nbytes)
+        self.meter.record_frame(ego.vehicle_id, FrameBytes.of(ego, nbytes, encoding))
+
+    def _tell_sender(self, job: Job, e: WireError) -> None:
+        """A refused stream frame signed for its sender: that sender learns why on its results key."""
+        notice = self.notices.notice(job, e, self.settings.limits)
+        if notice is None:
+            return
+        self.metrics.refusal_notices.labels(e.error).inc()
+        self._publish(notice)
+
+    def _publish(self, answer: Result | Refusal) -> None:
+        for publish in self.publishers:
+            try:
+                publish(answer)
+            except Exception:
+                log.exception("publishing an answer failed")
 
     def _refused(self, job: Job, e: WireError) -> None:
         e.counted = True  # the REST door counts the refusals it raises itself, not these again
@@ -398,6 +438,8 @@ class AlignService:
         if self.intake.closed and job.door == "rest":
             return False
         frame = job.frame
+        if job.meta.get("new_pass"):  # the ego's recording started over (replay profile)
+            self.cache.rewind(frame.stamp)
         self.metrics.frames.labels(job.door, "ego").inc()
         self.meter.record_frame(frame.vehicle_id, FrameBytes.of(frame, job.nbytes, job.encoding))
         try:
@@ -473,11 +515,7 @@ class AlignService:
             if job.reply is not None:
                 _answer(job, outcome)
             elif isinstance(outcome, Result):
-                for publish in self.publishers:
-                    try:
-                        publish(outcome)
-                    except Exception:
-                        log.exception("publishing a result failed")
+                self._publish(outcome)
 
     def _run(self, job: Job) -> Result | None:
         if job.task == "ego_features":

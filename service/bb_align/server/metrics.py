@@ -70,6 +70,12 @@ class Metrics:
             ["door", "error"],
             registry=r,
         )
+        self.refusal_notices = Counter(
+            "bbalign_refusal_notices",
+            "Refusals of signed stream frames told to their sender on its results key, by error",
+            ["error"],
+            registry=r,
+        )
         self.alignments = Counter(
             "bbalign_alignments", "Alignments run, by outcome (success or reason)", ["peer", "outcome"], registry=r
         )

@@ -4,9 +4,13 @@ Only a frame that passed the whole validator (and its signature check) creates o
 so junk ids cannot fill the table. At most ``max_peers`` senders besides the ego are tracked; a sender silent for
 ``peer_idle_s`` is forgotten (its queue, replay state, bandwidth tally and metric labels go with it, through
 ``on_evict``). With replay refusal on (authentication on), each sender's frames must come with ever newer
-``(stamp, seq)``, separately for its stream (Zenoh frames/*, REST /v1/frames) and its requests (queries, REST
-/v1/align): a signed frame sent again is refused. A forgotten sender's old frames are older than
-``max_stamp_age_s`` (Limits requires peer_idle_s >= max_stamp_age_s), so the stamp window refuses them.
+``(stamp, seq)``, one window across both doors and both REST routes: a signed frame sent again is refused. A
+forgotten sender's old frames are older than ``max_stamp_age_s`` (Limits requires peer_idle_s >=
+max_stamp_age_s), so the stamp window refuses them.
+
+The replay profile (``limits.replay``, recorded or simulated data) takes a ``(stamp, seq)`` that goes back as
+the start of a new pass over the recording: accepted, counted (``sequence_restarts``), and the window starts
+again from it. It gives up replay protection (docs/security.md).
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ from collections.abc import Callable
 
 from pydantic import BaseModel, Field
 
-from bb_align.protocol import Frame, Result, WireError
+from bb_align.protocol import Frame, Result, WireError, limit_env
+from bb_align.protocol.limits import REPLAY_HINT
 
 from .bandwidth import PeerBandwidth
 
@@ -39,6 +44,10 @@ class PeerStatus(BaseModel):
         description="accepted frames whose processing raised (logged; their result says "
         "invalid_frame or internal_error)",
     )
+    sequence_restarts: int = Field(
+        0,
+        description="replay profile: frames whose (stamp, seq) went back and started a new pass over a recording",
+    )
     bandwidth: PeerBandwidth | None = None
 
 
@@ -58,18 +67,20 @@ class PeerTable:
         *,
         reserved: str,
         refuse_replays: bool,
+        new_pass_on_rewind: bool = False,
         on_evict: Callable[[str, _Entry], None] = lambda vid, entry: None,
         clock=time.monotonic,
     ):
         self.max_peers, self.idle_s, self.reserved = max_peers, idle_s, reserved
-        self.refuse_replays = refuse_replays
+        self.refuse_replays, self.new_pass_on_rewind = refuse_replays, new_pass_on_rewind
         self._on_evict = on_evict
         self._clock = clock
         self._lock = threading.Lock()
         self._entries: dict[str, _Entry] = {}
 
-    def admit(self, frame: Frame, channel: str) -> None:
-        """Track ``frame``'s sender (or refresh it); raises WireError 409 (replayed) or 503 (table full)."""
+    def admit(self, frame: Frame, channel: str) -> bool:
+        """Track ``frame``'s sender (or refresh it); raises WireError 409 (replayed) or 503 (table full). True
+        when the frame starts a new pass (replay profile: its (stamp, seq) went back)."""
         now = self._clock()
         evicted = []
         with self._lock:
@@ -84,23 +95,32 @@ class PeerTable:
                         f"already tracking {self.max_peers} peers, none idle for {self.idle_s} s",
                         "vehicle_id",
                         self.max_peers,
+                        limit_env("max_peers"),
                     )
                 entry = self._entries[frame.vehicle_id] = _Entry(now)
             key = (frame.stamp, frame.seq)
             newest = entry.newest.get(channel)
-            if self.refuse_replays and newest is not None and key <= newest:
+            rewound = newest is not None and key <= newest
+            if rewound and self.new_pass_on_rewind:  # a recording played again: its window starts over
+                entry.newest[channel] = key
+                entry.status.sequence_restarts += 1
+            elif rewound and self.refuse_replays:
                 self._notify(evicted)
                 raise WireError(
                     409,
                     "replayed",
-                    f"(stamp, seq) = ({frame.stamp}, {frame.seq}) is not newer than "
-                    f"the last accepted from {frame.vehicle_id!r} ({newest[0]}, {newest[1]})",
+                    f"(stamp, seq) = ({frame.stamp}, {frame.seq}) is not newer than the last accepted from "
+                    f"{frame.vehicle_id!r} ({newest[0]}, {newest[1]}): refused as a replay ({limit_env('replay')} "
+                    f"is false); {REPLAY_HINT}",
                     "stamp",
                     newest[0],
+                    limit_env("replay"),
                 )
-            entry.newest[channel] = max(key, newest) if newest is not None else key
+            else:
+                entry.newest[channel] = max(key, newest) if newest is not None else key
             entry.last_seen = now
         self._notify(evicted)
+        return rewound and self.new_pass_on_rewind
 
     def sweep(self) -> list[str]:
         """Forget every sender idle for longer than idle_s; returns their ids."""

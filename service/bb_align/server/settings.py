@@ -170,6 +170,13 @@ class Settings(BaseSettings):
     request_timeout_s: float = Field(30.0, gt=0, description="REST /v1/align gives up (504) after this")
     shutdown_timeout_s: float = Field(30.0, gt=0, description="SIGTERM: longest wait for in-flight work")
     bandwidth_window_s: float = Field(5.0, gt=0, description="sliding window of the kbit/s rates")
+    refusal_notice_interval_s: float = Field(
+        0.1,
+        ge=0,
+        description="a refused Zenoh stream frame signed for its sender is answered with a Refusal on that "
+        "sender's results key, at most once per this many seconds per sender (a flood of one car's replayed "
+        "frames makes the service publish no faster)",
+    )
 
     @model_validator(mode="after")
     def _demo_profile_turns_auth_off(self) -> Settings:
@@ -210,6 +217,11 @@ class Settings(BaseSettings):
         exposed = [e for e in self.zenoh.listen if not _loopback_endpoint(e)] if self.zenoh.enabled else []
         if self.host not in ("127.0.0.1", "localhost", "::1"):
             exposed.append(f"REST on {self.host}")
+        if self.limits.replay:
+            out.append(
+                "REPLAY PROFILE (limits.replay): replay protection is off; any frame signed by a fleet member, "
+                "recorded at any time, is accepted again (recorded or simulated data only, never on a vehicle network)"
+            )
         if exposed and self.auth.mode == "off":
             out.append("NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION: " + ", ".join(exposed))
         if self.host not in ("127.0.0.1", "localhost", "::1") and self.auth.rest_token is None:

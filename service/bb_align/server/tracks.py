@@ -38,6 +38,10 @@ class PeerTracks:
         with self._lock:
             self._tracks.pop(peer_id, None)
 
+    def clear(self) -> None:
+        with self._lock:
+            self._tracks.clear()
+
     def __len__(self) -> int:
         with self._lock:
             return len(self._tracks)

@@ -2,7 +2,8 @@
 
 - subscriber ``<prefix>/frames/*``: every car's frames; the key's last chunk is the sender's vehicle id (the ego
   id's frames fill the ego cache, all others are aligned);
-- publisher ``<prefix>/poses/<ego_id>/<peer_id>``: one msgpack Result per aligned peer frame;
+- publisher ``<prefix>/poses/<ego_id>/<peer_id>``: one msgpack Result per aligned peer frame, and a Refusal for a
+  refused stream frame whose signature was valid for that peer (core.py, refusals.py);
 - queryable ``<prefix>/align/<ego_id>``: a query carrying a peer frame is answered with a Result (or an error
   reply holding an ErrorBody).
 
@@ -19,7 +20,7 @@ import threading
 
 import zenoh
 
-from bb_align.protocol import ErrorBody, Result, WireError, align_key, frames_key, pack, poses_key
+from bb_align.protocol import ErrorBody, Refusal, Result, WireError, align_key, frames_key, pack, poses_key
 
 from .core import AlignService, Unavailable
 from .settings import Settings
@@ -97,12 +98,13 @@ class ZenohLink:
         except Exception:
             log.exception("replying to a query failed")
 
-    def publish(self, result: Result) -> None:
-        """Put a result on ``<prefix>/poses/<ego_id>/<peer_id>`` (no per-peer publisher state to leak)."""
+    def publish(self, answer: Result | Refusal) -> None:
+        """Put a result (or a refusal notice) on ``<prefix>/poses/<ego_id>/<peer_id>`` (no per-peer publisher state
+        to leak)."""
         with self._lock:
             session = self.session
         if session is not None:
-            session.put(poses_key(self.prefix, result.ego_id, result.peer_id), self.service.encode_answer(result))
+            session.put(poses_key(self.prefix, answer.ego_id, answer.peer_id), self.service.encode_answer(answer))
 
 
 def _error_body(outcome: object) -> ErrorBody:
