@@ -269,8 +269,8 @@ def test_a_yaw_of_7_rad_gives_the_engine_the_same_input_as_7_minus_2_pi(server, 
     try:
         for seq, yaw in enumerate((7.0, 7.0 - 2 * np.pi)):
             p = encode_frame(
-                peer.points, _with_yaw(peer, yaw), vehicle_id="car1", stamp=stamp, seq=seq, range_m=RANGE_M
-            )
+                peer.points, _with_yaw(peer, yaw), vehicle_id=f"yaw{seq}", stamp=stamp, seq=seq, range_m=RANGE_M
+            )  # two cars, each acquired afresh (one car's second frame would be tracked from its first)
             body = pack_align_request(p, _enc(ego, "ego", stamp, seq))
             r = http.post("/v1/align", content=body, headers=MSGPACK_CT)
             assert r.status_code == 200, r.text
