@@ -185,28 +185,28 @@ def test_full_request_queue_answers_503(pair):
         assert counted == [f"{line}{float(codes.count(503))}"]
 
 
-def test_reported_poses_gate_the_matches_and_a_false_report_fails(server, pair):
+def test_reported_poses_check_the_acquisition_and_a_false_report_fails(server, pair):
     from bb_align.engine.geometry import se2, se3_from_se2
 
     _, http = server
     stamp, ego, peer = pair[1]
     noisy = peer.T_world_sensor @ se3_from_se2(se2(np.radians(2.0), 1.5, -1.0))  # GNSS-grade error
-    p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=5, range_m=RANGE_M, pose=noisy)
+    p = encode_frame(peer.points, peer.boxes, vehicle_id="car8", stamp=stamp, seq=5, range_m=RANGE_M, pose=noisy)
     e = encode_frame(
         ego.points, ego.boxes, vehicle_id="ego", stamp=stamp, seq=5, range_m=RANGE_M, pose=ego.T_world_sensor
     )
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
-    assert res.success and "matches gated by the prior pose" in res.notes
+    assert res.source == "acquisition" and res.success and "checked against the reported pose" in res.notes
     assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3
     liar = peer.T_world_sensor @ se3_from_se2(se2(np.radians(90.0), 35.0, 0.0))
     T_lie = np.linalg.inv(ego.T_world_sensor) @ liar
-    # A car with no track yet: the acquisition is gated by the lie and finds nothing there.
+    # A car with no track yet: its acquisition lands far from the lie and is refused.
     p = encode_frame(peer.points, peer.boxes, vehicle_id="car7", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
-    assert res.source == "acquisition"
-    assert not res.success, "a false reported pose must not produce a confident pose near it"
-    # A tracked car: the lie does not move the track (its pose comes from the images and its odometry/motion).
-    p = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
+    assert res.source == "acquisition" and res.reason == "disagrees_with_prior"
+    assert not res.success, "a false reported pose must not produce a confident pose"
+    # A tracked car: the lie does not move the track (its pose comes from the images and its motion).
+    p = encode_frame(peer.points, peer.boxes, vehicle_id="car8", stamp=stamp, seq=6, range_m=RANGE_M, pose=liar)
     res = load_result(http.post("/v1/align", content=pack_align_request(p, e), headers=MSGPACK_CT).content)
     assert res.source == "tracking" and res.success
     assert pose_error(res.matrix(), true_T_ego_peer(ego, peer))[0] < 0.3

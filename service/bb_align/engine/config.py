@@ -371,6 +371,13 @@ class TrackConfig(_Frozen):
         description="a prediction whose worst-direction 1-sigma exceeds this "
         "triggers an acquisition, and is not a valid answer on its own",
     )
+    prior: Literal["check", "gate"] = Field(
+        "check",
+        description="what a reported-pose prior does to a track's acquisitions. check: the acquisition searches "
+        "every pose (multi-hypothesis, strongest at range) and its answer is refused when it lies farther from "
+        "the prior than prior.max_translation_m / max_yaw_deg (an alias along a street, a lying report); gate: "
+        "the prior gates the descriptor matches as in Aligner.align",
+    )
     answer_sigma_m: float = Field(
         0.35,
         gt=0,

@@ -19,7 +19,7 @@ import numpy as np
 from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
-from .geometry import se2, se2_params, se3_from_se2
+from .geometry import pose_error, se2, se2_params, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
 from .tracker import Measurement, PeerTrack, TrackAnswer
@@ -80,7 +80,10 @@ class Follower:
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
-            runs.append(self.aligner.align(ego, peer, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior))
+            gate = T_prior is not None and self.cfg.prior == "gate"
+            runs.append(self.aligner.align(ego, peer, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior if gate else None))
+            if T_prior is not None and not gate:
+                self._check_prior(runs[-1], T_prior)
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])
 
@@ -90,6 +93,23 @@ class Follower:
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
+
+    def _check_prior(self, r: AlignResult, T_prior: np.ndarray) -> None:
+        """An acquisition farther from the reported pose than the prior's tolerance is refused: the images found
+        an alias (a street repeats along itself) or the report lies; either way not a pose to start a track on."""
+        if not r.success:
+            return
+        t_err, r_err = pose_error(r.T_box @ r.T_bv, ground_pose(T_prior))
+        tol = self.aligner.config.prior
+        if t_err > tol.max_translation_m or r_err > tol.max_yaw_deg:
+            r.success, r.reason = False, FailureReason.disagrees_with_prior.value
+            r.confidence = min(r.confidence, self.aligner.config.confidence.cap_stage1_failed)
+            r.notes.append(
+                f"the acquired pose is {t_err:.1f} m / {r_err:.1f} deg from the reported pose (prior tolerance "
+                f"{tol.max_translation_m:g} m / {tol.max_yaw_deg:g} deg)"
+            )
+        else:
+            r.notes.append("checked against the reported pose")
 
     def _result(self, a: TrackAnswer, runs: list[AlignResult], ms: float, tz, roll, pitch) -> AlignResult:
         """The track's answer as an AlignResult: the evidence of the engine run it rests on, the track's pose and

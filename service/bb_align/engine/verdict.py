@@ -36,6 +36,7 @@ class FailureReason(str, Enum):
     outside_track_gate = "outside_track_gate"  # the measurement disagrees with the track's prediction
     track_uncertain = "track_uncertain"  # no usable measurement, and the prediction is too old or too uncertain
     out_of_order = "out_of_order"  # a frame older than the track's last one
+    disagrees_with_prior = "disagrees_with_prior"  # the acquired pose is far from the reported one (alias or lie)
 
 
 # Stage 1 stands but stage 2 could not confirm it (confidence capped at cap_stage2_failed, not cap_stage1_failed).

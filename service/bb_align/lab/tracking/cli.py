@@ -16,6 +16,7 @@ def register(app: typer.Typer) -> None:
         plots: Path | None = typer.Option(None, "--plots", file_okay=False, help="write PNG figures here"),
         records_out: Path | None = typer.Option(None, "--records", help="write every frame's record (JSON lines)"),
         odometry: bool = typer.Option(True, "--odometry/--no-odometry", help="fuse the yaml's odometry_pose"),
+        gnss: bool = typer.Option(True, "--gnss/--no-gnss", help="the yaml's gnss_pose as the acquisitions' prior"),
         limit: int | None = typer.Option(None, "--limit", min=1, help="replay at most this many sequences"),
         max_frames: int | None = typer.Option(None, "--frames", min=1, help="only the first frames of each"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes (one sequence each)"),
@@ -33,7 +34,9 @@ def register(app: typer.Typer) -> None:
         from .summary import format_summary, summarize
 
         try:
-            cfg = ReplayConfig(align=load_align_config(config), use_odometry=odometry, max_frames=max_frames)
+            cfg = ReplayConfig(
+                align=load_align_config(config), use_odometry=odometry, use_gnss=gnss, max_frames=max_frames
+            )
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--config") from None
         scenarios = find_scenarios(root)[:limit]
@@ -45,7 +48,12 @@ def register(app: typer.Typer) -> None:
         )
         records = [r for seq in per_sequence for r in seq]
         summary = summarize(records)
-        summary["config"] = {"root": str(root), "odometry": odometry, "track": cfg.align.track.model_dump()}
+        summary["config"] = {
+            "root": str(root),
+            "odometry": odometry,
+            "gnss": gnss,
+            "track": cfg.align.track.model_dump(),
+        }
         typer.echo(format_summary(summary))
         if json_out:
             json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -29,6 +29,9 @@ class ReplayConfig(BaseModel):
 
     align: AlignConfig = AlignConfig()
     use_odometry: bool = Field(True, description="fuse the yaml's odometry_pose (else: constant-velocity model)")
+    use_gnss: bool = Field(
+        True, description="the yaml's gnss_pose (reported poses) as the acquisitions' prior, as the service does"
+    )
     frame_period_s: float = Field(0.1, gt=0, description="stamp of frame k when a yaml has no timestamp_s")
     max_frames: int | None = Field(None, ge=1, description="replay only the first frames of each sequence")
 
@@ -44,6 +47,14 @@ def _odometry(group: FrameGroup) -> tuple[np.ndarray | None, np.ndarray | None]:
     if "odometry_pose" not in ego.extra or "odometry_pose" not in peer.extra:
         return None, None
     return parse_lidar_pose(ego.extra["odometry_pose"]), parse_lidar_pose(peer.extra["odometry_pose"])
+
+
+def _reported(group: FrameGroup) -> np.ndarray | None:
+    """T_ego_peer as the two cars' reported (GNSS) poses say, when both have one."""
+    ego, peer = group.ego, group.peers[0]
+    if "gnss_pose" not in ego.extra or "gnss_pose" not in peer.extra:
+        return None
+    return np.linalg.inv(parse_lidar_pose(ego.extra["gnss_pose"])) @ parse_lidar_pose(peer.extra["gnss_pose"])
 
 
 def _error_components(T_est: np.ndarray, T_true: np.ndarray) -> list[float]:
@@ -67,7 +78,8 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         peer_frame = aligner.prepare(peer.load_points(), peer.detections, features=False)
         O_ego, O_peer = _odometry(group) if cfg.use_odometry else (None, None)
         stamp = _stamp(group, k, cfg)
-        r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer)
+        T_prior = _reported(group) if cfg.use_gnss else None
+        r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior)
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
         t_err, r_err = pose_error(r.T_ego_peer, T_true)
         err = _error_components(r.T_ego_peer, T_true)
@@ -90,6 +102,9 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "t_err_m": t_err,
                 "r_err_deg": r_err,
                 "err": err,  # (yaw rad, tx m, ty m), estimate - truth
+                "measured": None if measured is None else list(se2_params(measured)),
+                "odometry": None if O_ego is None else [list(se2_params(O_ego)), list(se2_params(O_peer))],
+                "truth": list(se2_params(T_true)),
                 "measured_err": None if measured is None else _error_components(measured, T_true),
                 "measured_cov": None if measured_cov is None else np.asarray(measured_cov).tolist(),
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
