@@ -342,7 +342,7 @@ class TrackConfig(_Frozen):
     )
 
     odometry_drift_m_per_s: float = Field(
-        0.05,
+        0.15,
         gt=0,
         description="with odometry: how fast the two cars' odometry "
         "offset may drift, 1 sigma of a random walk per sqrt(s), metres",
@@ -379,17 +379,18 @@ class TrackConfig(_Frozen):
         "the prior gates the descriptor matches as in Aligner.align",
     )
     answer_sigma_m: float = Field(
-        0.35,
+        0.4,
         gt=0,
         description="a tracked answer is valid only while its worst-direction 1-sigma is within this (3 sigma ~ the "
         "1 m target: a valid answer is within 1 m with high probability when the covariance is honest)",
     )
     answer_sigma_deg: float = Field(0.35, gt=0, description="likewise for its yaw 1-sigma, degrees")
     measurement_inflation: float = Field(
-        1.0,
+        12.0,
         gt=0,
         description="the tracking measurement's covariance is multiplied by this before fusion: successive "
-        "refinements of nearly the same view share their errors, so they are not independent evidence",
+        "refinements of nearly the same view share their errors, so they are not independent evidence (12, with "
+        "odometry_drift_m_per_s 0.15 and answer_sigma_m 0.4: calibrated on swept sequences, docs/tracking.md)",
     )
     crosscheck_s: float = Field(
         5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bb_align.engine.config import AlignConfig
 from bb_align.engine.geometry import pose_error, se2, se3_from_se2
+from bb_align.protocol import Pose
 
 from ..harness import CarStream, ServiceProcess, free_port, simulated_cars, start_service
 
@@ -38,7 +39,12 @@ class ServiceBenchConfig(BaseModel):
     grace_s: float = Field(3.0, ge=0, le=60, description="wait for results after the last frame")
     rate_hz: float = Field(10.0, gt=0, le=50)
     workers: int = Field(2, ge=1, le=16)
-    frames: int = Field(6, ge=1, le=100, description="simulated frames per car, replayed in a loop")
+    frames: int = Field(
+        6, ge=1, le=100, description="simulated frames per car, replayed forwards then backwards (no jumps to track)"
+    )
+    send_odometry: bool = Field(
+        True, description="frames carry the car's odometry (here its true pose): the service tracks with it"
+    )
     seed: int = 303
     send_pose: bool = Field(True, description="frames carry the car's reported pose (the service then gates matches)")
     pose_sigma_m: float = Field(2.0, ge=0, description="reported-pose noise (GNSS), x and y, 1 sigma")
@@ -68,6 +74,15 @@ def simulated_streams(
         reported_pose=(lambda T, car, k: reported_pose(T, cfg, car, k)) if cfg.send_pose else (lambda T, car, k: None),
         progress=progress,
     )
+
+
+def loop_index(k: int, n: int) -> int:
+    """Frame k of an endless replay of n frames, forwards then backwards (0 1 2 1 0 1 ...): the cars move back
+    and forth smoothly, so a track sees motion, never a jump back to the first frame."""
+    if n <= 1:
+        return 0
+    i = k % (2 * (n - 1))
+    return i if i < n else 2 * (n - 1) - i
 
 
 def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int, frame: int) -> np.ndarray:
@@ -145,9 +160,12 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
             if k == n_warm:
                 cpu0, wall0 = svc.cpu_seconds(), time.perf_counter()
             stamp = t_base + k * period
-            idx = k % len(streams[0].frames)
+            idx = loop_index(k, len(streams[0].frames))
             for car, sender in zip(streams, senders):  # the ego's frame first
-                frame = car.frames[idx].model_copy(update={"stamp": stamp, "seq": k})
+                update = {"stamp": stamp, "seq": k}
+                if cfg.send_odometry:
+                    update["odometry"] = Pose.from_matrix(car.T_world_sensor[idx])
+                frame = car.frames[idx].model_copy(update=update)
                 data = pack(frame)
                 sender.publish(data)
                 if car.vehicle_id != EGO_ID:
@@ -196,7 +214,8 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         if r.success and r.T_ego_peer is not None and r.ego_seq is not None:
             # The service pairs the peer frame with the ego frame nearest in time, not always the same tick.
             car = next(c for c in streams if c.vehicle_id == r.peer_id)
-            T_true = np.linalg.inv(streams[0].T_world_sensor[r.ego_seq % n_frames]) @ car.T_world_sensor[idx]
+            T_ego = streams[0].T_world_sensor[loop_index(r.ego_seq, n_frames)]
+            T_true = np.linalg.inv(T_ego) @ car.T_world_sensor[idx]
             errors.append(pose_error(r.matrix(), T_true))
     window_s = cfg.seconds
     dropped = len(in_window) - len(results)
