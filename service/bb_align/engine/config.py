@@ -379,22 +379,26 @@ class TrackConfig(_Frozen):
         "the prior gates the descriptor matches as in Aligner.align",
     )
     answer_sigma_m: float = Field(
-        0.4,
+        0.3,
         gt=0,
-        description="a tracked answer is valid only while its worst-direction 1-sigma is within this (3 sigma ~ the "
-        "1 m target: a valid answer is within 1 m with high probability when the covariance is honest)",
+        description="a tracked answer is valid only while its worst-direction 1-sigma is within this (0.3: with an "
+        "honest covariance a valid answer is off by more than 1 m with probability < 0.5 %, exp(-1 / (2 0.3^2)))",
     )
     answer_sigma_deg: float = Field(0.35, gt=0, description="likewise for its yaw 1-sigma, degrees")
     measurement_inflation: float = Field(
-        12.0,
+        16.0,
         gt=0,
         description="the tracking measurement's covariance is multiplied by this before fusion: successive "
-        "refinements of nearly the same view share their errors, so they are not independent evidence (12, with "
-        "odometry_drift_m_per_s 0.15 and answer_sigma_m 0.4: calibrated on swept sequences, docs/tracking.md)",
+        "refinements of nearly the same view share their errors, so they are not independent evidence (16, with "
+        "odometry_drift_m_per_s 0.15 and answer_sigma_m 0.3: calibrated on swept sequences, docs/tracking.md)",
     )
     crosscheck_s: float = Field(
         5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"
     )
+    max_odometry_speed_m_s: float = Field(
+        70.0, gt=0, description="an odometry step faster than this is a jump (relocalisation, reset): track lost"
+    )
+    max_odometry_yaw_rate_deg_s: float = Field(90.0, gt=0, description="likewise for its yaw rate")
     max_gap_s: float = Field(5.0, gt=0, description="a peer silent longer than this loses its track")
     max_coast_s: float = Field(
         0.3,

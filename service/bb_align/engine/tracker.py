@@ -85,6 +85,7 @@ class PeerTrack:
         self.rejects = 0
         self.last_event: str | None = None
         self.last_fused: float | None = None
+        self.odometry_seen: tuple[float, np.ndarray, np.ndarray] | None = None  # the last frame's (stamp, O_e, O_p)
 
     # ---- the frame step ----------------------------------------------------------------------------------------
     def step(
@@ -108,8 +109,11 @@ class PeerTrack:
             event = self._drop(f"the stream restarted {self.stamp - stamp:.1f} s earlier")
         elif self.X is not None and stamp < self.stamp:
             return self._answer(stamp, "none", False, None, None, "frame older than the track: ignored")
+        elif self.X is not None and odometry and (jump := self._odometry_jump(stamp, O_e, O_p)):
+            event = self._drop(jump)
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
             event = self._drop(f"no frame for {stamp - self.stamp:.1f} s (max_gap_s {self.cfg.max_gap_s:g})")
+        self.odometry_seen = (stamp, O_e, O_p) if odometry else None
         if self.X is None:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
 
@@ -227,6 +231,21 @@ class PeerTrack:
             event = (event + "; acquired") if event else "acquired"
         self.last_event = event or self.last_event
         return self._answer(stamp, "acquisition", True, m.T_ego_peer, np.asarray(m.covariance, float), event)
+
+    def _odometry_jump(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray) -> str | None:
+        """Why a car's odometry step since the last frame cannot be motion (a relocalisation or reset), if so."""
+        if self.odometry_seen is None:
+            return None
+        t0, O_e0, O_p0 = self.odometry_seen
+        dt = max(stamp - t0, 1e-3)
+        for car, O0, O1 in (("ego", O_e0, O_e), ("peer", O_p0, O_p)):
+            yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
+            speed, rate = np.hypot(tx, ty) / dt, abs(np.degrees(wrap_angle(yaw))) / dt
+            if speed > self.cfg.max_odometry_speed_m_s or rate > self.cfg.max_odometry_yaw_rate_deg_s:
+                return (
+                    f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt:.2f} s)"
+                )
+        return None
 
     def _confident(self, P_T: np.ndarray) -> bool:
         """A pose to act on: its 1-sigma within answer_sigma_m (worst translation direction) and answer_sigma_deg."""
