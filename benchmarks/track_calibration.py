@@ -49,13 +49,13 @@ def _measurement(r: dict, inflation: float) -> Measurement:
     return Measurement(True, T, scale * left_covariance(np.array(r["measured_cov"]), T))
 
 
-def run(seqs: dict[str, list[dict]], cfg: TrackConfig, inflation: float) -> dict:
+def run(seqs: dict[str, list[dict]], cfg: TrackConfig, inflation: float, odometry: bool = True) -> dict:
     rows = []
     for recs in seqs.values():
         track, started = PeerTrack(cfg), False
         for r in recs:
             m = _measurement(r, inflation)
-            O = r["odometry"]
+            O = r["odometry"] if odometry else None
             O_e, O_p = (se2(*O[0]), se2(*O[1])) if O else (None, None)
             a = track.step(r["stamp"], lambda T_pred, m=m: m, lambda T_prior, m=m: m, O_e, O_p)
             started |= a.valid
@@ -87,6 +87,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("records", nargs="+")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--no-odometry", action="store_true", help="the constant-velocity model (odometry ignored)")
     ap.add_argument("--grid", default=None, help='JSON overriding GRID entries, e.g. {"answer_sigma_m": [0.4]}')
     args = ap.parse_args()
     grid = GRID | (json.loads(args.grid) if args.grid else {})
@@ -95,7 +96,8 @@ def main() -> None:
     for values in itertools.product(*grid.values()):
         p = dict(zip(grid, values))
         infl = p.pop("measurement_inflation")
-        s = run(seqs, TrackConfig(**p, measurement_inflation=infl), infl)
+        cfg = TrackConfig(**p, measurement_inflation=infl, measurement_inflation_without_odometry=infl)
+        s = run(seqs, cfg, infl, odometry=not args.no_odometry)
         lines.append(
             f"{infl:9g} {p['odometry_drift_m_per_s']:7g} {p['odometry_drift_deg_per_s']:9g} {p['answer_sigma_m']:12g} |"
             f" {100 * s['within_70m']:7.1f} {100 * s['70+']:5.1f} {100 * s['wrong']:5.2f} "

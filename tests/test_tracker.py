@@ -150,7 +150,9 @@ def test_a_peer_silent_past_max_gap_is_acquired_again():
 
 
 def test_measurement_failures_coast_on_the_prediction_then_uncertainty_triggers_acquisition():
-    cfg = TrackConfig(crosscheck_s=0, max_sigma_m=0.5, odometry_drift_m_per_s=0.5)
+    # The oracle's own sigma is 0.3 m along x: answers are judged valid up to 0.5 m here (the default 0.3 m bound
+    # would leave nothing to coast on).
+    cfg = TrackConfig(crosscheck_s=0, max_sigma_m=0.5, odometry_drift_m_per_s=0.5, answer_sigma_m=0.5)
     track = PeerTrack(cfg)
     oracle = Oracle(seed=5)
     rows = _run(track, oracle, range(40), _odometry(), fail_measure=set(range(10, 40)), fail_acquire={25, 26})

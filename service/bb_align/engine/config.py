@@ -392,6 +392,12 @@ class TrackConfig(_Frozen):
         "refinements of nearly the same view share their errors, so they are not independent evidence (16, with "
         "odometry_drift_m_per_s 0.15 and answer_sigma_m 0.3: calibrated on swept sequences, docs/tracking.md)",
     )
+    measurement_inflation_without_odometry: float = Field(
+        2.0,
+        gt=0,
+        description="likewise for the constant-velocity model (no odometry): there the measurements carry the "
+        "track alone, so they are trusted more (calibrated offline on the same sequences, docs/tracking.md)",
+    )
     crosscheck_s: float = Field(
         5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"
     )

@@ -71,12 +71,15 @@ class Follower:
         two cars' odometry poses (4x4 or 3x3; both or neither). ``T_prior``: a reported T_ego_peer (e.g. from GNSS)
         that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants."""
         runs: list[AlignResult] = []
+        with_odometry = O_ego is not None and O_peer is not None
+        c = self.cfg
+        inflation = c.measurement_inflation if with_odometry else c.measurement_inflation_without_odometry
         acquired_ms: list[float] = []
 
         def measure(T_pred: np.ndarray) -> Measurement:
             runs.append(self.aligner.measure(ego, peer, T_pred))
             runs[-1].source = "tracking"
-            return as_measurement(runs[-1], self.cfg.measurement_inflation)
+            return as_measurement(runs[-1], inflation)
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
