@@ -319,3 +319,25 @@ def test_recovered_pose_value_keeps_format_height_and_yaw_branch():
     m = recovered_pose_value(parse_lidar_pose(reported).reshape(-1).tolist(), T_world_ego, T_ego_peer)
     assert len(m) == 16
     np.testing.assert_allclose(np.asarray(m).reshape(4, 4), parse_lidar_pose(v), atol=1e-9)
+
+
+def test_recover_with_tracking_follows_each_peer_through_the_sequence(tmp_path):
+    """--track: one acquisition per peer, then the refinement from the track's prediction, frame after frame;
+    the written poses against the simulator's truth."""
+    from bb_align.lab.sim.sweep import write_sweep
+
+    root, out = tmp_path / "root", tmp_path / "out"
+    write_sweep(root, seed=9, index=0, frames=8)  # receding from ~5 m
+    truth = _make_noisy(root)
+    res = CliRunner().invoke(app, ["recover", str(root), str(out), "--track", "--prior", "--quiet"])
+    assert res.exit_code == 0, res.output
+    rows = _rows(out)
+    assert len(rows) == 8 and rows[0]["source"] == "acquisition"
+    assert [r["source"] for r in rows[1:]].count("tracking") >= 6, [r["source"] for r in rows]
+    written = {(g.scenario, g.timestamp): g for g in iter_frames(out)}
+    for r in rows:
+        assert r["success"], r
+        g = written[(r["scenario"], r["timestamp"])]
+        T_written = np.linalg.inv(g.ego.T_world_sensor) @ g.agents[r["agent"]].T_world_sensor
+        t_err, r_err = pose_error(T_written, truth[(r["scenario"], r["timestamp"], r["agent"])])
+        assert t_err < 0.5 and r_err < 0.5, (r["timestamp"], t_err, r_err)

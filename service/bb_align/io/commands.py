@@ -30,6 +30,9 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
         ),
         out: Path = typer.Argument(..., file_okay=False, help="where to write the corrected copy (not inside ROOT)"),
         prior: bool = typer.Option(False, "--prior", help="gate the engine's matches by the reported (noisy) pose"),
+        track: bool = typer.Option(
+            False, "--track", help="follow each peer through its scenario's frames (acquire once, then refine)"
+        ),
         detections: Path | None = typer.Option(
             None,
             "--detections",
@@ -84,6 +87,7 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
         cfg = RecoverConfig(
             align=align_cfg,
             use_prior=prior,
+            track=track,
             pose_noise_t_m=sigma_t,
             pose_noise_deg=sigma_deg,
             seed=seed,

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from bb_align.engine.boxes import as_boxes
 from bb_align.engine.config import AlignConfig
+from bb_align.engine.follow import Follower
 from bb_align.engine.geometry import wrap_angle
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.result import AlignResult
@@ -84,6 +85,15 @@ class RecoverConfig(BaseModel):
     pose_noise_deg: float = Field(0.0, ge=0, description="demo: Gaussian noise (sigma, deg) on each non-ego yaw")
     seed: int = Field(0, description="seed of the demo pose noise")
     link: bool = Field(True, description="hard-link unchanged binary files (clouds, images) when possible")
+    track: bool = Field(
+        False,
+        description="follow each peer through its scenario's frames (bb_align.engine.follow: acquire once, then "
+        "refine from the prediction, constant-velocity model) instead of solving every frame alone; a resumed run "
+        "starts its tracks afresh at the resume point",
+    )
+    frame_period_s: float = Field(
+        0.1, gt=0, description="with track: the time of frame k when a yaml has no timestamp_s"
+    )
 
 
 # ---- detections ----------------------------------------------------------------------------------------------
@@ -188,14 +198,22 @@ def recover_peers(
     ego_pose_value,
     peers: Iterable[PeerInput],
     use_prior: bool = False,
+    followers: Callable[[str], Follower] | None = None,
+    stamp: float = 0.0,
 ) -> list[PeerRecovery]:
-    """Align every peer against the ego (prepared once); the poses to write, and the evidence."""
+    """Align every peer against the ego (prepared once); the poses to write, and the evidence. ``followers``
+    (peer id -> that peer's Follower): track each peer at ``stamp`` instead of aligning the frame alone (the
+    reported pose then checks the acquisitions)."""
     T_world_ego = parse_lidar_pose(ego_pose_value)
-    ego = aligner.prepare(ego_points, ego_boxes)
+    ego = aligner.prepare(ego_points, ego_boxes, features=followers is None)
     out = []
     for p in peers:
         T_rep = np.linalg.inv(T_world_ego) @ parse_lidar_pose(p.pose_value)
-        res = aligner.align(ego, aligner.prepare(p.points, p.boxes), T_prior=T_rep if use_prior else None)
+        if followers is not None:
+            peer = aligner.prepare(p.points, p.boxes, features=False)
+            res = followers(p.agent).step(ego, peer, stamp, T_prior=T_rep if use_prior else None)
+        else:
+            res = aligner.align(ego, aligner.prepare(p.points, p.boxes), T_prior=T_rep if use_prior else None)
         value = recovered_pose_value(p.pose_value, T_world_ego, res.T_ego_peer) if res.success else p.pose_value
         out.append(PeerRecovery(p.agent, res, T_rep, value, None if p.boxes is None else len(p.boxes)))
     return out
@@ -221,6 +239,8 @@ def _row(scenario: str, timestamp: str, ego: str, boxes_ego: int | None, r: Peer
         "inliers_bv": int(res.inliers_bv),
         "inliers_box": int(res.inliers_box),
         "covariance": d.get("covariance"),
+        "source": res.source,
+        "track_state": res.track_state,
         "boxes_ego": boxes_ego,
         "boxes_peer": r.boxes_peer,
     }
@@ -440,10 +460,19 @@ def recover_dataset(
         total=len(groups), initial=len(groups) - len(todo), desc="recovering", unit="frame", disable=not progress
     )
     finished = 0
+    tracks: dict[tuple[str, str], Follower] = {}  # (scenario, peer) -> its track, with cfg.track
     for g in todo:
         if limit is not None and finished >= limit:
             break
-        new_rows = _recover_group(g, out, root, scen_dirs[g.scenario], aligner, cfg, detections)
+        followers = None
+        if cfg.track:
+            for key in [k for k in tracks if k[0] != g.scenario]:  # a finished scenario's tracks go
+                del tracks[key]
+
+            def followers(agent: str, scenario=g.scenario) -> Follower:
+                return tracks.setdefault((scenario, agent), Follower(aligner))
+
+        new_rows = _recover_group(g, out, root, scen_dirs[g.scenario], aligner, cfg, detections, followers)
         with open(jsonl, "a") as fh:  # the frame's done-marker: its rows, in one append
             fh.write("".join(json.dumps(r) + "\n" for r in new_rows))
             fh.flush()
@@ -467,6 +496,7 @@ def _recover_group(
     aligner: Aligner,
     cfg: RecoverConfig,
     detections: DetectionSource,
+    followers: Callable[[str], Follower] | None = None,
 ) -> list[dict]:
     def raw_yaml(agent: AgentFrame) -> dict:
         return yaml.safe_load((scen_dir / agent.agent / f"{g.timestamp}.yaml").read_text())
@@ -490,7 +520,11 @@ def _recover_group(
         metas[p.agent] = meta
         pts = p.load_points()
         peers.append(PeerInput(p.agent, pts, boxes(p, pts), meta["lidar_pose"]))
-    recs = recover_peers(aligner, ego_pts, ego_boxes, ego_pose, peers, use_prior=cfg.use_prior)
+    t = ego.extra.get("timestamp_s")
+    stamp = float(t) if t is not None else int(g.timestamp) * cfg.frame_period_s if g.timestamp.isdigit() else 0.0
+    recs = recover_peers(
+        aligner, ego_pts, ego_boxes, ego_pose, peers, use_prior=cfg.use_prior, followers=followers, stamp=stamp
+    )
     rows = []
     for r in recs:
         meta = {**metas[r.agent], "lidar_pose": r.pose_value}
