@@ -82,6 +82,26 @@ class Limits(BaseModel):
         64, ge=1, description="unsigned or unverifiable messages waiting for the gate (own lane: junk displaces junk)"
     )
     intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
+    door_queue: int = Field(
+        16,
+        ge=1,
+        description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
+        "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
+    )
+    door_share: float = Field(
+        0.1,
+        gt=0,
+        description="most of one core the Zenoh door may spend checking incoming stream messages (what a flood "
+        "can take from the engine); 0.1 checks about 500 signed frames a second",
+    )
+    door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
+    door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")
+    intake_recent_signatures: int = Field(
+        4096,
+        ge=1,
+        description="signatures verified at the Zenoh door remembered, so a byte-for-byte replay is refused there "
+        "without a signature check",
+    )
 
     @model_validator(mode="after")
     def _replay_window_covers_eviction(self) -> Limits:
