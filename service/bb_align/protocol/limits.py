@@ -92,7 +92,7 @@ class Limits(BaseModel):
         0.1,
         gt=0,
         description="most of one core the Zenoh door may spend checking incoming stream messages (what a flood "
-        "can take from the engine); 0.1 checks about 500 signed frames a second",
+        "can take from the engine); 0.1 checks about 600 signed frames a second (measured: 140 us each)",
     )
     door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
     door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")
