@@ -177,6 +177,27 @@ def make_credentials(directory: Path, vehicle_ids: Iterable[str]) -> dict:
     return {vid: Credential.load(Path(directory) / f"{vid}.cred") for vid in vehicle_ids}
 
 
+def fleet_credentials(directory: Path, vehicle_ids: Iterable[str]) -> dict:
+    """vehicle id -> its Credential from a fleet directory (``bb-align keys``): ``DIR/<id>.cred`` where it exists,
+    else issued now by the authority in ``DIR/ca.key`` (kept in memory, nothing written). ValueError naming the
+    command to run when neither exists."""
+    from bb_align.protocol import Credential, FleetAuthority
+
+    directory = Path(directory)
+    out, authority = {}, None
+    for vid in vehicle_ids:
+        path = directory / f"{vid}.cred"
+        if path.exists():
+            out[vid] = Credential.load(path)
+            continue
+        if authority is None:
+            if not (directory / "ca.key").exists():
+                raise ValueError(f"no credential for {vid!r} in {directory}: bb-align keys issue {directory} {vid}")
+            authority = FleetAuthority.load(directory)
+        out[vid] = authority.issue(vid)
+    return out
+
+
 @dataclass
 class CarStream:
     """One simulated car's frames (wire Frames; stamps and seqs set at publish time) and its true poses."""

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from .harness import ServiceProcess, free_port, make_credentials, simulated_cars, start_service
+from .harness import ServiceProcess, fleet_credentials, free_port, make_credentials, simulated_cars, start_service
 from .soak_attacks import ATTACKS, Sender, expected_errors
 from .soak_phases import (
     UNVERIFIED,
@@ -72,19 +72,6 @@ def start_soak_service(workers: int, log_dir: Path, keys_dir: Path, timeout_s: f
         auth={"ca_cert": str(keys_dir / "ca.pub"), "credential": str(keys_dir / f"{EGO_ID}.cred")},
     )
     return start_service(settings, None, log_dir, timeout_s)
-
-
-def _credentials_of(keys_dir: Path, vehicle_ids: list[str], spare_dir: Path) -> dict:
-    """Credentials for a running service's fleet: DIR/<id>.cred where it exists, else issued by DIR's authority
-    into ``spare_dir`` (the authority's directory is never written)."""
-    from bb_align.protocol import Credential, FleetAuthority
-
-    out = {}
-    for vid in vehicle_ids:
-        path = keys_dir / f"{vid}.cred"
-        out[vid] = Credential.load(path) if path.exists() else FleetAuthority.load(keys_dir).issue(vid)
-        out[vid].save(spare_dir / f"{vid}.cred")
-    return out
 
 
 def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, n_peers) -> tuple[dict, dict]:
@@ -207,8 +194,7 @@ def run_soak(
     else:
         if rest is None or (key is None and keys_dir is None):
             raise ValueError("targeting a running service needs its REST address and its fleet's keys or fleet key")
-        fleet_dir.mkdir(parents=True, exist_ok=True)
-        signers = _credentials_of(Path(keys_dir), ids, fleet_dir) if keys_dir else dict.fromkeys(ids, key)
+        signers = fleet_credentials(Path(keys_dir), ids) if keys_dir else dict.fromkeys(ids, key)
         target, prefix = ServiceProcess(rest, connect, key, pid=pid), prefix or "bbalign"
     load_before = os.getloadavg()
     sender = Sender(signers, max_message_bytes, rng)
