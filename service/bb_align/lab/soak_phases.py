@@ -250,6 +250,8 @@ class Block:
     before: Snapshot
     after: Snapshot
     flooder: dict | None = None
+    arrived: bool = True  # every frame sent passed the gate (or was counted as dropped there) before ``after``
+    waited_s: float = 0.0  # how long that took after the cars' last frame
 
 
 @dataclass
@@ -264,6 +266,7 @@ class PhaseRunner:
     grace_s: float
     progress: bool = True
     crash: str | None = None
+    arrive_s: float = 10.0  # longest wait for a block's last frames (well below the service's peer_idle_s)
 
     def block(self, name: str, kind: str, seconds: float, flood: Callable[[], FloodProcess] | None = None, lead_s=0.0):
         before = Snapshot.take(self.target)
@@ -277,8 +280,32 @@ class PhaseRunner:
         finally:
             if flooder is not None:
                 flooder.stop()
+        t_end = time.perf_counter()
+        arrived = self._arrived(name, before)
+        waited = time.perf_counter() - t_end
         quiesce(self.target, self.grace_s)
-        return Block(name, kind, seconds, before, Snapshot.take(self.target), stats)
+        return Block(name, kind, seconds, before, Snapshot.take(self.target), stats, arrived, waited)
+
+    def _arrived(self, name: str, before: Snapshot) -> bool:
+        """Wait (bounded) until every frame the cars sent in this block passed the gate or was counted as dropped
+        there: under a flood the last ones can still be on their way (Zenoh's FIFO is not a counter we can read).
+        False when some never arrived: they count as lost."""
+        sent = self.traffic.valid_per_peer[name]
+        ego_sent = self.traffic.sent[name]["valid_ego"]
+        deadline = time.monotonic() + self.arrive_s
+        while time.monotonic() < deadline:
+            now = Snapshot.take(self.target)
+            ego = metric_sum(now.metrics, "bbalign_frames_received_total", kind="ego") - metric_sum(
+                before.metrics, "bbalign_frames_received_total", kind="ego"
+            )
+            got = {
+                vid: sum(now.peer(vid, k) - before.peer(vid, k) for k in ("frames_accepted", "intake_dropped"))
+                for vid in sent
+            }
+            if ego >= ego_sent and all(got[vid] >= n for vid, n in sent.items()):
+                return True
+            time.sleep(0.25)
+        return False
 
     def flood_comparison(self, cfg: FloodPhase, flood: Callable[[], FloodProcess]) -> list[Block]:
         blocks = []
@@ -319,6 +346,8 @@ def stream_report(block: Block, traffic: Traffic, results: Counter) -> dict:
         "wall_s": s1.t - s0.t,
         "rss_mb": [s0.rss_mb, s1.rss_mb],
         "flooder": block.flooder,
+        "arrived": block.arrived,
+        "last_frames_waited_s": block.waited_s,
     }
 
 
@@ -336,7 +365,8 @@ def combine(kind: str, blocks: list[Block], traffic: Traffic, results: dict, lat
     parts = [stream_report(b, traffic, results.get(b.name, Counter())) for b in blocks if b.kind == kind]
     total: dict = {}
     for part in parts:
-        total = _add(total, {k: v for k, v in part.items() if k not in ("rss_mb", "flooder", "service_cpu_s")})
+        skip = ("rss_mb", "flooder", "service_cpu_s", "arrived", "last_frames_waited_s")
+        total = _add(total, {k: v for k, v in part.items() if k not in skip})
     cpu = [p["service_cpu_s"] for p in parts]
     peers = total.get("per_peer", {})
     peer_sent = sum(p["sent"] for p in peers.values())
@@ -359,6 +389,8 @@ def combine(kind: str, blocks: list[Block], traffic: Traffic, results: dict, lat
         "refused_at_the_door": total.get("refused_at_the_door", {}),
         "service_cpu_cores": None if None in cpu else sum(cpu) / total["wall_s"],
         "rss_mb_by_block": [p["rss_mb"] for p in parts],
+        "last_frames_waited_s_by_block": [p["last_frames_waited_s"] for p in parts],
+        "every_frame_arrived": all(p["arrived"] for p in parts),
     }
     for part in (out["ego"], out["peers"]):
         part["lost"] = part["sent"] - part["accepted"]
