@@ -111,7 +111,7 @@ def test_stamp_and_seq_reads_a_frame_without_decoding_its_image(frame_car1):
     assert stamp_and_seq(msgpack.packb({"seq": "7", "stamp": 1.0})) is None  # a seq that is not an integer
 
 
-def test_the_budget_sleeps_out_the_window_once_its_share_is_spent():
+def test_the_budget_holds_the_share_and_a_costly_message_is_paid_in_full():
     t = [0.0]
     slept = []
 
@@ -124,11 +124,14 @@ def test_the_budget_sleeps_out_the_window_once_its_share_is_spent():
         b.spend(0.0001)
     assert not slept
     t[0] += 0.002
-    b.spend(0.0002)  # 1.1 ms: over; sleeps to the end of the window (10 ms after it began)
-    assert slept == [pytest.approx(0.008)] and b.throttled_s == pytest.approx(0.008)
+    b.spend(0.0002)  # 1.1 ms spent 2 ms into the window: sleeps until 1.1 ms is a tenth of the time (11 ms)
+    assert slept == [pytest.approx(0.009)] and b.throttled_s == pytest.approx(0.009)
     t[0] += 0.05  # a new window: nothing owed
     b.spend(0.0005)
     assert len(slept) == 1
+    t[0] += 0.05
+    b.spend(0.002)  # one 2 ms signature check: 20 ms of wall time before the next refusal
+    assert slept[-1] == pytest.approx(0.02)
 
 
 def test_the_signed_lane_pushes_out_the_heaviest_senders_frames_first():

@@ -89,10 +89,11 @@ class Limits(BaseModel):
         "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
     )
     door_share: float = Field(
-        0.1,
+        0.02,
         gt=0,
-        description="most of one core the Zenoh door may spend checking incoming stream messages (what a flood "
-        "can take from the engine); 0.1 checks about 600 signed frames a second (measured: 140 us each)",
+        description="most of one core the Zenoh door may spend on the stream messages it refuses (what a keyless "
+        "flood can take from the engine); frames that pass (about 140 us each, the signature check) are not "
+        "counted against it",
     )
     door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
     door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")

@@ -219,14 +219,15 @@ class AlignService:
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
         """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
         trusted); cheap enough for a Zenoh callback. With authentication on, what the gate would certainly refuse
-        is refused here (door.py), counted and never queued. False when the intake is closed."""
+        is refused here (door.py), counted and never queued. True when it was queued for the gate; False when it
+        was refused here or the intake is closed."""
         lane, signer = EGO if sender == self.settings.ego_id else SIGNED, None
         if self.keyring.required:  # demo: nothing is signed, lanes by the claimed sender
             try:
                 lane, signer = self.door.lane(sender, data)
             except WireError as e:
                 self._door_refused(sender, door, e)
-                return not self.intake.closed
+                return False
         job = Job(sender, time.perf_counter(), door, data=data, nbytes=len(data))
         if signer is not None:
             job.meta["signer"] = signer

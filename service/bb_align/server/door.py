@@ -95,26 +95,28 @@ class RecentSignatures:
 
 
 class Budget:
-    """At most ``share`` of one core for the door, accounted per ``window_s`` in the door thread's own CPU time:
-    once a window's share is spent the door sleeps out the window. Meanwhile Zenoh's FIFO fills and pushes back on
-    the senders' links (TCP), so a flood is slowed at its source instead of taking the engine's CPU and GIL."""
+    """At most ``share`` of one core for the door's refusals, accounted per ``window_s`` in the door thread's own
+    CPU time: once a window's share is spent the door sleeps until that CPU time is ``share`` of the time since
+    the window began (a single costly message, e.g. a signature check over a large forged envelope, is paid for
+    in full). Meanwhile Zenoh's FIFO fills and pushes back on the senders' links, so a flood is slowed at its
+    source instead of taking the engine's CPU and GIL."""
 
     def __init__(self, share: float, window_s: float, clock=time.monotonic, sleep=time.sleep):
         self.share, self.window_s = share, window_s
         self._clock, self._sleep = clock, sleep
-        self._end, self._used = clock() + window_s, 0.0
+        self._start, self._used = clock(), 0.0
         self.throttled_s = 0.0  # time spent sleeping (reported as a metric)
 
     def spend(self, cpu_s: float) -> None:
         now = self._clock()
-        if now >= self._end:
-            self._end, self._used = now + self.window_s, 0.0
+        if now - self._start >= self.window_s:
+            self._start, self._used = now, 0.0
         self._used += cpu_s
         if self._used >= self.share * self.window_s:
-            pause = max(0.0, self._end - now)
+            pause = max(0.0, self._used / self.share - (now - self._start))
             self._sleep(pause)
             self.throttled_s += pause
-            self._end, self._used = self._clock() + self.window_s, 0.0
+            self._start, self._used = self._clock(), 0.0
 
 
 class Door:

@@ -3,9 +3,10 @@
 - subscriber ``<prefix>/frames/*``: every car's frames; the key's last chunk is the sender's vehicle id (the ego
   id's frames fill the ego cache, all others are aligned). Samples wait in Zenoh's own bounded FIFO
   (``limits.door_queue``; pushing into it needs no Python) for one door thread, which checks them
-  (bb_align.server.door) within a CPU budget (``limits.door_share`` of a core): past it the thread sleeps, the
-  FIFO fills and Zenoh pushes back on the senders' links, so a flood is slowed at its source and can take no more
-  than that share from the engine. A Python callback per sample could not be bounded: each one takes the GIL;
+  (bb_align.server.door) within a CPU budget for what it refuses (``limits.door_share`` of a core): past it the
+  thread sleeps, the FIFO fills and Zenoh pushes back on the senders' links, so junk is slowed at its source and
+  can take no more than that share from the engine. A Python callback per sample could not be bounded: each one
+  takes the GIL;
 - publisher ``<prefix>/poses/<ego_id>/<peer_id>``: one msgpack Result per aligned peer frame;
 - queryable ``<prefix>/align/<ego_id>``: a query carrying a peer frame is answered with a Result (or an error
   reply holding an ErrorBody).
@@ -89,33 +90,39 @@ class ZenohLink:
     # ---- the door thread and the query callback (enqueue only) ----------------------------------------------
     def _door_loop(self, fifo, budget: Budget) -> None:
         """Take samples from Zenoh's FIFO (waiting in recv releases the GIL), check them in batches and account
-        the thread's CPU time against the budget; ends when the subscriber is undeclared."""
+        the CPU time (this thread's own) spent on the ones refused against the budget: junk is what must not take
+        the engine's CPU; a frame that passes costs what the fleet's own traffic costs. Ends when the subscriber
+        is undeclared."""
         batch = self.settings.limits.door_batch
         while True:
             try:
                 sample = fifo.recv()
             except zenoh.ZError:  # undeclared: the FIFO is closed
                 return
-            t0 = time.thread_time()
+            junk_s = 0.0
             for _ in range(batch):
+                t0 = time.thread_time()
                 try:
-                    self._on_frame(sample)
+                    queued = self._on_frame(sample)
                 except Exception:  # a bug must not end the door; the message is lost, and logged
                     log.exception("the Zenoh door failed on a message")
+                    queued = False
+                if not queued:
+                    junk_s += time.thread_time() - t0
                 try:
                     sample = fifo.try_recv()
                 except zenoh.ZError:
                     sample = None
                 if sample is None:
                     break
-            budget.spend(time.thread_time() - t0)
+            budget.spend(junk_s)
 
-    def _on_frame(self, sample: zenoh.Sample) -> None:
+    def _on_frame(self, sample: zenoh.Sample) -> bool:
         sender = str(sample.key_expr).rsplit("/", 1)[-1]
         if len(sample.payload) > self.settings.limits.max_message_bytes:  # refused before it is even copied
             self.service.metrics.rejected.labels("zenoh", "too_large").inc()
-            return
-        self.service.submit_message(sender, sample.payload.to_bytes(), door="zenoh")
+            return False
+        return self.service.submit_message(sender, sample.payload.to_bytes(), door="zenoh")
 
     def _on_query(self, query: zenoh.Query) -> None:
         payload = query.payload
