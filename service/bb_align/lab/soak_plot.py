@@ -35,7 +35,7 @@ def plot_soak(report: dict, path: Path) -> None:
     ax1.set_ylabel("per second")
     ax1.legend(fontsize=8, loc="upper left")
     for key, label in (
-        ("rejected", "refused at the gate / s"),
+        ("rejected", "refused (at the door or the gate) / s"),
         ("lane_unverified", "intake drops, unverified lane / s"),
         ("lane_signed", "intake drops, signed lane / s"),
         ("lane_ego", "intake drops, ego lane / s"),
@@ -44,6 +44,9 @@ def plot_soak(report: dict, path: Path) -> None:
         t, r = _rates(samples, key)
         if len(r) and r.max() > 0:
             ax2.plot(t, np.maximum(r, 0.5), lw=1.0, label=label)  # zero shows at the floor of the log axis
+    lanes = [k for k in ("lane_ego", "lane_signed", "lane_unverified") if samples and samples[-1][k] > 0]
+    if samples and not lanes:
+        ax2.plot([], [], " ", label="intake lane drops: none")
     ax2.set_yscale("log")
     ax2.set_ylim(bottom=0.5)
     ax2.set_ylabel("per second (log)")
@@ -52,7 +55,8 @@ def plot_soak(report: dict, path: Path) -> None:
     for i, (name, a, b) in enumerate(tl["phases"]):
         for ax in (ax1, ax2):
             ax.axvspan(a, b, color=f"C{i % 10}", alpha=0.08)
-        ax1.text((a + b) / 2, 1.01, name, transform=ax1.get_xaxis_transform(), ha="center", fontsize=8)
+        label = "warm-up + attacks" if name == "attacks" else name
+        ax1.text((a + b) / 2, 1.01, label, transform=ax1.get_xaxis_transform(), ha="center", fontsize=8)
     flood = report.get("phases", {}).get("flood", {}).get("flooder")
     title = "bb-align soak: results and drops through the phases"
     if flood:
