@@ -79,7 +79,11 @@ class Limits(BaseModel):
     intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes of those")
     intake_ego_queue: int = Field(16, ge=1, description="the ego's own messages waiting for the gate (own lane)")
     intake_unverified_queue: int = Field(
-        64, ge=1, description="unsigned or unverifiable messages waiting for the gate (own lane: junk displaces junk)"
+        64,
+        ge=1,
+        description="messages waiting for the gate whose signature the door did not accept for their key (queries "
+        "that must be answered, a genuine signer under another's key chunk): their own lane, displacing only "
+        "each other",
     )
     intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
     door_queue: int = Field(

@@ -2,9 +2,10 @@
 
 The doors (Zenoh link, REST app) only hand messages over:
 
-- ``submit_message`` (raw stream bytes, from a Zenoh callback) and ``submit_query`` (a raw query payload) go to
-  the bounded intake; the **gate** thread authenticates and validates them (bb_align.protocol.load_frame), so no
-  unauthenticated or invalid message ever creates peer state or reaches a worker;
+- ``submit_message`` (raw stream bytes, from the Zenoh door thread; what the gate would certainly refuse is refused
+  there, door.py) and ``submit_query`` (a raw query payload) go to the bounded intake; the **gate** thread
+  authenticates and validates them (bb_align.protocol.load_frame), so no unauthenticated or invalid message ever
+  creates peer state or reaches a worker;
 - ``submit_frame`` (REST /v1/frames) and ``submit_request`` (REST /v1/align) carry frames the REST door already
   loaded through the same validator, in a thread of its own.
 

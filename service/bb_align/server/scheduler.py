@@ -196,10 +196,11 @@ class _Lane:
 class Intake:
     """Raw messages from the Zenoh door waiting for the gate (full authentication and validation), in separate
     lanes bounded by count and bytes: the ego's own (reserved), signed (the signature verified at the door), and
-    unverified (everything else: junk, unsigned, unknown keys). A lane that is full pushes out its own oldest
-    message and returns it (the caller counts it): unverified junk only ever displaces other junk, and a signed
-    frame never waits behind it (lanes are served ego first, then signed, then unverified). ``fair``: lanes whose
-    full state pushes out the heaviest sender's oldest message rather than the oldest of all."""
+    unverified (queries that failed it, a genuine signer under another's key chunk; stream junk is refused at the
+    door and never gets here). A lane that is full pushes out its own oldest message and returns it (the caller
+    counts it): an unverified message only ever displaces another, and a signed frame never waits behind one
+    (lanes are served ego first, then signed, then unverified). ``fair``: lanes whose full state pushes out the
+    heaviest sender's oldest message rather than the oldest of all."""
 
     def __init__(
         self,
