@@ -147,11 +147,20 @@ def test_serve_runs_prints_where_it_listens_and_stops_on_sigint(monkeypatch):
     assert "frames must be signed" in out and "f" * 32 not in out
 
 
-def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
-    # The secure path: default engine configuration, signed frames stamped on the clock, as `bb-align serve`.
-    settings = secure_settings(align={})
+def test_demo_drives_a_simulated_scene_through_the_service(tmp_path, monkeypatch):
+    """The secure path as a new user takes it: credentials made by `bb-align keys`, the same two variables for the
+    service and the demo; default engine configuration, signed frames stamped on the clock, answers verified."""
+    _clear_env(monkeypatch)
+    runner = CliRunner()
+    assert runner.invoke(app, ["keys", "init", str(tmp_path / "fleet")]).exit_code == 0
+    out = runner.invoke(app, ["keys", "issue", str(tmp_path / "fleet"), "ego"])
+    for var, value in re.findall(r"^export (\w+)=(.*)$", out.output, re.M):  # what `eval "$(...)"` would do
+        monkeypatch.setenv(var, value)
+    settings = secure_settings(align={}, auth={"fleet_key": None})
+    settings = settings.model_copy(update={"auth": Settings().auth})  # the environment's credential, no fleet key
+    assert settings.auth.credential is not None and settings.auth.fleet_key is None
     with running_service(settings):
-        out = CliRunner().invoke(
+        out = runner.invoke(
             app,
             [
                 "demo",
@@ -165,8 +174,6 @@ def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
                 str(tmp_path / "demo.json"),
                 "--plot",
                 str(tmp_path / "demo.png"),
-                "--key",
-                FLEET_KEY,
             ],
         )
     assert out.exit_code == 0, out.output
@@ -177,6 +184,28 @@ def test_demo_drives_a_simulated_scene_through_the_service(tmp_path):
     assert report["summary"]["ratio_vs_points_mean"] < 0.05
     assert (tmp_path / "demo.png").stat().st_size > 10_000
     assert "peer frames answered" in out.output
+
+
+def test_demo_signers_credentials_then_the_fleet_key_then_none(tmp_path):
+    from bb_align.lab.demo import demo_signers
+    from bb_align.protocol import Credential
+
+    runner = CliRunner()
+    runner.invoke(app, ["keys", "init", str(tmp_path)])
+    runner.invoke(app, ["keys", "issue", str(tmp_path), "ego"])
+    runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
+    got = demo_signers("ego", 3, tmp_path / "ego.cred", None, FLEET_KEY)
+    assert {k: v.vehicle_id for k, v in got["key"].items()} == {"ego": "ego", "car1": "car1", "car2": "car2"}
+    assert got["key"]["car1"].certificate_bytes == Credential.load(tmp_path / "car1.cred").certificate_bytes
+    assert got["trust"] == tmp_path / "ca.pub"  # car2 had no file: issued by ca.key, in memory only
+    assert not (tmp_path / "car2.cred").exists()
+    assert demo_signers("ego", 2, None, None, FLEET_KEY) == {"key": FLEET_KEY}
+    assert demo_signers("ego", 2, None, None, None) == {"key": None}
+    with pytest.raises(ValueError, match="ego id"):
+        demo_signers("truck7", 2, tmp_path / "ego.cred", None, None)
+    (tmp_path / "ca.key").unlink()
+    with pytest.raises(ValueError, match="bb-align keys issue"):
+        demo_signers("ego", 3, tmp_path / "ego.cred", None, None)
 
 
 def _dockerfile() -> dict[str, list[str]]:
@@ -200,35 +229,52 @@ def test_dockerfile_is_slim_non_root_with_healthcheck_and_serve_entry():
     assert scripts[entry[0]] == "bb_align.cli:app" and entry[1] in get_command(app).commands
 
 
-def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch):
-    compose = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())
-    services = compose["services"]
-    assert set(services) == {"zenohd", "bb-align", "demo"}
+def _compose() -> dict:
+    return yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())["services"]
+
+
+def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch, tmp_path):
+    services = _compose()
+    assert set(services) == {"zenohd", "keys", "bb-align", "demo"}
     assert services["bb-align"]["build"]["dockerfile"] == "docker/Dockerfile"
     assert all(p.startswith("127.0.0.1:") for s in services.values() for p in s.get("ports", []))
+    # The keys service's own commands, run here into a temporary directory standing for the volume.
+    keys_dir = services["keys"]["volumes"][0].split(":")[1]
+    script = services["keys"]["command"][0].replace("$$", "$").replace(keys_dir, str(tmp_path))
+    subprocess.run(["sh", "-c", script.replace("bb-align", f"{sys.executable} -m bb_align")], check=True)
+    assert {p.name for p in tmp_path.iterdir()} == {"ca.pub", "ca.key", "ego.cred", "car1.cred", "car2.cred"}
     _clear_env(monkeypatch)
     for k, v in services["bb-align"]["environment"].items():
-        monkeypatch.setenv(k, str(v))
+        monkeypatch.setenv(k, str(v).replace(keys_dir, str(tmp_path)))
     s = Settings()
     assert s.zenoh.mode == "client" and s.zenoh.connect == ["tcp/zenohd:7447"] and s.zenoh.listen == []
+    assert s.auth.required and s.auth.fleet_key is None and s.startup_problem() is None  # its own credential
     demo = services["demo"]
     assert demo["entrypoint"] == ["bb-align", "demo"]
     get_command(app).commands["demo"].make_context("demo", list(demo["command"]))  # options exist and parse
-    assert s.auth.required and s.startup_problem() is None  # the container runs with a fleet key
-    assert "BBALIGN_AUTH__FLEET_KEY" in demo["environment"]
+    for var in ("BBALIGN_AUTH__CA_CERT", "BBALIGN_AUTH__CREDENTIAL"):  # the variables the service reads, the same
+        assert demo["environment"][var] == services["bb-align"]["environment"][var]
+    agents = int(demo["command"][demo["command"].index("--agents") + 1])
+    from bb_align.lab.demo import demo_signers
+
+    got = demo_signers("ego", agents, tmp_path / "ego.cred", tmp_path / "ca.pub", None)  # every car has its own
+    assert sorted(got["key"]) == ["car1", "car2", "ego"]
+    assert all(v.endswith(":ro") for name in ("bb-align", "demo") for v in services[name]["volumes"])
     assert "--no-multicast-scouting" in services["zenohd"]["command"]
 
 
-def test_compose_key_name_healthchecks_and_start_order():
-    """One name for the fleet key (the one the service reads); a healthcheck for the router, none inherited by
-    the demo (it runs no server); each service starts after what it needs is healthy."""
+def test_compose_needs_no_shared_secret_healthchecks_and_start_order():
+    """No fleet key to export (per-vehicle credentials are made in the volume); a healthcheck for the router, none
+    inherited by the one-shot keys service or the demo (they run no server); each service starts after what it
+    needs."""
     text = (REPO / "docker" / "compose.yaml").read_text()
-    services = yaml.safe_load(text)["services"]
-    assert set(re.findall(r"\$\{(\w+)", text)) == {"BBALIGN_AUTH__FLEET_KEY"}
-    assert "export BBALIGN_AUTH__FLEET_KEY=" in (REPO / "README.md").read_text()
-    assert "BBALIGN_FLEET_KEY" not in text
-    assert services["demo"]["healthcheck"] == {"disable": True}
-    assert services["bb-align"]["depends_on"] == {"zenohd": {"condition": "service_healthy"}}
+    services = _compose()
+    assert not re.findall(r"\$\{(\w+)", text) and "FLEET_KEY" not in text
+    assert services["demo"]["healthcheck"] == {"disable": True} and services["keys"]["healthcheck"] == {"disable": True}
+    assert services["bb-align"]["depends_on"] == {
+        "keys": {"condition": "service_completed_successfully"},
+        "zenohd": {"condition": "service_healthy"},
+    }
     assert services["demo"]["depends_on"] == {"bb-align": {"condition": "service_healthy"}}
     # the router's check: a LISTEN socket on the port it is told to listen on, read from /proc/net/tcp(6)
     check = services["zenohd"]["healthcheck"]["test"]

@@ -8,7 +8,9 @@ import json
 from typer.testing import CliRunner
 
 from bb_align.cli import app
+from bb_align.lab.flood import FloodConfig
 from bb_align.lab.soak import ATTACKS, run_soak
+from bb_align.lab.soak_phases import FloodPhase
 
 
 def test_short_soak_accounts_for_every_message(tmp_path):
@@ -42,10 +44,43 @@ def test_short_soak_accounts_for_every_message(tmp_path):
     assert report["service"]["peers_tracked_end"] <= 3  # junk sender ids never became peers
     # signed attacks (replays, NaN boxes, PNG bombs, spoofed ids) are told to their sender; junk never is
     notices = report["service"]["refusal_notices"]
-    assert set(notices) <= {"replayed", "invalid"} and report["checks"]["no_refusal_notice_for_unsigned_junk"]
+    assert (
+        set(notices) <= {"replayed", "invalid", "forbidden"} and report["checks"]["no_refusal_notice_for_unsigned_junk"]
+    )
     signed_attacks = sum(sent["by_kind"].get(k, 0) for k in ("replay", "nan_box", "png_bomb", "spoofed_id"))
     assert (sum(notices.values()) > 0) == (signed_attacks > 0)
     assert report["rss_mb"]["start"] > 50 and report["exit_code"] == 0
+
+
+def test_a_short_keyless_flood_charges_no_signed_id_and_results_keep_flowing(tmp_path):
+    """The flood phase in miniature: the ego and one peer stream signed frames (Ed25519, bb-align keys) at 10 Hz
+    while a keyless process floods both their frame keys (1-byte junk, zero-MAC and forged envelopes, unsigned,
+    replays of their own frames); the same length without the flood before it."""
+    flooder = FloodConfig(small_per_cycle=50, big_bytes=64 * 1024, replays_per_cycle=5)
+    report = run_soak(
+        duration_s=1.0,
+        warmup_s=1.0,
+        n_peers=1,
+        frames=2,
+        attack_share=0.0,
+        flood=FloodPhase(seconds=4.0, blocks=1, lead_s=0.5, flooder=flooder),
+        log_dir=tmp_path,
+        progress=False,
+    )
+    flood, baseline = report["phases"]["flood"], report["phases"]["baseline"]
+    fl = flood["flooder"]
+    assert fl["total_messages"] > 1000 and fl["messages"]["replay"] > 0, fl  # the flood ran, replays included
+    assert sum(flood["refused_at_the_door"].values()) > 1000  # ... and reached the service: refused at its door
+    assert flood["refused_at_the_door"].get("replayed", 0) > 0
+    for name, phase in (("baseline", baseline), ("flood", flood)):
+        # Every signed frame passed the gate; under the flood one in a few thousand occasionally never reaches the
+        # door (docs/security.md, Floods: measured 0.13 %, cause not found), so a 40-frame stream may miss one.
+        assert phase["ego"]["lost"] <= 1 and phase["peers"]["lost"] <= 1, (name, phase)
+        assert phase["intake_dropped_charged_to_signed_ids"] == 0 and phase["per_peer"]["car1"]["intake_dropped"] == 0
+    assert flood["results"] > 0  # results keep flowing under the flood
+    assert report["checks"]["flood_junk_never_charged_to_a_signed_id"]
+    assert report["checks"]["no_crash"] and report["exit_code"] == 0
+    assert report["config"]["signing"].startswith("ed25519")
 
 
 def test_soak_refuses_non_loopback_targets():

@@ -22,15 +22,37 @@ def demo(
     range_m: float | None = typer.Option(None, help="BV half width sent by the cars (default: engine's)"),
     json_out: Path | None = typer.Option(None, "--json", help="also write every row and the summary as JSON"),
     plot: Path | None = typer.Option(None, help="write a PNG of the errors and latencies per frame"),
+    credential: Path | None = typer.Option(
+        None,
+        envvar="BBALIGN_AUTH__CREDENTIAL",
+        show_default=False,
+        help="the ego's credential (bb-align keys issue DIR ego; the variable the service reads): the ego signs "
+        "with it, every other car with DIR/<car>.cred, or one issued by DIR/ca.key",
+    ),
+    ca_cert: Path | None = typer.Option(
+        None,
+        envvar="BBALIGN_AUTH__CA_CERT",
+        show_default=False,
+        help="the fleet authority's ca.pub: the service's answers are verified against it [DIR/ca.pub]",
+    ),
     key: str | None = typer.Option(
         None,
         envvar="BBALIGN_AUTH__FLEET_KEY",
         show_default=False,
-        help="fleet key to sign the frames with (a service not in --demo needs it)",
+        help="the simpler option: the fleet HMAC key to sign every car's frames with (without a credential)",
     ),
 ) -> None:
-    """Drive a simulated N-car scene through a running service over Zenoh; table of true vs recovered poses."""
-    from bb_align.lab.demo import run_demo
+    """Drive a simulated N-car scene through a running service over Zenoh; table of true vs recovered poses.
+
+    Frames are signed with per-vehicle Ed25519 credentials when BBALIGN_AUTH__CREDENTIAL is set (as for `bb-align
+    serve`), else with the fleet HMAC key when one is given, else not at all (a service started with --demo)."""
+    from bb_align.lab.demo import demo_signers, run_demo
+
+    try:
+        signers = demo_signers(ego_id, agents, credential, ca_cert, key)
+    except (OSError, ValueError) as e:
+        typer.secho(f"bb-align demo: {e}", err=True, fg="red")
+        raise typer.Exit(2) from None
 
     summary = run_demo(
         connect=connect,
@@ -45,7 +67,7 @@ def demo(
         range_m=range_m,
         json_out=json_out,
         plot=plot,
-        key=key,
+        **signers,
     )
     if summary["results"] == 0:
         raise typer.Exit(1)

@@ -197,6 +197,24 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
     return frames, truth, reported
 
 
+def demo_signers(ego_id: str, n_agents: int, credential: Path | None, ca_cert: Path | None, key: str | None):
+    """``run_demo``'s keys: per-vehicle Ed25519 credentials from the ego credential's fleet directory (the cars'
+    own DIR/<car>.cred, or issued by DIR/ca.key) and the authority to verify answers with; else the fleet HMAC
+    key; else nothing (a service in the demo profile)."""
+    if credential is None:
+        return {"key": key}
+    from bb_align.protocol import Credential
+
+    from .harness import fleet_credentials
+
+    ego = Credential.load(credential)
+    if ego.vehicle_id != ego_id:
+        raise ValueError(f"{credential} is {ego.vehicle_id!r}'s credential, but the ego id is {ego_id!r}")
+    directory = Path(credential).parent
+    cars = fleet_credentials(directory, [f"car{a}" for a in range(1, n_agents)])
+    return {"key": {ego_id: ego, **cars}, "trust": ca_cert or directory / "ca.pub"}
+
+
 def run_demo(
     *,
     connect: list[str],
@@ -212,11 +230,13 @@ def run_demo(
     json_out: Path | None = None,
     plot: Path | None = None,
     console: Console | None = None,
-    key: str | None = None,
+    key: str | dict | None = None,
+    trust: Path | None = None,
 ) -> dict:
     """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
-    service's results against the truth. Every wait is bounded by timeout_s. ``key``: the fleet key, when the
-    service requires signed frames."""
+    service's results against the truth. Every wait is bounded by timeout_s. ``key``: vehicle name -> its
+    Credential (Ed25519; ``trust``: the authority's ca.pub, to verify the answers), or the fleet HMAC key for
+    every car; None when the service takes unsigned frames (demo profile)."""
     from bb_align.protocol import pack
     from bb_align_client import FrameRefused, ZenohPeer
     from bb_align_client.encode import make_frame
@@ -237,8 +257,11 @@ def run_demo(
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
     n_sent = 0
+    keys = key if isinstance(key, dict) else dict.fromkeys(names.values(), key)
     cars = {
-        aid: ZenohPeer(name, connect=connect, prefix=prefix, key=key, verify_answers=key is not None)
+        aid: ZenohPeer(
+            name, connect=connect, prefix=prefix, key=keys[name], trust=trust, verify_answers=keys[name] is not None
+        )
         for aid, name in names.items()
     }
     title = f"bb-align demo: {n_agents} cars, seed {seed}, via {', '.join(connect)}"

@@ -3,6 +3,7 @@ a child process (started, waited for, measured, stopped), and simulated cars' fr
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -15,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-# The child process runs what `bb-align serve` runs (SIGTERM drains, exit 0); settings as JSON in argv, the fleet key
-# (if any) on stdin, never in argv or the environment.
+# The child process runs what `bb-align serve` runs (SIGTERM drains, exit 0); settings as JSON in argv (auth: only
+# the paths of the authority and the ego's credential, which are not secrets), the fleet key (if any) on stdin, never
+# in argv or the environment.
 _CHILD = """
 import json, sys
 from bb_align.server.commands import run_server
@@ -24,9 +26,10 @@ from bb_align.server.settings import Settings
 values = json.loads(sys.argv[1])
 key = sys.stdin.readline().strip()
 if key:
-    values["auth"] = {"mode": "signed", "fleet_key": key}
+    values.setdefault("auth", {}).update(mode="signed", fleet_key=key)
 run_server(Settings.model_validate(values), sys.argv[2])
 """
+_SECRETS = {"fleet_key", "peer_keys", "rest_token"}  # never in the child's argv
 
 
 def free_port() -> int:
@@ -136,7 +139,7 @@ def start_service(
     log_path = Path(log_dir) / f"service-{settings.port}.log"
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(
-            [sys.executable, "-c", _CHILD, settings.model_dump_json(exclude={"auth"}), log_level],
+            [sys.executable, "-c", _CHILD, _child_settings(settings), log_level],
             stdout=log,
             stderr=subprocess.STDOUT,
             stdin=subprocess.PIPE,
@@ -151,6 +154,50 @@ def start_service(
     return svc
 
 
+def _child_settings(settings) -> str:
+    """The settings as JSON for the child's argv: every secret left out (the fleet key goes on stdin)."""
+    values = json.loads(settings.model_dump_json(exclude={"auth": _SECRETS}))
+    values["auth"] = {k: v for k, v in values["auth"].items() if v is not None}
+    return json.dumps(values)
+
+
+def make_credentials(directory: Path, vehicle_ids: Iterable[str]) -> dict:
+    """A fleet authority in ``directory`` and one Ed25519 credential per vehicle, made by the ``bb-align keys``
+    command itself (init, then issue per vehicle); returns vehicle id -> its loaded Credential."""
+    from typer.testing import CliRunner
+
+    from bb_align.protocol import Credential
+    from bb_align.server.commands import keys_app
+
+    runner = CliRunner()
+    for args in (["init", str(directory)], *(["issue", str(directory), vid] for vid in vehicle_ids)):
+        out = runner.invoke(keys_app, args)
+        if out.exit_code != 0:
+            raise RuntimeError(f"bb-align keys {' '.join(args)} failed: {out.output}")
+    return {vid: Credential.load(Path(directory) / f"{vid}.cred") for vid in vehicle_ids}
+
+
+def fleet_credentials(directory: Path, vehicle_ids: Iterable[str]) -> dict:
+    """vehicle id -> its Credential from a fleet directory (``bb-align keys``): ``DIR/<id>.cred`` where it exists,
+    else issued now by the authority in ``DIR/ca.key`` (kept in memory, nothing written). ValueError naming the
+    command to run when neither exists."""
+    from bb_align.protocol import Credential, FleetAuthority
+
+    directory = Path(directory)
+    out, authority = {}, None
+    for vid in vehicle_ids:
+        path = directory / f"{vid}.cred"
+        if path.exists():
+            out[vid] = Credential.load(path)
+            continue
+        if authority is None:
+            if not (directory / "ca.key").exists():
+                raise ValueError(f"no credential for {vid!r} in {directory}: bb-align keys issue {directory} {vid}")
+            authority = FleetAuthority.load(directory)
+        out[vid] = authority.issue(vid)
+    return out
+
+
 @dataclass
 class CarStream:
     """One simulated car's frames (wire Frames; stamps and seqs set at publish time) and its true poses."""
@@ -158,6 +205,7 @@ class CarStream:
     vehicle_id: str
     frames: list
     T_world_sensor: list[np.ndarray]
+    cloud: tuple[np.ndarray, np.ndarray] | None = None  # (points, boxes) of the first frame, to re-encode it
 
 
 def simulated_cars(
@@ -196,5 +244,5 @@ def simulated_cars(
             )
             for k, ag in enumerate(agents)
         ]
-        cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents]))
+        cars.append(CarStream(vid, frames, [ag.T_world_sensor for ag in agents], (agents[0].points, agents[0].boxes)))
     return cars

@@ -104,9 +104,34 @@ class Limits(BaseModel):
     intake_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="bytes of those")
     intake_ego_queue: int = Field(16, ge=1, description="the ego's own messages waiting for the gate (own lane)")
     intake_unverified_queue: int = Field(
-        64, ge=1, description="unsigned or unverifiable messages waiting for the gate (own lane: junk displaces junk)"
+        64,
+        ge=1,
+        description="messages waiting for the gate whose signature the door did not accept for their key (queries "
+        "that must be answered, a genuine signer under another's key chunk): their own lane, displacing only "
+        "each other",
     )
     intake_unverified_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="bytes of those")
+    door_queue: int = Field(
+        16,
+        ge=1,
+        description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
+        "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
+    )
+    door_share: float = Field(
+        0.02,
+        gt=0,
+        description="most of one core the Zenoh door may spend on the stream messages it refuses (what a keyless "
+        "flood can take from the engine); frames that pass (about 140 us each, the signature check) are not "
+        "counted against it",
+    )
+    door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
+    door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")
+    intake_recent_signatures: int = Field(
+        4096,
+        ge=1,
+        description="signatures verified at the Zenoh door remembered, so a byte-for-byte replay is refused there "
+        "without a signature check",
+    )
 
     @property
     def clock_checked(self) -> bool:

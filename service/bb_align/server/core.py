@@ -2,9 +2,10 @@
 
 The doors (Zenoh link, REST app) only hand messages over:
 
-- ``submit_message`` (raw stream bytes, from a Zenoh callback) and ``submit_query`` (a raw query payload) go to
-  the bounded intake; the **gate** thread authenticates and validates them (bb_align.protocol.load_frame), so no
-  unauthenticated or invalid message ever creates peer state or reaches a worker;
+- ``submit_message`` (raw stream bytes, from the Zenoh door thread; what the gate would certainly refuse is refused
+  there, door.py) and ``submit_query`` (a raw query payload) go to the bounded intake; the **gate** thread
+  authenticates and validates them (bb_align.protocol.load_frame), so no unauthenticated or invalid message ever
+  creates peer state or reaches a worker;
 - ``submit_frame`` (REST /v1/frames) and ``submit_request`` (REST /v1/align) carry frames the REST door already
   loaded through the same validator, in a thread of its own.
 
@@ -52,6 +53,7 @@ from bb_align.protocol.signatures import AuthError
 
 from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
+from .door import Door
 from .metrics import Metrics
 from .peers import PeerStatus, PeerTable
 from .refusals import RefusalNotices
@@ -143,6 +145,7 @@ class AlignService:
                 SIGNED: (limits.intake_queue, limits.intake_bytes),
                 UNVERIFIED_LANE: (limits.intake_unverified_queue, limits.intake_unverified_bytes),
             },
+            fair=frozenset({SIGNED}),  # one sender's burst (or a keyed flood) pushes out its own frames first
         )
         self.meter = BandwidthMeter(settings.bandwidth_window_s)
         self.peer_table = PeerTable(
@@ -162,6 +165,14 @@ class AlignService:
             lambda: len(self.intake),
         )
         self.tracks = PeerTracks(self.aligner, limits.max_peers)  # bounded like the peer table, forgotten with it
+        self.door = Door(
+            self.keyring,
+            limits,
+            settings.ego_id,
+            lambda vid: self.peer_table.newest(vid, STREAM),
+            limits.intake_recent_signatures,
+        )
+        self._door_counters: dict[tuple[str, str], tuple] = {}
         self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
@@ -218,8 +229,31 @@ class AlignService:
     # ---- doors -------------------------------------------------------------------------------------------------
     def submit_message(self, sender: str, data: bytes, door: str = "zenoh") -> bool:
         """A raw stream message (msgpack Frame or Signed frame) from ``sender`` (the key's last chunk, not yet
-        trusted); cheap enough for a Zenoh callback. False when the intake is closed."""
-        return self._to_intake(Job(sender, time.perf_counter(), door, data=data, nbytes=len(data)))
+        trusted); cheap enough for a Zenoh callback. With authentication on, what the gate would certainly refuse
+        is refused here (door.py), counted and never queued. True when it was queued for the gate; False when it
+        was refused here or the intake is closed."""
+        lane, signer = EGO if sender == self.settings.ego_id else SIGNED, None
+        if self.keyring.required:  # demo: nothing is signed, lanes by the claimed sender
+            try:
+                lane, signer = self.door.lane(sender, data)
+            except WireError as e:
+                self._door_refused(sender, door, e)
+                return False
+        job = Job(sender, time.perf_counter(), door, data=data, nbytes=len(data))
+        if signer is not None:
+            job.meta["signer"] = signer
+        return self._to_intake(job, lane)
+
+    def _door_refused(self, sender: str, door: str, e: WireError) -> None:
+        """Count and (rate-limited) log a refusal at the door: per message a flood pays only this, so the
+        labelled counters are looked up once per (door, error)."""
+        counters = self._door_counters.get((door, e.error))
+        if counters is None:
+            counters = (self.metrics.rejected.labels(door, e.error), self.metrics.door_refused.labels(e.error))
+            self._door_counters[(door, e.error)] = counters
+        for c in counters:
+            c.inc()
+        self._log_refusal(door, e.error, "refused a message from %r on %s: %s", sender, door, e)
 
     def submit_query(
         self, reply: Callable[[object], None], data: bytes, door: str = "zenoh", refused: WireError | None = None
@@ -235,7 +269,7 @@ class AlignService:
             reply=reply,
             meta={"refused": refused} if refused is not None else {},
         )
-        return self._to_intake(job)
+        return self._to_intake(job, self._query_lane(job) if refused is None else UNVERIFIED_LANE)
 
     def submit_frame(
         self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest", received: float | None = None
@@ -293,27 +327,24 @@ class AlignService:
             raise
         return self._queue_request(job)
 
-    def _lane(self, job: Job) -> str:
-        """Which intake lane a raw message may wait in: its signature is checked here, on the door's thread,
-        before it can take a place that authenticated traffic needs (Ed25519: tens of microseconds, the verified
-        certificate cached; HMAC: one pass over the bytes). Junk, unsigned frames and unknown keys: unverified."""
-        ego = self.settings.ego_id
-        if not self.keyring.required:  # demo: nothing is signed, lanes by the claimed sender
-            return EGO if job.sender == ego and job.reply is None else SIGNED
+    def _query_lane(self, job: Job) -> str:
+        """A query must be answered, so junk ones wait too (in the unverified lane, the gate replies with the
+        error); its signature is checked here so that a signed query never waits behind junk."""
+        if not self.keyring.required:
+            return SIGNED
         env = peek_signed(job.data, self.settings.limits) if job.data else None
         if env is None or not self.keyring.knows(env.key_id, env.alg):
             return UNVERIFIED_LANE
         try:
-            signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
-            if job.reply is None:  # a stream frame: the key chunk names the sender; the signer must be allowed it
-                self.keyring.authorize(signer, job.sender)
+            job.meta["signer"] = self.keyring.verify_signed(
+                env.key_id, env.alg, env.mac, env.payload, env.cert, time.time()
+            )
         except AuthError:
             return UNVERIFIED_LANE
-        job.meta["signer"] = signer
-        return EGO if job.reply is None and job.sender == ego else SIGNED
+        return SIGNED
 
-    def _to_intake(self, job: Job) -> bool:
-        pushed_out = self.intake.put(job, self._lane(job) if not job.meta.get("refused") else UNVERIFIED_LANE)
+    def _to_intake(self, job: Job, lane: str) -> bool:
+        pushed_out = self.intake.put(job, lane)
         for old in pushed_out:
             if old is job and self.intake.closed:
                 if job.reply is not None:

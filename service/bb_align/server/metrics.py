@@ -63,6 +63,14 @@ class Metrics:
             ["lane"],
             registry=r,
         )
+        self.door_refused = Counter(
+            "bbalign_door_refused",
+            "Zenoh stream messages refused at the door (the callback), never queued: what the gate would refuse "
+            "for certain (junk, unsigned, unknown keys, copies, old frames, bad signatures); also counted in "
+            "bbalign_frames_rejected_total",
+            ["error"],
+            registry=r,
+        )
         self.rejected = Counter(
             "bbalign_frames_rejected",
             "Messages refused, by error (too_large, undecodable, "
@@ -95,6 +103,11 @@ class Metrics:
             "bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)", registry=r
         ).set_function(peers)
         Gauge("bbalign_intake_messages", "Raw messages waiting for the gate", registry=r).set_function(intake)
+        self.door_throttled = Gauge(
+            "bbalign_door_throttled_seconds",
+            "Time the Zenoh door slept because it had spent its CPU share (a flood pushed back on its senders)",
+            registry=r,
+        )
         r.register(_BandwidthCollector(bandwidth))
 
     def forget_peer(self, peer: str, outcomes: set[str]) -> None:

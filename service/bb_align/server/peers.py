@@ -122,6 +122,12 @@ class PeerTable:
         self._notify(evicted)
         return rewound and self.new_pass_on_rewind
 
+    def newest(self, vehicle_id: str, channel: str) -> tuple[float, int] | None:
+        """The newest (stamp, seq) accepted from a tracked sender on ``channel`` (None: none, or not tracked)."""
+        with self._lock:
+            entry = self._entries.get(vehicle_id)
+            return None if entry is None else entry.newest.get(channel)
+
     def sweep(self) -> list[str]:
         """Forget every sender idle for longer than idle_s; returns their ids."""
         with self._lock:

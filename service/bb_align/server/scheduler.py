@@ -10,7 +10,7 @@ first); a sender's frames are handled by one worker at a time, so its results co
 from __future__ import annotations
 
 import threading
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -142,27 +142,80 @@ EGO, SIGNED, UNVERIFIED_LANE = "ego", "signed", "unverified"  # intake lanes, se
 
 
 class _Lane:
-    def __init__(self, max_jobs: int, max_bytes: int):
-        self.max_jobs, self.max_bytes = max_jobs, max_bytes
+    """One bounded lane. Full, it pushes out its oldest message; a ``fair`` lane the oldest of the sender holding
+    the most (messages, or bytes when over the byte bound), so a sender's burst only displaces its own frames."""
+
+    def __init__(self, max_jobs: int, max_bytes: int, fair: bool = False):
+        self.max_jobs, self.max_bytes, self.fair = max_jobs, max_bytes, fair
         self.jobs: deque[Job] = deque()
         self.bytes = 0
+        self._count: Counter[str] = Counter()
+        self._bytes: Counter[str] = Counter()
+
+    def push(self, job: Job) -> list[Job]:
+        """Append ``job``; returns the messages pushed out to stay within the bounds."""
+        self.jobs.append(job)
+        self._account(job, +1)
+        out = []
+        while len(self.jobs) > self.max_jobs or (self.bytes > self.max_bytes and len(self.jobs) > 1):
+            old = self._victim(by_bytes=len(self.jobs) <= self.max_jobs)
+            self.jobs.remove(old)
+            self._account(old, -1)
+            out.append(old)
+        return out
+
+    def pop(self) -> Job:
+        job = self.jobs.popleft()
+        self._account(job, -1)
+        return job
+
+    def clear(self) -> list[Job]:
+        left = list(self.jobs)
+        self.jobs.clear()
+        self.bytes = 0
+        self._count.clear()
+        self._bytes.clear()
+        return left
+
+    def _account(self, job: Job, sign: int) -> None:
+        self.bytes += sign * job.nbytes
+        if self.fair:
+            self._count[job.sender] += sign
+            self._bytes[job.sender] += sign * job.nbytes
+            if not self._count[job.sender]:
+                del self._count[job.sender], self._bytes[job.sender]
+
+    def _victim(self, by_bytes: bool) -> Job:
+        if not self.fair:
+            return self.jobs[0]
+        weight = self._bytes if by_bytes else self._count
+        heaviest = max(weight, key=weight.__getitem__)
+        return next(j for j in self.jobs if j.sender == heaviest)
 
 
 class Intake:
     """Raw messages from the Zenoh door waiting for the gate (full authentication and validation), in separate
     lanes bounded by count and bytes: the ego's own (reserved), signed (the signature verified at the door), and
-    unverified (everything else: junk, unsigned, unknown keys). A lane that is full pushes out its own oldest
-    message and returns it (the caller counts it): unverified junk only ever displaces other junk, and a signed
-    frame never waits behind it (lanes are served ego first, then signed, then unverified)."""
+    unverified (queries that failed it, a genuine signer under another's key chunk; stream junk is refused at the
+    door and never gets here). A lane that is full pushes out its own oldest message and returns it (the caller
+    counts it): an unverified message only ever displaces another, and a signed frame never waits behind one
+    (lanes are served ego first, then signed, then unverified). ``fair``: lanes whose full state pushes out the
+    heaviest sender's oldest message rather than the oldest of all."""
 
-    def __init__(self, max_jobs: int, max_bytes: int, lanes: dict[str, tuple[int, int]] | None = None):
+    def __init__(
+        self,
+        max_jobs: int,
+        max_bytes: int,
+        lanes: dict[str, tuple[int, int]] | None = None,
+        fair: frozenset[str] = frozenset(),
+    ):
         self.max_jobs, self.max_bytes = max_jobs, max_bytes
         lanes = lanes or {
             EGO: (max_jobs, max_bytes),
             SIGNED: (max_jobs, max_bytes),
             UNVERIFIED_LANE: (max_jobs, max_bytes),
         }
-        self._lanes = {name: _Lane(n, b) for name, (n, b) in lanes.items()}
+        self._lanes = {name: _Lane(n, b, name in fair) for name, (n, b) in lanes.items()}
         self._cv = threading.Condition()
         self._closed = False
 
@@ -172,15 +225,8 @@ class Intake:
         with self._cv:
             if self._closed:
                 return [job]
-            q = self._lanes[lane]
             job.meta["lane"] = lane
-            q.jobs.append(job)
-            q.bytes += job.nbytes
-            out = []
-            while len(q.jobs) > q.max_jobs or (q.bytes > q.max_bytes and len(q.jobs) > 1):
-                old = q.jobs.popleft()
-                q.bytes -= old.nbytes
-                out.append(old)
+            out = self._lanes[lane].push(job)
             self._cv.notify()
             return out
 
@@ -189,10 +235,7 @@ class Intake:
         with self._cv:
             if not self._cv.wait_for(lambda: self._any() or self._closed, timeout) or not self._any():
                 return None
-            q = next(q for q in self._lanes.values() if q.jobs)
-            job = q.jobs.popleft()
-            q.bytes -= job.nbytes
-            return job
+            return next(q for q in self._lanes.values() if q.jobs).pop()
 
     def _any(self) -> bool:
         return any(q.jobs for q in self._lanes.values())
@@ -214,9 +257,6 @@ class Intake:
         """Refuse new messages; returns those still waiting."""
         with self._cv:
             self._closed = True
-            left = [j for q in self._lanes.values() for j in q.jobs]
-            for q in self._lanes.values():
-                q.jobs.clear()
-                q.bytes = 0
+            left = [j for q in self._lanes.values() for j in q.clear()]
             self._cv.notify_all()
             return left

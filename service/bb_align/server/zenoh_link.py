@@ -1,28 +1,36 @@
 """The service's Zenoh door.
 
 - subscriber ``<prefix>/frames/*``: every car's frames; the key's last chunk is the sender's vehicle id (the ego
-  id's frames fill the ego cache, all others are aligned);
+  id's frames fill the ego cache, all others are aligned). Samples wait in Zenoh's own bounded FIFO
+  (``limits.door_queue``; pushing into it needs no Python) for one door thread, which checks them
+  (bb_align.server.door) within a CPU budget for what it refuses (``limits.door_share`` of a core): past it the
+  thread sleeps, the FIFO fills and Zenoh pushes back on the senders' links, so junk is slowed at its source and
+  can take no more than that share from the engine. A Python callback per sample could not be bounded: each one
+  takes the GIL;
 - publisher ``<prefix>/poses/<ego_id>/<peer_id>``: one msgpack Result per aligned peer frame, and a Refusal for a
   refused stream frame whose signature was valid for that peer (core.py, refusals.py);
 - queryable ``<prefix>/align/<ego_id>``: a query carrying a peer frame is answered with a Result (or an error
   reply holding an ErrorBody).
 
-Callbacks only hand bytes to the service's intake; the gate thread authenticates and validates them; replies
-and publications happen on the gate and worker threads. Connecting never gives up (a router restart is
-survived); Zenoh's own reassembly limit (the message limit + 64 KiB) drops far larger messages before they are
-assembled (a backstop: measured here, 8 MiB dropped by Zenoh, 5-6 MiB reach the callback's size check).
+The door and the query callback only hand bytes to the service's intake; the gate thread authenticates and
+validates them; replies and publications happen on the gate and worker threads. Connecting never gives up (a
+router restart is survived); Zenoh's own reassembly limit (the message limit + 64 KiB) drops far larger messages
+before they are assembled (a backstop: measured here, 8 MiB dropped by Zenoh, 5-6 MiB reach the door's size
+check).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import zenoh
 
 from bb_align.protocol import ErrorBody, Refusal, Result, WireError, align_key, frames_key, pack, poses_key
 
 from .core import AlignService, Unavailable
+from .door import Budget
 from .settings import Settings
 
 log = logging.getLogger("bb_align.zenoh")
@@ -36,6 +44,7 @@ class ZenohLink:
         self.session: zenoh.Session | None = None
         self._subscriber = None
         self._queryable = None
+        self._door: threading.Thread | None = None
         self._lock = threading.Lock()
 
     @property
@@ -45,7 +54,15 @@ class ZenohLink:
     def open(self) -> None:
         self.session = zenoh.open(self.settings.zenoh.to_zenoh_config())
         self.service.publishers.append(self.publish)
-        self._subscriber = self.session.declare_subscriber(frames_key(self.prefix, "*"), self._on_frame)
+        limits = self.settings.limits
+        fifo = zenoh.handlers.FifoChannel(limits.door_queue)
+        self._subscriber = self.session.declare_subscriber(frames_key(self.prefix, "*"), fifo)
+        budget = Budget(limits.door_share, limits.door_window_s)
+        self.service.metrics.door_throttled.set_function(lambda: budget.throttled_s)
+        self._door = threading.Thread(
+            target=self._door_loop, args=(self._subscriber.handler, budget), name="bbalign-door", daemon=True
+        )
+        self._door.start()
         self._queryable = self.session.declare_queryable(self.align_key, self._on_query)
 
     @property
@@ -56,8 +73,11 @@ class ZenohLink:
         """No new frames or queries (call before stopping the service's workers)."""
         for entity in (self._subscriber, self._queryable):
             if entity is not None:
-                entity.undeclare()
+                entity.undeclare()  # closes the FIFO: the door thread's recv ends
         self._subscriber = self._queryable = None
+        if self._door is not None:
+            self._door.join(5.0 + self.settings.limits.door_window_s)
+            self._door = None
 
     def close(self) -> None:
         self.stop_intake()
@@ -68,13 +88,42 @@ class ZenohLink:
         if session is not None:
             session.close()
 
-    # ---- callbacks (Zenoh threads: enqueue only) -----------------------------------------------------------
-    def _on_frame(self, sample: zenoh.Sample) -> None:
+    # ---- the door thread and the query callback (enqueue only) ----------------------------------------------
+    def _door_loop(self, fifo, budget: Budget) -> None:
+        """Take samples from Zenoh's FIFO (waiting in recv releases the GIL), check them in batches and account
+        the CPU time (this thread's own) spent on the ones refused against the budget: junk is what must not take
+        the engine's CPU; a frame that passes costs what the fleet's own traffic costs. Ends when the subscriber
+        is undeclared."""
+        batch = self.settings.limits.door_batch
+        while True:
+            try:
+                sample = fifo.recv()
+            except zenoh.ZError:  # undeclared: the FIFO is closed
+                return
+            junk_s = 0.0
+            for _ in range(batch):
+                t0 = time.thread_time()
+                try:
+                    queued = self._on_frame(sample)
+                except Exception:  # a bug must not end the door; the message is lost, and logged
+                    log.exception("the Zenoh door failed on a message")
+                    queued = False
+                if not queued:
+                    junk_s += time.thread_time() - t0
+                try:
+                    sample = fifo.try_recv()
+                except zenoh.ZError:
+                    sample = None
+                if sample is None:
+                    break
+            budget.spend(junk_s)
+
+    def _on_frame(self, sample: zenoh.Sample) -> bool:
         sender = str(sample.key_expr).rsplit("/", 1)[-1]
         if len(sample.payload) > self.settings.limits.max_message_bytes:  # refused before it is even copied
             self.service.metrics.rejected.labels("zenoh", "too_large").inc()
-            return
-        self.service.submit_message(sender, sample.payload.to_bytes(), door="zenoh")
+            return False
+        return self.service.submit_message(sender, sample.payload.to_bytes(), door="zenoh")
 
     def _on_query(self, query: zenoh.Query) -> None:
         payload = query.payload

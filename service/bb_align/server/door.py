@@ -1,0 +1,171 @@
+"""The Zenoh door's check of a raw stream message, run on the Zenoh callback thread before the message may wait
+for the gate (authentication on).
+
+Every message the door lets through costs the gate a full check, and every message the door queues takes a place
+that authenticated frames need; a keyless flood must therefore cost as little as possible and be stopped here.
+The door refuses only what the gate would certainly refuse, cheapest test first:
+
+1. not a msgpack map (one byte looked at: 1-byte garbage and most junk end here);
+2. not a Signed envelope, or one this receiver has no key for (decoded under the message limits, no crypto);
+3. a byte-for-byte copy of a message verified here recently (a replay of a frame still on its way to the gate):
+   refused without a signature check;
+4. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
+   an older frame): read without trusting it, since a frame that old is refused whoever signed it;
+5. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
+   the key chunk it came under.
+
+A message that passes goes to the ego's lane (signed by the ego) or the signed lane, one signed by a genuine
+vehicle for another's key chunk to the unverified lane (the gate names the error). The gate checks everything
+again; the door only decides what may wait for it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+import msgpack
+
+from bb_align.protocol import WireError, peek_signed
+from bb_align.protocol.signatures import AuthError, Keyring
+
+from .scheduler import EGO, SIGNED, UNVERIFIED_LANE
+
+# msgpack map headers: fixmap 0x80-0x8f, map16 0xde, map32 0xdf (a Signed envelope is a map)
+_MAP_FIRST_BYTES = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}
+_PAYLOAD_KEYS = 16  # a frame has fewer top-level fields; more and the peek gives up (the gate decides)
+
+
+def _undecodable(detail: str) -> WireError:
+    return WireError(400, "undecodable", detail)
+
+
+def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
+    """(stamp, seq) of an encoded frame, read without building it (the other fields are skipped, not copied);
+    None when the payload is not a map holding both as numbers."""
+    unpacker = msgpack.Unpacker(raw=False, max_buffer_size=len(payload) + 1)
+    unpacker.feed(payload)
+    try:
+        n = unpacker.read_map_header()
+        if n > _PAYLOAD_KEYS:
+            return None
+        found: dict[str, object] = {}
+        for _ in range(n):
+            key = unpacker.unpack()
+            if key in ("stamp", "seq"):
+                found[key] = unpacker.unpack()
+            else:
+                unpacker.skip()
+    except Exception:  # msgpack raises several types on truncated or odd input
+        return None
+    stamp, seq = found.get("stamp"), found.get("seq")
+    if type(stamp) not in (int, float) or type(seq) is not int:
+        return None
+    return float(stamp), seq
+
+
+class RecentSignatures:
+    """Messages verified at the door lately: (key id, signature) -> digest of the payload, bounded (oldest
+    forgotten). An exact copy is a replay; anything else with the same signature must still be verified."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self._seen: OrderedDict[tuple[str, bytes], bytes] = OrderedDict()
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _digest(payload: bytes) -> bytes:
+        return hashlib.blake2b(payload, digest_size=16).digest()
+
+    def is_copy(self, key_id: str, mac: bytes, payload: bytes) -> bool:
+        with self._lock:
+            digest = self._seen.get((key_id, mac))
+        return digest is not None and digest == self._digest(payload)
+
+    def add(self, key_id: str, mac: bytes, payload: bytes) -> None:
+        digest = self._digest(payload)
+        with self._lock:
+            self._seen[(key_id, mac)] = digest
+            self._seen.move_to_end((key_id, mac))
+            while len(self._seen) > self.capacity:
+                self._seen.popitem(last=False)
+
+
+class Budget:
+    """At most ``share`` of one core for the door's refusals, accounted per ``window_s`` in the door thread's own
+    CPU time: once a window's share is spent the door sleeps until that CPU time is ``share`` of the time since
+    the window began (a single costly message, e.g. a signature check over a large forged envelope, is paid for
+    in full). Meanwhile Zenoh's FIFO fills and pushes back on the senders' links, so a flood is slowed at its
+    source instead of taking the engine's CPU and GIL."""
+
+    def __init__(self, share: float, window_s: float, clock=time.monotonic, sleep=time.sleep):
+        self.share, self.window_s = share, window_s
+        self._clock, self._sleep = clock, sleep
+        self._start, self._used = clock(), 0.0
+        self.throttled_s = 0.0  # time spent sleeping (reported as a metric)
+
+    def spend(self, cpu_s: float) -> None:
+        now = self._clock()
+        if now - self._start >= self.window_s:
+            self._start, self._used = now, 0.0
+        self._used += cpu_s
+        if self._used >= self.share * self.window_s:
+            pause = max(0.0, self._used / self.share - (now - self._start))
+            self._sleep(pause)
+            self.throttled_s += pause
+            self._start, self._used = self._clock(), 0.0
+
+
+class Door:
+    """``lane(sender, data)`` for stream messages: the intake lane a raw message may wait in, or WireError when
+    the gate would certainly refuse it. ``newest(vehicle_id)``: the newest (stamp, seq) accepted from a sender."""
+
+    def __init__(
+        self,
+        keyring: Keyring,
+        limits,
+        ego_id: str,
+        newest: Callable[[str], tuple[float, int] | None],
+        recent: int,
+    ):
+        self.keyring, self.limits, self.ego_id = keyring, limits, ego_id
+        self._newest = newest
+        self.recent = RecentSignatures(recent)
+
+    def lane(self, sender: str, data: bytes) -> tuple[str, str | None]:
+        """(lane, verified signer or None) for a stream message under key chunk ``sender``; raises WireError."""
+        if not data or data[0] not in _MAP_FIRST_BYTES:
+            raise _undecodable("not a msgpack map (a Signed frame is one)")
+        env = peek_signed(data, self.limits)
+        if env is None:  # undecodable, not an envelope, or a malformed one: the gate refuses each
+            raise WireError(401, "unauthenticated", "not a Signed frame (refused at the door)", "message")
+        if not self.keyring.knows(env.key_id, env.alg):
+            raise WireError(401, "unauthenticated", f"no key for {env.key_id!r} ({env.alg})", "mac", env.alg)
+        if self.recent.is_copy(env.key_id, env.mac, env.payload):
+            raise WireError(409, "replayed", "a copy of a message already received", "mac")
+        self._refuse_old(sender, env.payload)
+        try:
+            signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
+        except AuthError as e:
+            raise WireError(e.status, e.error, e.detail, "mac", env.alg) from None
+        self.recent.add(env.key_id, env.mac, env.payload)
+        try:
+            self.keyring.authorize(signer, sender)
+        except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
+            return UNVERIFIED_LANE, None
+        return (EGO if sender == self.ego_id else SIGNED), signer
+
+    def _refuse_old(self, sender: str, payload: bytes) -> None:
+        newest = self._newest(sender)
+        if newest is None:
+            return
+        claimed = stamp_and_seq(payload)
+        if claimed is None:
+            raise _undecodable("the signed payload is not a frame")
+        if claimed <= newest:
+            raise WireError(
+                409, "replayed", f"(stamp, seq) {claimed} is not newer than the last accepted {newest}", "stamp"
+            )
