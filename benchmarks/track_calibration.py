@@ -21,8 +21,9 @@ import numpy as np
 
 from bb_align.engine.config import TrackConfig
 from bb_align.engine.covariance import left_covariance, params_covariance
-from bb_align.engine.geometry import pose_error, se2, se2_params, wrap_angle
+from bb_align.engine.geometry import pose_error, se2
 from bb_align.engine.tracker import Measurement, PeerTrack
+from bb_align.lab.tracking.replay import error_components
 
 GRID = {
     "measurement_inflation": (1.0, 2.0, 4.0, 8.0, 16.0),
@@ -66,8 +67,7 @@ def run(seqs: dict[str, list[dict]], cfg: TrackConfig, inflation: float, odometr
             if a.valid:
                 t, deg = pose_error(a.T_ego_peer, T_true)
                 row["good"] = t <= 1.0 and deg <= 1.0
-                e = np.array(se2_params(a.T_ego_peer)) - np.array(r["truth"])
-                e[0] = wrap_angle(e[0])
+                e = np.array(error_components(a.T_ego_peer, T_true))
                 sig = np.sqrt(np.diag(params_covariance(a.covariance, a.T_ego_peer)))
                 row["inside"] = bool(np.all(np.abs(e) <= 3 * sig))
             rows.append(row)

@@ -19,7 +19,7 @@ import numpy as np
 from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
-from .geometry import pose_error, se2, se2_params, se3_from_se2
+from .geometry import ground_se2, pose_error, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
 from .tracker import Measurement, PeerTrack, TrackAnswer
@@ -27,11 +27,8 @@ from .verdict import FailureReason
 
 
 def ground_pose(T: np.ndarray | None) -> np.ndarray | None:
-    """A 4x4 (or 3x3) pose's ground-plane part as 3x3 (yaw about z, x, y)."""
-    if T is None:
-        return None
-    T = np.asarray(T, dtype=float)
-    return T if T.shape == (3, 3) else se2(se2_params(T)[0], T[0, 3], T[1, 3])
+    """A 4x4 (or 3x3) pose's ground-plane part as 3x3, None for None (an optional odometry pose)."""
+    return None if T is None else ground_se2(np.asarray(T, dtype=float))
 
 
 def as_measurement(r: AlignResult, inflation: float = 1.0) -> Measurement:

@@ -18,6 +18,11 @@ def se2_params(T: np.ndarray) -> tuple[float, float, float]:
     return float(np.arctan2(T[1, 0], T[0, 0])), float(T[0, t_col]), float(T[1, t_col])
 
 
+def ground_se2(T: np.ndarray) -> np.ndarray:
+    """A 3x3 or 4x4 pose's ground-plane part as a 3x3 (yaw about z, x, y)."""
+    return se2(*se2_params(T))
+
+
 def transform_points_2d(T_a_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
     """Apply a 3x3 transform to (N, 2) points."""
     pts_b = np.asarray(pts_b, dtype=float)

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .config import FeatureConfig, MatchConfig, PriorConfig
-from .geometry import se2, se2_params
+from .geometry import ground_se2
 from .parallel import run_parts
 
 if TYPE_CHECKING:
@@ -113,7 +113,7 @@ class Matcher:
                 desc_ego,
                 peer.keypoints_xy,
                 xy_ego,
-                se2(*se2_params(T_prior)),
+                ground_se2(T_prior),
                 max_translation=self.prior.max_translation_m,
                 max_yaw_rad=np.radians(self.prior.max_yaw_deg),
                 top_k=self.prior.top_k,

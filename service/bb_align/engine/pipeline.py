@@ -27,7 +27,7 @@ from .boxes import BoxStage, as_boxes
 from .config import AlignConfig
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
-from .geometry import se2, se2_params
+from .geometry import ground_se2, se2_params
 from .keypoints import detect_keypoints
 from .loggabor import maximum_index_map
 from .matching import Matcher
@@ -211,8 +211,7 @@ class Aligner:
         prediction is the tracker's judgement. ``T_ego_peer`` is the ground-plane pose lifted with no tz, roll or
         pitch (the follower sets them)."""
         cfg = self.config
-        T_pred = np.asarray(T_pred, dtype=float)
-        T_pred = se2(se2_params(T_pred)[0], T_pred[0, -1], T_pred[1, -1]) if T_pred.shape == (4, 4) else T_pred
+        T_pred = ground_se2(np.asarray(T_pred, dtype=float))
         r = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=T_pred, T_box=np.eye(3))
         with _single_threaded_blas():
             reason = self.verdict.images(ego, peer)

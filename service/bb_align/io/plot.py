@@ -14,6 +14,16 @@ from bb_align.engine.geometry import se2, se2_params
 from bb_align.engine.result import AlignResult
 
 
+def pyplot():
+    """matplotlib.pyplot on the file-only Agg backend (no screen here; every figure is written as a PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def warp_to_ego(peer: BevImage, ego: BevImage, T_ego_peer: np.ndarray) -> np.ndarray:
     """The peer image resampled on the ego image's pixel grid through T_ego_peer (3x3 or 4x4), nearest."""
     yaw, tx, ty = se2_params(T_ego_peer)
@@ -65,11 +75,7 @@ def plot_alignment(
     boxes_peer: np.ndarray | None = None,
     title: str | None = None,
 ) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(16, 8.4))
     # (a) side by side with inlier matches
     h = max(ego.shape[0], peer.shape[0])

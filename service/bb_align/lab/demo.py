@@ -107,10 +107,9 @@ def _table(rows: list[dict], title: str, last: int = 18) -> Table:
 
 def plot_demo(rows: list[dict], path: Path) -> None:
     """Per peer frame: recovered vs GNSS-only translation error, and publish -> result latency."""
-    import matplotlib
+    from bb_align.io.plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for peer in sorted({r["peer"] for r in rows}):

@@ -17,10 +17,9 @@ def _rates(samples: list[dict], key: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plot_soak(report: dict, path: Path) -> None:
-    import matplotlib
+    from bb_align.io.plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     tl = report["timeline"]
     samples, arrivals = tl["samples"], np.array(tl["results"])

@@ -13,10 +13,9 @@ _TITLES = {HOT: "peer frame vs cached ego frame", COLD: "cold pair (both frames 
 
 
 def plot_report(report: dict, path: str | Path) -> Path:
-    import matplotlib
+    from bb_align.io.plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     service = report.get("service") or {}
     runs = service.get("runs") or {}

@@ -10,17 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bb_align.io.plot import pyplot
+
 from .runner import PairRecord
 from .summary import BOX_INLIER_BUCKETS, BV_INLIER_BUCKETS, CAR_BUCKETS, DIST_BUCKETS, detection_ap
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _cdf(ax, values, ok, label, xmax, **kw):
@@ -41,7 +34,7 @@ def _cdf(ax, values, ok, label, xmax, **kw):
 
 def _pair_cdfs(fig_path, groups: dict[str, tuple], title: str, t_max=5.0, r_max=5.0):
     """Two panels (translation, rotation) with one CDF per group: name -> (t, r, ok)."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for name, (t, r, ok) in groups.items():
         _cdf(axes[0], t, ok, name, t_max)
@@ -149,7 +142,7 @@ def write_plots(records: list[PairRecord], out_dir: str | Path) -> list[Path]:
 
 
 def _box_by_cars(path, records):
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
     pos, data, labels = [], [], []
     for i, (k, (lo, hi)) in enumerate(CAR_BUCKETS.items()):
@@ -173,7 +166,7 @@ def _box_by_cars(path, records):
 
 
 def _ap_table(path, records):
-    plt = _plt()
+    plt = pyplot()
     ap = detection_ap(records)
     ranges = list(next(iter(ap.values())).keys())
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -196,7 +189,7 @@ def _ap_table(path, records):
 
 
 def _scatter_distance(path, records):
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 4))
     d = np.array([x.distance_m for x in records])
     t = np.array([x.t_err_m for x in records])

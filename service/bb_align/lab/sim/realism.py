@@ -73,10 +73,9 @@ def simulated_clouds(seeds=(11, 12, 13, 14)) -> dict[str, np.ndarray]:
 
 
 def figure(clouds: dict[str, np.ndarray], path: Path, cols: int = 4) -> None:
-    import matplotlib
+    from bb_align.io.plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = int(np.ceil(len(clouds) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4.2 * rows))
@@ -93,10 +92,9 @@ def figure(clouds: dict[str, np.ndarray], path: Path, cols: int = 4) -> None:
 
 def pair_overlay(seed: int, distance_m: float, path: Path) -> None:
     """Ego BV (red) and peer BV moved into the ego frame with the true pose (green): the common view."""
-    import matplotlib
+    from bb_align.io.plot import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from .scenario import Scenario
 

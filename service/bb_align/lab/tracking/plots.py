@@ -7,14 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, no screen
-    import matplotlib.pyplot as plt
-
-    return plt
+from bb_align.io.plot import pyplot
 
 
 def plot_sequence(records: list[dict], path: str | Path) -> None:

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
 from bb_align.engine.config import AlignConfig
-from bb_align.engine.follow import Follower, ground_pose
+from bb_align.engine.follow import Follower
 from bb_align.engine.geometry import pose_error, se2_params, wrap_angle
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.dataset import FrameGroup, iter_scenario_frames, parse_lidar_pose
@@ -57,9 +57,9 @@ def _reported(group: FrameGroup) -> np.ndarray | None:
     return np.linalg.inv(parse_lidar_pose(ego.extra["gnss_pose"])) @ parse_lidar_pose(peer.extra["gnss_pose"])
 
 
-def _error_components(T_est: np.ndarray, T_true: np.ndarray) -> list[float]:
+def error_components(T_est: np.ndarray, T_true: np.ndarray) -> list[float]:
     """(yaw rad, tx m, ty m) of the estimate minus the truth: the components the result's covariance is of."""
-    e, t = se2_params(ground_pose(T_est)), se2_params(ground_pose(T_true))
+    e, t = se2_params(T_est), se2_params(T_true)
     return [float(wrap_angle(e[0] - t[0])), e[1] - t[1], e[2] - t[2]]
 
 
@@ -82,7 +82,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior)
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
         t_err, r_err = pose_error(r.T_ego_peer, T_true)
-        err = _error_components(r.T_ego_peer, T_true)
+        err = error_components(r.T_ego_peer, T_true)
         # The engine run's own pose (the refinement's measurement, or the acquisition) before the track fused it.
         measured, measured_cov = follower.last_measured or (None, None)
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(r.covariance), 0.0)).tolist()
@@ -105,7 +105,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "measured": None if measured is None else list(se2_params(measured)),
                 "odometry": None if O_ego is None else [list(se2_params(O_ego)), list(se2_params(O_peer))],
                 "truth": list(se2_params(T_true)),
-                "measured_err": None if measured is None else _error_components(measured, T_true),
+                "measured_err": None if measured is None else error_components(measured, T_true),
                 "measured_cov": None if measured_cov is None else np.asarray(measured_cov).tolist(),
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
