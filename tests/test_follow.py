@@ -105,3 +105,34 @@ def test_an_odometry_jump_loses_the_track_and_it_is_acquired_again(sequence):
     assert reacquired, events
     r, f = after[-1]
     assert r.success and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
+
+
+def test_track_command_writes_the_summary_records_and_figures(tmp_path):
+    """`bb-align track` on a short sweep: the issue's summary keys, and fractions that agree with its own
+    per-frame records recounted here against the 1 m / 1 deg rule."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from bb_align.cli import app
+
+    root = tmp_path / "root"
+    write_sweep(root, seed=5, index=0, frames=6)
+    out = tmp_path / "out"
+    args = ["track", str(root), "--json", str(out / "s.json"), "--records", str(out / "r.jsonl")]
+    res = CliRunner().invoke(app, [*args, "--plots", str(out / "plots"), "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    s = json.loads((out / "s.json").read_text())
+    keys = {"frames", "frac_under_1m_1deg", "by_distance", "wrong_frames_frac", "acquire_s_median", "lock_losses"}
+    assert keys | {"tracked_ms_p50", "acquire_ms_p50"} <= set(s) and set(s["by_distance"]) == {
+        "0-20",
+        "20-40",
+        "40-70",
+        "70+",
+    }
+    rows = [json.loads(line) for line in (out / "r.jsonl").read_text().splitlines()]
+    assert s["frames"] == len(rows) == 6
+    good = [r["success"] and r["t_err_m"] <= 1.0 and r["r_err_deg"] <= 1.0 for r in rows]
+    assert s["frac_under_1m_1deg"] == pytest.approx(np.mean(good)) and s["frac_under_1m_1deg"] > 0.8
+    assert (out / "plots" / "tracking_by_distance.png").stat().st_size > 0
+    assert len(list((out / "plots").glob("track_*.png"))) == 1
