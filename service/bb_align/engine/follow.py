@@ -22,7 +22,7 @@ from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
-from .tracker import Measurement, PeerTrack, TrackAnswer
+from .tracker import OUT_OF_ORDER, Measurement, PeerTrack, TrackAnswer
 from .verdict import FailureReason
 
 
@@ -131,7 +131,7 @@ class Follower:
         return r
 
     def _reason(self, a: TrackAnswer, r: AlignResult) -> str:
-        if a.event and "older than the track" in a.event:
+        if a.event == OUT_OF_ORDER:
             return FailureReason.out_of_order.value
         if a.mahalanobis2 is not None and a.mahalanobis2 > self.cfg.gate_chi2:
             return FailureReason.outside_track_gate.value

@@ -27,6 +27,8 @@ import numpy as np
 from .config import TrackConfig
 from .geometry import se2, se2_params, worst_sigma_m, wrap_angle
 
+OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
+
 
 class TrackState(str, Enum):
     acquiring = "acquiring"  # no pose yet: every frame runs a full acquisition
@@ -108,7 +110,7 @@ class PeerTrack:
         elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
             event = self._drop(f"the stream restarted {self.stamp - stamp:.1f} s earlier")
         elif self.X is not None and stamp < self.stamp:
-            return self._answer(stamp, "none", False, None, None, "frame older than the track: ignored")
+            return self._answer(stamp, "none", False, None, None, OUT_OF_ORDER)
         elif self.X is not None and odometry and (jump := self._odometry_jump(stamp, O_e, O_p)):
             event = self._drop(jump)
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
