@@ -82,6 +82,21 @@ def test_cache_returns_nearest_in_time_and_keeps_the_last_k():
     assert cache.prepared() == 0
 
 
+def test_cache_wait_for_returns_when_an_ego_frame_within_the_skew_lands():
+    cache = EgoCache(size=3)
+    cache.add(_ego(1.0, 0), bev=None)
+    assert cache.wait_for(1.05, 0.15, timeout=5.0)  # already there: no wait
+    t0 = time.perf_counter()
+    assert not cache.wait_for(2.0, 0.15, timeout=0.2)  # none comes: the bounded wait, then no
+    assert 0.15 <= time.perf_counter() - t0 < 2.0
+    landing = threading.Timer(0.1, lambda: cache.add(_ego(1.98, 1), bev=None))
+    landing.start()
+    t0 = time.perf_counter()
+    assert cache.wait_for(2.0, 0.15, timeout=5.0)  # the sweep's ego frame lands 0.1 s later: woken by it
+    assert time.perf_counter() - t0 < 2.0
+    landing.join()
+
+
 def test_entry_features_are_computed_once_for_concurrent_users():
     cache = EgoCache(size=2)
     entry = cache.add(_ego(1.0, 0), bev=None)

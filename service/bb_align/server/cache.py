@@ -44,12 +44,20 @@ class EgoCache:
     def __init__(self, size: int):
         self._entries: deque[EgoEntry] = deque(maxlen=size)
         self._lock = threading.Lock()
+        self._added = threading.Condition(self._lock)
 
     def add(self, frame: Frame, bev: BevImage) -> EgoEntry:
         entry = EgoEntry(frame, bev)
         with self._lock:
             self._entries.append(entry)
+            self._added.notify_all()
         return entry
+
+    def wait_for(self, stamp: float, max_skew: float, timeout: float) -> bool:
+        """Wait at most ``timeout`` seconds until an entry within ``max_skew`` of ``stamp`` is cached; whether one
+        is (at once when one already is)."""
+        with self._added:
+            return self._added.wait_for(lambda: any(abs(e.stamp - stamp) <= max_skew for e in self._entries), timeout)
 
     def rewind(self, stamp: float) -> int:
         """The ego's recording started over at ``stamp`` (replay profile): frames of the previous pass stamped

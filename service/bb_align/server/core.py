@@ -624,7 +624,10 @@ class AlignService:
         peer_prep = self._prepare(peer, "prepare_peer")
         if job.ego is not None:
             ego_frame, ego_prep = job.ego, self._prepare(job.ego, "prepare_ego")
-        else:  # look again: a nearer ego frame may have come in while the peer was prepared
+        else:  # look again: a nearer ego frame may have come in while the peer was prepared. With none within the
+            # skew yet, wait briefly for it: a tracked peer frame is prepared in a few ms, sooner than the ego frame
+            # of its sweep may land (before tracking, the peer's MIM took longer than that)
+            self.cache.wait_for(peer.stamp, s.max_ego_skew_s, s.ego_wait_s)
             picked = self._pick_ego(peer, job, base, timings, wait=True)
             if isinstance(picked, Result):
                 return picked

@@ -160,6 +160,13 @@ class Settings(BaseSettings):
         "result names the ego frame used). Off: the nearest ego frame in time, always",
     )
     max_ego_skew_s: float = Field(0.15, ge=0, description="a peer frame needs an ego frame this close in time")
+    ego_wait_s: float = Field(
+        0.1,
+        ge=0,
+        le=1.0,
+        description="a prepared peer frame with no cached ego frame within max_ego_skew_s waits this long at most "
+        "for one (the ego frame of its sweep travels in another Zenoh session and may land a little later)",
+    )
     workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
     peer_queue_depth: int = Field(
         1, ge=1, le=64, description="frames waiting per peer; older ones are dropped (1 = latest only)"
