@@ -198,3 +198,20 @@ def test_service_throughput_over_zenoh_loopback():
     assert run["service_frames_dropped_total"] >= 0 and sum(run["outcomes"].values()) == run["results"]
     assert run["service_memory"]["rss_peak_mb"] > 50  # the service process itself, read from /proc
     assert "queue_wait" in run["service_timings_ms_p50"]
+
+
+def test_bench_reported_pose_noise_is_about_the_car_not_the_world_origin():
+    """A car 800 m from the world origin: its reported pose is off by the configured GNSS-class error (metres
+    and degrees about the car), not by the yaw error times 800 m."""
+    from bb_align.engine.geometry import se3_from_se2
+    from bb_align.lab.bench.throughput import ServiceBenchConfig, reported_pose
+
+    cfg = ServiceBenchConfig(pose_sigma_m=2.0, pose_sigma_deg=2.0)
+    T_world_sensor = se3_from_se2(se2(np.radians(30.0), 800.0, -600.0))
+    errors = np.array(
+        [pose_error(reported_pose(T_world_sensor, cfg, car, k), T_world_sensor) for car in range(4) for k in range(50)]
+    )
+    # Position error per axis ~N(0, 2 m): its norm is Rayleigh(2 m), P(> 10 m) = exp(-12.5) per draw.
+    assert errors[:, 0].max() < 10.0
+    assert 1.0 < np.median(errors[:, 0]) < 4.0  # Rayleigh median 2.35 m
+    assert 0.5 < np.median(errors[:, 1]) < 3.0 and errors[:, 1].max() < 10.0  # |N(0, 2 deg)|: median 1.35

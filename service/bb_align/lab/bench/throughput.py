@@ -86,11 +86,14 @@ def loop_index(k: int, n: int) -> int:
 
 
 def reported_pose(T_world_sensor: np.ndarray, cfg: ServiceBenchConfig, car: int, frame: int) -> np.ndarray:
-    """The true pose with GNSS-like noise (x, y, yaw), seeded per car and frame."""
+    """The true pose with GNSS-like noise, seeded per car and frame: the position off by (dx, dy) in the world, the
+    heading off by a yaw about the car itself. (A yaw applied on the left would turn the car about the world
+    origin, hundreds of metres away, and move it by tens of metres.)"""
     rng = np.random.default_rng([cfg.seed, car, frame, 11])
     dx, dy = rng.normal(0.0, cfg.pose_sigma_m, 2)
-    noise = se3_from_se2(se2(np.radians(rng.normal(0.0, cfg.pose_sigma_deg)), dx, dy))
-    return noise @ np.asarray(T_world_sensor, dtype=float)
+    dyaw = np.radians(rng.normal(0.0, cfg.pose_sigma_deg))
+    T = np.asarray(T_world_sensor, dtype=float)
+    return se3_from_se2(se2(0.0, dx, dy)) @ T @ se3_from_se2(se2(dyaw, 0.0, 0.0))
 
 
 # ---- the service process --------------------------------------------------------------------------------------
