@@ -348,3 +348,51 @@ def test_without_the_replay_profile_old_stamps_and_a_second_pass_are_refused_nam
     body = e.value.body
     assert (e.value.status, body.error, body.setting) == (409, "replayed", "BBALIGN_LIMITS__REPLAY")
     assert "bb-align serve --replay" in body.detail
+
+
+def test_a_tracks_cross_check_runs_beside_it_and_the_frames_meanwhile_are_tracked(pair):
+    """With odometry, the periodic cross-check is a job of its own: the frame that makes it due is answered by the
+    refinement (not by a 0.3 s acquisition), the acquisition then runs and agrees, and the track goes on."""
+    from bb_align.engine.config import BevConfig, TrackConfig
+    from bb_align.engine.pipeline import AlignConfig
+
+    align = AlignConfig(bev=BevConfig(range_m=RANGE_M), track=TrackConfig(crosscheck_s=0.3))
+    with running_service(service_settings(zenoh=False, max_ego_skew_s=0.15, align=align)) as (_, url):
+        with httpx.Client(base_url=url, timeout=30) as http:
+
+            def align_at(k, seq):  # the pair's frame k, with both cars' odometry (here: their true poses)
+                stamp, ego, peer = pair[k]
+                frames = [
+                    encode_frame(
+                        car.points,
+                        car.boxes,
+                        vehicle_id=name,
+                        stamp=seq * 0.2,
+                        seq=seq,
+                        range_m=RANGE_M,
+                        odometry=car.T_world_sensor,
+                    )
+                    for car, name in ((peer, "car1"), (ego, "ego"))
+                ]
+                content = pack_align_request(*frames)
+                res = load_result(http.post("/v1/align", content=content, headers=MSGPACK_CT).content)
+                return res, true_T_ego_peer(ego, peer)
+
+            def crosschecks() -> float:
+                for line in http.get("/metrics").text.splitlines():
+                    if line.startswith('bbalign_engine_seconds_count{step="crosscheck"}'):
+                        return float(line.split()[-1])
+                return 0.0
+
+            res, T_true = align_at(0, 0)
+            assert res.source == "acquisition" and res.success
+            res, T_true = align_at(1, 2)  # 0.4 s on: the cross-check is due, and left to its own job
+            assert res.source == "tracking" and res.success and pose_error(res.matrix(), T_true)[0] < 0.3
+            deadline = time.monotonic() + 30
+            while crosschecks() < 1:
+                assert time.monotonic() < deadline, "the cross-check never ran"
+                time.sleep(0.05)
+            res, T_true = align_at(2, 3)
+            assert res.source == "tracking" and res.success and res.track_event is None  # it agreed
+            assert pose_error(res.matrix(), T_true)[0] < 0.3
+            assert crosschecks() == 1  # one per crosscheck_s, not one per frame

@@ -128,6 +128,19 @@ def test_priority_sender_goes_first_without_reordering_the_rest():
     assert order == ["ego", "car1", "car2"]
 
 
+def test_background_jobs_run_at_most_max_background_at_once_and_never_hold_back_streams():
+    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1)
+    for sender in ("@bg:car1", "@bg:car2", "car1", "car2"):
+        s.put_frame(_job(sender, 0))
+    first = s.get(timeout=0)
+    assert first.sender == "@bg:car1"  # in readiness order, while none runs
+    # One background job runs: the other waits even though it is next in line; the streams go past it.
+    assert [s.get(timeout=0).sender for _ in range(2)] == ["car1", "car2"]
+    assert s.get(timeout=0) is None  # only @bg:car2 is ready, and it must wait
+    s.done(first)
+    assert s.get(timeout=0).sender == "@bg:car2"
+
+
 def test_relative_prior_takes_roll_pitch_tz_of_the_reported_poses():
     from scipy.spatial.transform import Rotation
 

@@ -183,3 +183,73 @@ def test_cross_check_that_disagrees_restarts_the_track():
             assert pose_error(a.T_ego_peer, T_true)[0] < 1.0, k
     t, _ = pose_error(rows[-1][2].T_ego_peer, rows[-1][1])
     assert t < 1.0
+
+
+def _steps_without_crosscheck(track: PeerTrack, oracle: Oracle, frames, odo):
+    """Frames stepped with the periodic cross-check left to the caller; returns (k, T_true, answer, epoch begun)."""
+    out = []
+    for k in frames:
+        _, _, T_true = _truth(k)
+        a = track.step(
+            k * DT,
+            lambda T, T_true=T_true: oracle.noisy(T_true),
+            lambda T, T_true=T_true: oracle.noisy(T_true),
+            *odo(k),
+            crosscheck=False,
+        )
+        out.append((k, T_true, a, track.begin_crosscheck(k * DT)))
+    return out
+
+
+def test_cross_check_beside_the_track_fuses_an_earlier_frame_that_agrees():
+    track, oracle, odo = PeerTrack(TrackConfig(crosscheck_s=1.0)), Oracle(seed=7), _odometry()
+    rows = _steps_without_crosscheck(track, oracle, range(12), odo)
+    begun = [(k, e) for k, _, _, e in rows if e is not None]
+    assert [k for k, _ in begun] == [10]  # due 1 s after the acquisition at frame 0, begun once
+    assert all(a.source in ("acquisition", "tracking") for _, _, a, _ in rows)  # no frame ran it inline
+    # The acquisition of frame 10 lands two frames later, with frame 10's odometry: it agrees and is fused.
+    k0, epoch = begun[0]
+    _, _, T_true = _truth(k0)
+    P_before = track.P.copy()
+    assert track.finish_crosscheck(epoch, oracle.noisy(T_true), *odo(k0)) is None
+    assert track.state == TrackState.tracking and np.trace(track.P) < np.trace(P_before)
+    rows += _steps_without_crosscheck(track, oracle, range(12, 20), odo)
+    for _k, T_true, a, _ in rows:
+        assert a.valid and pose_error(a.T_ego_peer, T_true)[0] < 1.0
+
+
+def test_cross_check_beside_the_track_that_disagrees_drops_it_and_the_next_frame_says_why():
+    track, oracle, odo = PeerTrack(TrackConfig(crosscheck_s=1.0)), Oracle(seed=8), _odometry()
+    rows = _steps_without_crosscheck(track, oracle, range(11), odo)
+    ((k0, epoch),) = [(k, e) for k, _, _, e in rows if e is not None]
+    # The acquisition found the peer 6 m from where the track has it (here: the track is right and the late
+    # result wrong, as after an alias; either way the two disagree and the track cannot be trusted).
+    _, _, T_true = _truth(k0)
+    wrong = Measurement(True, se2(0.0, 6.0, 0.0) @ T_true, oracle.cov)
+    event = track.finish_crosscheck(epoch, wrong, *odo(k0))
+    assert event and "cross-check" in event and track.state == TrackState.lost
+    k, T_true, a, _ = _steps_without_crosscheck(track, oracle, [11], odo)[0]
+    assert a.source == "acquisition" and "cross-check" in a.event and "acquired" in a.event
+    assert pose_error(a.T_ego_peer, T_true)[0] < 1.0
+
+
+def test_cross_check_of_a_track_already_gone_is_ignored():
+    track, oracle, odo = PeerTrack(TrackConfig(crosscheck_s=1.0)), Oracle(seed=9), _odometry(jump_at=12)
+    rows = _steps_without_crosscheck(track, oracle, range(11), odo)
+    ((k0, epoch),) = [(k, e) for k, _, _, e in rows if e is not None]
+    rows = _steps_without_crosscheck(track, oracle, range(11, 14), odo)  # the jump at 12 drops and re-acquires
+    assert any(a.event and "jumped" in a.event for _, _, a, _ in rows)
+    X_before = track.X.copy()
+    _, _, T_true = _truth(k0)
+    wrong = Measurement(True, se2(0.0, 6.0, 0.0) @ T_true, oracle.cov)
+    assert track.finish_crosscheck(epoch, wrong, *odo(k0)) is None  # of the old track: no effect on the new
+    np.testing.assert_array_equal(track.X, X_before)
+    assert track.state == TrackState.tracking
+
+
+def test_no_cross_check_beside_a_track_without_odometry():
+    track, oracle = PeerTrack(TrackConfig(crosscheck_s=1.0)), Oracle(seed=10)
+    rows = _run(track, oracle, range(15))
+    assert track.begin_crosscheck(15 * DT) is None  # it needs the constant offset odometry gives
+    acquired = [k for k, _, a in rows if a.source == "acquisition"]
+    assert acquired[-1] - acquired[-2] == 10  # the periodic cross-check (1 s) ran inline, as before

@@ -8,6 +8,13 @@ multi-hypothesis acquisition searches every pose, and the track judges whether i
 dense refinement from the track's prediction (``Aligner.measure``: no MIM or descriptors). The tracker
 (bb_align.engine.tracker) predicts, gates and fuses; its answer comes back as an AlignResult whose ``source`` says
 where it came from and whose covariance is the track's.
+
+A service that cannot let a peer's frames wait for a periodic cross-check (~0.3 s) runs it beside the track:
+
+    result = follower.step(ego, peer, stamp, O_ego=..., O_peer=..., crosscheck=False)
+    if (epoch := follower.begin_crosscheck(stamp)) is not None:           # due, and the track has odometry
+        r = follower.crosscheck(ego, peer, T_prior=...)                    # elsewhere: another thread, later
+        follower.finish_crosscheck(epoch, r, O_ego, O_peer)                # with the track's lock held
 """
 
 from __future__ import annotations
@@ -63,10 +70,12 @@ class Follower:
         tz: float = 0.0,
         roll: float = 0.0,
         pitch: float = 0.0,
+        crosscheck: bool = True,
     ) -> AlignResult:
         """One peer frame at ``stamp`` (s) against the ego frame of (about) that time. ``O_ego`` / ``O_peer``: the
         two cars' odometry poses (4x4 or 3x3; both or neither). ``T_prior``: a reported T_ego_peer (e.g. from GNSS)
-        that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants."""
+        that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants.
+        ``crosscheck=False``: the periodic cross-check is left to the caller (see the module's docstring)."""
         runs: list[AlignResult] = []
         with_odometry = O_ego is not None and O_peer is not None
         c = self.cfg
@@ -80,19 +89,45 @@ class Follower:
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
-            gate = T_prior is not None and self.cfg.prior == "gate"
-            runs.append(self.aligner.align(ego, peer, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior if gate else None))
-            if T_prior is not None and not gate:
-                self._check_prior(runs[-1], T_prior)
+            runs.append(self.crosscheck(ego, peer, T_prior=T_prior, tz=tz, roll=roll, pitch=pitch))
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])
 
         t0 = time.perf_counter()
-        answer = self.track.step(stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer))
+        answer = self.track.step(
+            stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer), crosscheck=crosscheck
+        )
         r = self._result(answer, runs, (time.perf_counter() - t0) * 1e3, tz, roll, pitch)
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
+
+    def crosscheck(
+        self,
+        ego: PreparedFrame,
+        peer: PreparedFrame,
+        *,
+        T_prior: np.ndarray | None = None,
+        tz: float = 0.0,
+        roll: float = 0.0,
+        pitch: float = 0.0,
+    ) -> AlignResult:
+        """The full acquisition of one frame pair, judged against the reported pose (``track.prior``). It touches
+        no track state: a cross-check beside the track may run it on another thread."""
+        gate = T_prior is not None and self.cfg.prior == "gate"
+        r = self.aligner.align(ego, peer, tz=tz, roll=roll, pitch=pitch, T_prior=T_prior if gate else None)
+        if T_prior is not None and not gate:
+            self._check_prior(r, T_prior)
+        return r
+
+    def begin_crosscheck(self, stamp: float) -> int | None:
+        """The track's epoch when a cross-check beside it is due at ``stamp`` (marked begun), else None."""
+        return self.track.begin_crosscheck(stamp)
+
+    def finish_crosscheck(self, epoch: int, r: AlignResult, O_ego: np.ndarray, O_peer: np.ndarray) -> str | None:
+        """Apply a cross-check's acquisition (``crosscheck``) of the frame pair with odometry ``O_ego``, ``O_peer``
+        to the track of ``epoch``; the event when it dropped the track."""
+        return self.track.finish_crosscheck(epoch, as_measurement(r), ground_pose(O_ego), ground_pose(O_peer))
 
     def _check_prior(self, r: AlignResult, T_prior: np.ndarray) -> None:
         """An acquisition farther from the reported pose than the prior's tolerance is refused: the images found

@@ -13,6 +13,11 @@ caller's ``measure``), gate the measurement by its Mahalanobis distance, fuse (a
 past a bound, and periodically as a cross-check. Every answer says where it came from, its covariance and the track
 state; every state change carries its reason.
 
+With odometry the periodic cross-check can also run beside the track (``step(..., crosscheck=False)``, then
+``begin_crosscheck`` and ``finish_crosscheck`` on the acquisition of that earlier frame): the offset X is the same at
+every time, so an acquisition finished a few frames later still measures it, and the frames meanwhile are tracked
+in milliseconds instead of waiting for it.
+
 Covariances are of left increments (yaw rad, tx m, ty m), the convention of the refinement's.
 """
 
@@ -87,6 +92,8 @@ class PeerTrack:
         self.rejects = 0
         self.last_event: str | None = None
         self.last_fused: float | None = None
+        self.epoch = 0  # counts tracks: a cross-check run beside the track applies only to the track it checked
+        self.pending_event: str | None = None  # a state change made between frames, said with the next answer
         self.odometry_seen: tuple[float, np.ndarray, np.ndarray] | None = None  # the last frame's (stamp, O_e, O_p)
 
     # ---- the frame step ----------------------------------------------------------------------------------------
@@ -97,14 +104,16 @@ class PeerTrack:
         acquire: Callable[[np.ndarray | None], Measurement],
         O_ego: np.ndarray | None = None,
         O_peer: np.ndarray | None = None,
+        crosscheck: bool = True,
     ) -> TrackAnswer:
         """One peer frame at ``stamp`` (s). ``measure(T_pred)`` refines from a predicted T_ego_peer (3x3);
         ``acquire(T_prior or None)`` runs the full method. ``O_ego`` / ``O_peer``: 3x3 odometry poses of the
-        two frames (both or neither)."""
+        two frames (both or neither). ``crosscheck=False``: no periodic cross-check in this step (the caller runs
+        it beside the track, see ``begin_crosscheck``); one forced by the track's uncertainty still runs."""
         odometry = O_ego is not None and O_peer is not None
         O_e = np.asarray(O_ego, float) if odometry else np.eye(3)
         O_p = np.asarray(O_peer, float) if odometry else np.eye(3)
-        event = None
+        event, self.pending_event = self.pending_event, None
         if self.X is not None and odometry != self.with_odometry:
             event = self._drop("odometry appeared or disappeared")
         elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
@@ -122,7 +131,7 @@ class PeerTrack:
         X, P, T_pred, H = self._predict(stamp - self.stamp, O_e, O_p)
         P_T = H @ P @ H.T
         sigma = worst_sigma_m(P_T)
-        periodic = self.cfg.crosscheck_s > 0 and stamp - self.last_acquired >= self.cfg.crosscheck_s
+        periodic = crosscheck and self.crosscheck_due(stamp)
         if sigma > self.cfg.max_sigma_m or periodic:
             # The full method, seeded by the prediction: fused when it agrees, a fresh track when it does not;
             # when it fails, the refinement below still tries to hold the track.
@@ -134,6 +143,43 @@ class PeerTrack:
         if not m.ok:
             return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False)
         return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
+
+    # ---- the cross-check beside the track ----------------------------------------------------------------------
+    def crosscheck_due(self, stamp: float) -> bool:
+        """A track whose last full acquisition is crosscheck_s old at ``stamp``."""
+        return self.X is not None and self.cfg.crosscheck_s > 0 and stamp - self.last_acquired >= self.cfg.crosscheck_s
+
+    def begin_crosscheck(self, stamp: float) -> int | None:
+        """When a cross-check beside the track is due at ``stamp`` (a tracked frame with odometry): mark it begun
+        and return the track's epoch, to hand back to ``finish_crosscheck``; else None."""
+        if not (self.with_odometry and self.crosscheck_due(stamp)):
+            return None
+        self.last_acquired = stamp
+        return self.epoch
+
+    def finish_crosscheck(self, epoch: int, m: Measurement, O_ego: np.ndarray, O_peer: np.ndarray) -> str | None:
+        """Apply the full acquisition of an earlier frame (with that frame's odometry) of track ``epoch``: fused
+        into the offset when it agrees, the track dropped when it does not (the next frame acquires afresh and its
+        answer says why). Ignored when that track is gone or the acquisition failed. Returns the event, if any."""
+        if epoch != self.epoch or self.X is None or not m.ok:
+            return None
+        O_e, O_p = np.asarray(O_ego, float), np.asarray(O_peer, float)
+        A = adjoint(O_e)  # left increments of that frame's T_ego_peer -> of X
+        nu = log_left(O_e @ m.T_ego_peer @ np.linalg.inv(O_p), self.X)
+        # The drift since that frame is left out of S: a little tighter gate, never a looser one.
+        S = self.P + A @ np.asarray(m.covariance, float) @ A.T
+        d2 = float(nu @ np.linalg.solve(S, nu))
+        if d2 > self.cfg.gate_chi2:
+            self.pending_event = self._drop(
+                f"the cross-check acquisition disagrees with the track (Mahalanobis^2 {d2:.1f})"
+            )
+            return self.pending_event
+        K = self.P @ np.linalg.inv(S)
+        self.X = se2(*(K @ nu)) @ self.X
+        self.P = (np.eye(3) - K) @ self.P
+        self.P = 0.5 * (self.P + self.P.T)
+        self.rejects = 0
+        return None
 
     # ---- steps -------------------------------------------------------------------------------------------------
     def _predict(self, dt: float, O_e: np.ndarray, O_p: np.ndarray):
@@ -228,6 +274,7 @@ class PeerTrack:
         self.last_fused = stamp
         changed = self.state != TrackState.tracking
         self.state = TrackState.tracking
+        self.epoch += 1
         self._keep(stamp, O_e @ m.T_ego_peer @ np.linalg.inv(O_p), P)
         if changed:
             event = (event + "; acquired") if event else "acquired"
@@ -260,6 +307,7 @@ class PeerTrack:
         self.stamp, self.X, self.P = stamp, X, P
 
     def _drop(self, why: str) -> str:
+        self.epoch += 1
         self.X = self.P = None
         self.w = np.zeros(3)
         self.state = TrackState.lost

@@ -73,6 +73,7 @@ class ServiceReason(str, Enum):
 
 
 _EGO_FEATURES = "@ego-features"  # the scheduler key of the eager ego-feature job (never a vehicle id)
+_CROSSCHECK = "@crosscheck:"  # + peer id: the scheduler key of a peer's cross-check beside its track
 UNVERIFIED = "(unverified)"  # metric label of messages dropped before the gate knew their sender
 # One replay window per sender across both doors and both REST routes: a frame taken from the Zenoh stream is not
 # accepted again as a query or by /v1/align, nor the other way round.
@@ -134,8 +135,13 @@ class AlignService:
         self.keyring = settings.auth.keyring()
         self._answer_key, self._answer_key_id = settings.auth.answer_key()
         # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
+        # Cross-checks beside tracks use at most all workers but one: the streams keep one to themselves.
         self.scheduler = Scheduler(
-            settings.peer_queue_depth, settings.max_pending_requests, priority=frozenset({settings.ego_id})
+            settings.peer_queue_depth,
+            settings.max_pending_requests,
+            priority=frozenset({settings.ego_id}),
+            background_prefix=_CROSSCHECK,
+            max_background=max(1, settings.workers - 1),
         )
         self.intake = Intake(
             limits.intake_queue,
@@ -552,6 +558,9 @@ class AlignService:
         if job.task == "ego_features":
             job.meta["entry"].features(self._prepare_entry)
             return None
+        if job.task == "crosscheck":
+            self._crosscheck(**job.meta)
+            return None
         self.metrics.frames.labels(job.door, "peer").inc()
         return self._align(job.frame, job)
 
@@ -649,19 +658,41 @@ class AlignService:
     def _follow(self, ego_frame: Frame, ego_prep, peer: Frame, peer_prep, T_prior, tz, roll, pitch) -> AlignResult:
         """The peer's track, one step: acquisition when it has none, else the refinement from its prediction."""
         odometry = ego_frame.odometry is not None and peer.odometry is not None
+        O_ego = ego_frame.odometry.matrix() if odometry else None
+        O_peer = peer.odometry.matrix() if odometry else None
+        aside = self.settings.crosscheck_beside_track
         track = self.tracks.get(peer.vehicle_id)
         with track.lock:
-            return track.follower.step(
+            r = track.follower.step(
                 ego_prep,
                 peer_prep,
                 peer.stamp,
-                O_ego=ego_frame.odometry.matrix() if odometry else None,
-                O_peer=peer.odometry.matrix() if odometry else None,
+                O_ego=O_ego,
+                O_peer=O_peer,
                 T_prior=T_prior,
                 tz=tz,
                 roll=roll,
                 pitch=pitch,
+                crosscheck=not aside,
             )
+            epoch = track.follower.begin_crosscheck(peer.stamp) if aside else None
+        if epoch is not None:  # a job of its own: the peer's next frames are tracked meanwhile, not queued behind
+            meta = dict(track=track, epoch=epoch, ego=ego_prep, peer=peer_prep, O_ego=O_ego, O_peer=O_peer)
+            meta.update(T_prior=T_prior, tz=tz, roll=roll, pitch=pitch)
+            job = Job(_CROSSCHECK + peer.vehicle_id, time.perf_counter(), "track", task="crosscheck", meta=meta)
+            self.scheduler.put_frame(job, depth=1)
+        return r
+
+    def _crosscheck(self, track, epoch, ego, peer, O_ego, O_peer, T_prior, tz, roll, pitch) -> None:
+        """A periodic cross-check run beside a peer's track: the full acquisition of an earlier frame pair, then
+        applied to the track (fused, or the track dropped; the peer's next answer says so)."""
+        t0 = time.perf_counter()
+        r = track.follower.crosscheck(ego, peer, T_prior=T_prior, tz=tz, roll=roll, pitch=pitch)
+        with track.lock:
+            event = track.follower.finish_crosscheck(epoch, r, O_ego, O_peer)
+        self.metrics.engine.labels("crosscheck").observe(time.perf_counter() - t0)
+        if event:
+            log.info("cross-check: %s", event)
 
     def _pick_ego(self, peer: Frame, job: Job, base: dict, timings: dict, wait: bool):
         """(ego frame, its features) nearest in time to the peer frame, or a failed Result saying why."""

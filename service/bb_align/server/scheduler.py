@@ -5,6 +5,10 @@ latest only); a newer frame pushes the oldest out and the push reports it as dro
 ``/v1/align``, Zenoh queries) must each be answered, so they wait in one bounded FIFO and are refused when it
 is full. Workers take senders and the request queue in round-robin order of readiness (``priority`` senders
 first); a sender's frames are handled by one worker at a time, so its results come out in order.
+
+Background senders (keys starting with ``background_prefix``: a track's cross-check, ~0.3 s of work that answers
+no one) take their turn like the others, but at most ``max_background`` of them run at once: the other workers are
+left to the streams, which would otherwise wait behind them and drop frames.
 """
 
 from __future__ import annotations
@@ -34,8 +38,17 @@ class Job:
 
 
 class Scheduler:
-    def __init__(self, depth: int = 1, max_requests: int = 8, priority: frozenset[str] = frozenset()):
+    def __init__(
+        self,
+        depth: int = 1,
+        max_requests: int = 8,
+        priority: frozenset[str] = frozenset(),
+        background_prefix: str | None = None,
+        max_background: int = 1,
+    ):
         self.depth = depth
+        self.background_prefix, self.max_background = background_prefix, max_background
+        self._running_background = 0
         self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
         self._cv = threading.Condition()
@@ -72,13 +85,14 @@ class Scheduler:
     def get(self, timeout: float | None = None) -> Job | None:
         """The next job in round-robin order; None on timeout or once closed."""
         with self._cv:
-            if not self._cv.wait_for(lambda: self._ready or self._closed, timeout) or not self._ready:
+            if not self._cv.wait_for(lambda: self._next_key() is not None or self._closed, timeout):
                 return None
-            key = next((k for k in self._ready if k in self.priority), None)
-            if key is None:
-                key = self._ready.popleft()
-            else:
-                self._ready.remove(key)
+            key = self._next_key()
+            if key is None:  # closed
+                return None
+            self._ready.remove(key)
+            if self._background(key):
+                self._running_background += 1
             if key is _REQUESTS:
                 job = self._requests.popleft()
                 if self._requests:
@@ -88,12 +102,26 @@ class Scheduler:
             self._busy.add(key)
             return self._streams[key].popleft()
 
+    def _background(self, key) -> bool:
+        return self.background_prefix is not None and isinstance(key, str) and key.startswith(self.background_prefix)
+
+    def _next_key(self):
+        """The ready key to serve next: a priority sender, else the first in readiness order that may run now."""
+        key = next((k for k in self._ready if k in self.priority), None)
+        if key is None:
+            full = self._running_background >= self.max_background
+            key = next((k for k in self._ready if not (full and self._background(k))), None)
+        return key
+
     def done(self, job: Job) -> None:
         """A worker finished a job; its sender may be scheduled again (an empty queue is let go)."""
         if job.reply is not None:
             return
         with self._cv:
             self._busy.discard(job.sender)
+            if self._background(job.sender):
+                self._running_background -= 1
+                self._cv.notify()  # a background job held back may run now
             if self._streams.get(job.sender):
                 if job.sender not in self._ready:
                     self._ready.append(job.sender)

@@ -168,6 +168,11 @@ class Settings(BaseSettings):
         "for one (the ego frame of its sweep travels in another Zenoh session and may land a little later)",
     )
     workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
+    crosscheck_beside_track: bool = Field(
+        True,
+        description="with tracking and odometry, a track's periodic cross-check (a full acquisition, ~0.3 s) runs "
+        "as a job of its own; the peer's frames are tracked meanwhile instead of waiting behind it (and dropped)",
+    )
     peer_queue_depth: int = Field(
         1, ge=1, le=64, description="frames waiting per peer; older ones are dropped (1 = latest only)"
     )
