@@ -119,10 +119,21 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
             "1",
             "--pose-noise",
             "2,2",
+            "--records",
+            str(tmp_path / "pairs.jsonl"),
         ],
     )
     assert out.exit_code == 0, out.output
     s = json.loads(summary_path.read_text())
+    # Each record carries its covariance and its true error in the same parameters: the error's translation part
+    # is the translation error measured independently (pose_error), and the summary counts what it covers.
+    rows = [json.loads(line) for line in (tmp_path / "pairs.jsonl").read_text().splitlines()]
+    for r in rows:
+        assert np.hypot(*r["error_params"][1:]) == pytest.approx(r["t_err_m"], abs=1e-6)
+        assert abs(np.degrees(r["error_params"][0])) == pytest.approx(r["r_err_deg"], abs=1e-6)
+    cov = s["covariance_coverage"]
+    assert cov["pairs"] == sum(r["success"] and r["covariance"] is not None for r in rows) >= 2
+    assert 0.0 <= cov["frac_d2_within_chi2_99"] <= 1.0 and (plots / "fig15_covariance_vs_true_error.png").exists()
     for key in (
         "pairs",
         "success_rate",

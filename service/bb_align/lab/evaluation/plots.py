@@ -13,7 +13,15 @@ import numpy as np
 from bb_align.io.plot import pyplot
 
 from .runner import PairRecord
-from .summary import BOX_INLIER_BUCKETS, BV_INLIER_BUCKETS, CAR_BUCKETS, DIST_BUCKETS, detection_ap
+from .summary import (
+    BOX_INLIER_BUCKETS,
+    BV_INLIER_BUCKETS,
+    CAR_BUCKETS,
+    CHI2_3_99,
+    DIST_BUCKETS,
+    detection_ap,
+    mahalanobis2_of,
+)
 
 
 def _cdf(ax, values, ok, label, xmax, **kw):
@@ -138,6 +146,7 @@ def write_plots(records: list[PairRecord], out_dir: str | Path) -> list[Path]:
     )
     _ap_table(p("table1_late_fusion_ap.png"), records)
     _scatter_distance(p("errors_vs_distance.png"), records)
+    _covariance_figure(p("fig15_covariance_vs_true_error.png"), records)
     return paths
 
 
@@ -183,6 +192,71 @@ def _ap_table(path, records):
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3, axis="y")
     fig.suptitle("Table I (late fusion): AP with noisy (2 m, 2 deg), recovered and true peer pose")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _ellipse(ax, cov2, k, **kw):
+    """The k-sigma ellipse of a 2x2 covariance, centred at the origin."""
+    w, v = np.linalg.eigh(cov2)
+    a = np.linspace(0, 2 * np.pi, 100)
+    xy = v @ (k * np.sqrt(np.maximum(w, 0))[:, None] * np.stack([np.cos(a), np.sin(a)]))
+    ax.plot(xy[0], xy[1], **kw)
+
+
+def _covariance_figure(path, records):
+    """What the covariance claims against the true errors: translation ellipses of pairs across distance with
+    their true error, the squared Mahalanobis distance against chi2(3), and its spread with distance."""
+    from scipy.stats import chi2
+
+    plt = pyplot()
+    rs = sorted((x for x in records if x.success and mahalanobis2_of(x) is not None), key=lambda x: x.distance_m)
+    fig = plt.figure(figsize=(14, 6.5))
+    grid = fig.add_gridspec(2, 6)
+    picks = [rs[int(i)] for i in np.linspace(0, len(rs) - 1, 8)] if len(rs) >= 8 else rs
+    for i, x in enumerate(picks):
+        ax = fig.add_subplot(grid[i // 4, i % 4])
+        C = np.asarray(x.covariance)[1:, 1:]
+        _ellipse(ax, C, 1.0, color="C0", lw=1, label="1 sigma")
+        _ellipse(ax, C, 3.0, color="C0", lw=1, ls="--", label="3 sigma")
+        e = np.asarray(x.error_params)
+        ax.plot(e[1], e[2], "x", color="C3", ms=8, mew=2, label="true error")
+        lim = max(3.2 * np.sqrt(np.linalg.eigvalsh(C).max()), 1.2 * abs(e[1:]).max(), 0.05)
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(-lim, lim)
+        ax.set_aspect("equal")
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"{x.distance_m:.0f} m, d2={mahalanobis2_of(x):.1f}", fontsize=8)
+        if i == 0:
+            ax.legend(fontsize=6, loc="lower left")
+        if i >= 4:
+            ax.set_xlabel("x error (m)", fontsize=7)
+        if i % 4 == 0:
+            ax.set_ylabel("y error (m)", fontsize=7)
+    d2 = np.array([mahalanobis2_of(x) for x in rs])
+    ax = fig.add_subplot(grid[0, 4:])
+    if len(d2):
+        v = np.sort(d2)
+        ax.step(v, np.arange(1, len(v) + 1) / len(v), where="post", label=f"{len(v)} successful pairs")
+    grid_d2 = np.linspace(0, 25, 200)
+    ax.plot(grid_d2, chi2.cdf(grid_d2, 3), "k--", lw=1, label="chi2(3): an exact covariance")
+    ax.axvline(CHI2_3_99, color="grey", lw=0.8, ls=":")
+    ax.set_xlim(0, 25)
+    ax.set_xlabel("squared Mahalanobis distance of the true error (yaw, x, y)")
+    ax.set_ylabel("fraction of pairs")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{100 * np.mean(d2 <= CHI2_3_99) if len(d2) else 0:.1f} % within the chi2(3) 99 % bound", fontsize=9)
+    ax = fig.add_subplot(grid[1, 4:])
+    ax.scatter([x.distance_m for x in rs], np.sqrt(d2), s=10)
+    ax.axhline(np.sqrt(CHI2_3_99), color="grey", lw=0.8, ls=":", label="chi2(3) 99 % bound")
+    ax.set_yscale("log")
+    ax.set_xlabel("distance between the cars (m)")
+    ax.set_ylabel("Mahalanobis distance")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.suptitle("Covariance vs true error: translation error ellipses (8 pairs across distance) and coverage")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from bb_align.engine.boxes import transform_boxes
 from bb_align.engine.config import AlignConfig
-from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2, transform_points_2d
+from bb_align.engine.geometry import ground_se2, pose_error, se2, se2_params, se3_from_se2, transform_points_2d
 from bb_align.engine.matching import match_descriptors
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.verdict import STAGE2_FAILURES
@@ -99,6 +99,10 @@ class PairRecord:
     oracle_correct_matches: int = 0
     ego_detections: str = ""  # where the boxes came from: yaml, folder, simulated or none
     peer_detections: str = ""
+    # The result's 3x3 covariance of (yaw rad, tx m, ty m) and the true error in those parameters (truth minus
+    # estimate, yaw wrapped): what the covariance claims and what it should cover.
+    covariance: list | None = None
+    error_params: list | None = None
     # AP material: {pose: {range: {"n_gt": int, "scores": [...], "tp@0.5": [...], "tp@0.7": [...]}}}
     ap: dict = field(default_factory=dict, repr=False)
 
@@ -232,6 +236,8 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
         T_rec = res.T_ego_peer if res.success else T_noisy  # a failed recovery keeps the reported pose
         rep, correct = _oracle(ego, peer, T_true, cfg)
         yaw, tx, ty = se2_params(T_true)
+        err = np.subtract((yaw, tx, ty), se2_params(ground_se2(res.T_ego_peer)))
+        err[0] = math.remainder(float(err[0]), 2 * math.pi)
         records.append(
             PairRecord(
                 scenario=group.scenario,
@@ -269,6 +275,8 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
                 oracle_correct_matches=correct,
                 ego_detections=ego.detection_source,
                 peer_detections=peer.detection_source,
+                covariance=None if res.covariance is None else np.asarray(res.covariance, float).tolist(),
+                error_params=[float(v) for v in err],
                 ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg),
             )
         )

@@ -119,6 +119,43 @@ def _diagnosis(records: list[PairRecord]) -> dict:
     return out
 
 
+CHI2_3_99 = 11.345  # the chi-square (3 degrees of freedom) 99 % quantile
+
+
+def mahalanobis2_of(x: PairRecord) -> float | None:
+    """The squared Mahalanobis distance of a pair's true error under its own covariance (None without one)."""
+    if x.covariance is None or x.error_params is None:
+        return None
+    e = np.asarray(x.error_params, float)
+    return float(e @ np.linalg.solve(np.asarray(x.covariance, float), e))
+
+
+def covariance_coverage(records: list[PairRecord]) -> dict:
+    """Over the successful pairs: how often the covariance covers the true error (chi2(3) 99 % bound on the
+    squared Mahalanobis distance; each parameter within 3 sigma), overall and by distance."""
+
+    def block(rs: list[PairRecord]) -> dict:
+        rs = [x for x in rs if x.success and mahalanobis2_of(x) is not None]
+        if not rs:
+            return {"pairs": 0}
+        d2 = np.array([mahalanobis2_of(x) for x in rs])
+        z = np.array([np.abs(x.error_params) / np.sqrt(np.diag(x.covariance)) for x in rs])
+        sigma_t = np.array([np.sqrt(np.linalg.eigvalsh(np.asarray(x.covariance)[1:, 1:]).max()) for x in rs])
+        return {
+            "pairs": len(rs),
+            "frac_d2_within_chi2_99": float(np.mean(d2 <= CHI2_3_99)),
+            "frac_within_3sigma_each": float(np.mean((z <= 3).all(axis=1))),
+            "median_d2": float(np.median(d2)),  # chi2(3) median: 2.37
+            "median_worst_sigma_m": float(np.median(sigma_t)),
+        }
+
+    out = block(records)
+    out["by_distance"] = {
+        k: block([x for x in records if lo <= x.distance_m < hi]) for k, (lo, hi) in DIST_BUCKETS.items()
+    }
+    return out
+
+
 def summarize(records: list[PairRecord]) -> dict:
     """The JSON summary: top-level keys as the issue asks, then the breakdowns."""
     if not records:
@@ -148,6 +185,7 @@ def summarize(records: list[PairRecord]) -> dict:
         "detections_used": dict(sorted(sources.items())),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "stage1_diagnosis_by_distance": _diagnosis(records),
+        "covariance_coverage": covariance_coverage(records),
         "detection_ap": detection_ap(records),
         "timing_ms": {
             "prepare_per_frame_median": float(np.median([x.prepare_ms / 2 for x in records])),
