@@ -356,11 +356,12 @@ def test_a_tracks_cross_check_runs_beside_it_and_the_frames_meanwhile_are_tracke
     from bb_align.engine.config import BevConfig, TrackConfig
     from bb_align.engine.pipeline import AlignConfig
 
-    align = AlignConfig(bev=BevConfig(range_m=RANGE_M), track=TrackConfig(crosscheck_s=0.3))
+    # max_sigma_m: no acquisition forced by a growing uncertainty, so only the periodic cross-check runs one.
+    align = AlignConfig(bev=BevConfig(range_m=RANGE_M), track=TrackConfig(crosscheck_s=0.3, max_sigma_m=100.0))
     with running_service(service_settings(zenoh=False, max_ego_skew_s=0.15, align=align)) as (_, url):
         with httpx.Client(base_url=url, timeout=30) as http:
 
-            def align_at(k, seq):  # the pair's frame k, with both cars' odometry (here: their true poses)
+            def align_at(k, seq, peer_id="car1", odometry=True):  # frame k; odometry: the cars' true poses
                 stamp, ego, peer = pair[k]
                 frames = [
                     encode_frame(
@@ -370,9 +371,9 @@ def test_a_tracks_cross_check_runs_beside_it_and_the_frames_meanwhile_are_tracke
                         stamp=seq * 0.2,
                         seq=seq,
                         range_m=RANGE_M,
-                        odometry=car.T_world_sensor,
+                        odometry=car.T_world_sensor if odometry else None,
                     )
-                    for car, name in ((peer, "car1"), (ego, "ego"))
+                    for car, name in ((peer, peer_id), (ego, "ego"))
                 ]
                 content = pack_align_request(*frames)
                 res = load_result(http.post("/v1/align", content=content, headers=MSGPACK_CT).content)
@@ -396,3 +397,7 @@ def test_a_tracks_cross_check_runs_beside_it_and_the_frames_meanwhile_are_tracke
             assert res.source == "tracking" and res.success and res.track_event is None  # it agreed
             assert pose_error(res.matrix(), T_true)[0] < 0.3
             assert crosschecks() == 1  # one per crosscheck_s, not one per frame
+            # Without odometry there is no constant offset to fuse a late acquisition into: it runs in the step.
+            assert align_at(0, 4, "car2", odometry=False)[0].source == "acquisition"
+            assert align_at(1, 6, "car2", odometry=False)[0].source == "acquisition"
+            assert crosschecks() == 1

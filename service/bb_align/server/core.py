@@ -660,7 +660,7 @@ class AlignService:
         odometry = ego_frame.odometry is not None and peer.odometry is not None
         O_ego = ego_frame.odometry.matrix() if odometry else None
         O_peer = peer.odometry.matrix() if odometry else None
-        aside = self.settings.crosscheck_beside_track
+        aside = self.settings.crosscheck_beside_track and odometry  # without odometry it runs in the step
         track = self.tracks.get(peer.vehicle_id)
         with track.lock:
             r = track.follower.step(
