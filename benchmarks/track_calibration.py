@@ -22,7 +22,7 @@ import numpy as np
 from bb_align.engine.config import TrackConfig
 from bb_align.engine.covariance import left_covariance, params_covariance
 from bb_align.engine.geometry import pose_error, se2
-from bb_align.engine.tracker import Measurement, PeerTrack
+from bb_align.engine.tracker import Measurement, PeerTrack, combine
 from bb_align.lab.tracking.replay import error_components
 
 GRID = {
@@ -42,12 +42,19 @@ def _sequences(paths: list[str]) -> dict[str, list[dict]]:
     return seqs
 
 
-def _measurement(r: dict, inflation: float) -> Measurement:
+def _measurement(r: dict, inflation: float, cfg: TrackConfig) -> Measurement:
+    """The frame's recorded measurement as the follower built it: the engine run's pose and covariance (inflated
+    unless an acquisition), fused with the boxes' measurement when one was recorded and they agree."""
     if r["measured"] is None or r["measured_cov"] is None:
-        return Measurement(False, reason=r["reason"] or "none")
-    T = se2(*r["measured"])
-    scale = inflation if r["source"] != "acquisition" else 1.0
-    return Measurement(True, T, scale * left_covariance(np.array(r["measured_cov"]), T))
+        m = Measurement(False, reason=r["reason"] or "none")
+    else:
+        T = se2(*r["measured"])
+        scale = inflation if r["source"] != "acquisition" else 1.0
+        m = Measurement(True, T, scale * left_covariance(np.array(r["measured_cov"]), T))
+    if r.get("box_measured") is not None and r["source"] != "acquisition" and cfg.boxes:
+        box = Measurement(True, se2(*r["box_measured"]), np.array(r["box_cov"]))
+        m, _ = combine(m, box, cfg.box_agreement_chi2)
+    return m
 
 
 def run(seqs: dict[str, list[dict]], cfg: TrackConfig, inflation: float, odometry: bool = True) -> dict:
@@ -55,7 +62,7 @@ def run(seqs: dict[str, list[dict]], cfg: TrackConfig, inflation: float, odometr
     for recs in seqs.values():
         track, started = PeerTrack(cfg), False
         for r in recs:
-            m = _measurement(r, inflation)
+            m = _measurement(r, inflation, cfg)
             O = r["odometry"] if odometry else None
             O_e, O_p = (se2(*O[0]), se2(*O[1])) if O else (None, None)
             a = track.step(r["stamp"], lambda T_pred, m=m: m, lambda T_prior, m=m: m, O_e, O_p)

@@ -111,3 +111,44 @@ def align_boxes(
     if fit is None:
         return BoxAlignment(np.eye(3), 0, len(ia))
     return BoxAlignment(fit.T_dst_src, fit.num_inliers, len(ia))
+
+
+def box_measurement(
+    boxes_ego: np.ndarray,
+    boxes_peer: np.ndarray,
+    T_pred: np.ndarray,
+    sigma_m: float,
+    *,
+    pair_gate_m: float = 2.0,
+    min_pairs: int = 2,
+    min_inliers: int = 6,
+    cfg: BoxConfig | None = None,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """T_ego_peer (3x3) from the boxes both cars detected, paired under a predicted T_pred, and its covariance of
+    left increments (yaw, tx, ty); None with fewer than ``min_pairs`` pairs or ``min_inliers`` corner inliers.
+
+    The pose is stage 2's corner fit. Its covariance treats each paired box centre as one 2-D measurement of
+    ``sigma_m`` (the four corners of a box share its detection error, so they are not four measurements): with
+    J_i = d(T p_i)/d(left increment) = [[-y_i, 1, 0], [x_i, 0, 1]] at the centre p_i in the ego frame,
+    Cov = sigma_m^2 (sum J_i^T J_i)^-1. Two boxes far apart fix the yaw; one box fixes only the translation."""
+    cfg = cfg or BoxConfig()
+    boxes_ego, boxes_peer = as_boxes(boxes_ego), as_boxes(boxes_peer)
+    peer_in_ego = transform_boxes(T_pred, boxes_peer)
+    ia, ib = pair_boxes(boxes_ego[:, :2], peer_in_ego[:, :2], pair_gate_m)
+    if len(ia) < min_pairs:
+        return None
+    c_ego = box_corners_bev(boxes_ego[ia])
+    c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
+    fit = RigidRansac(cfg.ransac, seed).fit(c_peer.reshape(-1, 2), c_ego.reshape(-1, 2))
+    if fit is None or fit.num_inliers < min_inliers:
+        return None
+    T = fit.T_dst_src @ T_pred
+    p = transform_points_2d(T, boxes_peer[ib, :2])
+    J = np.zeros((2 * len(p), 3))
+    J[0::2, 0], J[0::2, 1] = -p[:, 1], 1.0
+    J[1::2, 0], J[1::2, 2] = p[:, 0], 1.0
+    H = J.T @ J
+    if np.linalg.cond(H) > 1e12:
+        return None
+    return T, sigma_m**2 * np.linalg.inv(H)

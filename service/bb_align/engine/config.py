@@ -401,6 +401,28 @@ class TrackConfig(_Frozen):
     crosscheck_s: float = Field(
         5.0, ge=0, description="a full acquisition at least this often as a cross-check (0: never)"
     )
+    boxes: bool = Field(
+        True,
+        description="fuse the boxes both cars detected as a second measurement of each tracked frame: their centres "
+        "see along a street, where the refinement is weak at range (docs/tracking.md, Boxes)",
+    )
+    box_sigma_m: float = Field(
+        1.3,
+        gt=0,
+        description="1 sigma of one paired box's centre in the box measurement (detection noise, corner order, "
+        "what the two cars see of the car; calibrated on swept sequences like measurement_inflation)",
+    )
+    box_pair_gate_m: float = Field(
+        2.0, gt=0, description="boxes pair when their centres are this close under the track's prediction"
+    )
+    box_min_pairs: int = Field(2, ge=2, description="fewer box pairs give no box measurement")
+    box_min_inliers: int = Field(6, ge=3, description="corner inliers of the boxes' rigid fit, at least")
+    box_agreement_chi2: float = Field(
+        11.345,
+        gt=0,
+        description="a box measurement farther than this (squared Mahalanobis) from the frame's refinement is left "
+        "out (mis-paired boxes): 11.345 = chi2, 3 dof, 99 %",
+    )
     max_odometry_speed_m_s: float = Field(
         70.0, gt=0, description="an odometry step faster than this is a jump (relocalisation, reset): track lost"
     )

@@ -23,13 +23,14 @@ import time
 
 import numpy as np
 
+from .boxes import box_measurement
 from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
-from .tracker import OUT_OF_ORDER, Measurement, PeerTrack, TrackAnswer
+from .tracker import OUT_OF_ORDER, Measurement, PeerTrack, TrackAnswer, combine
 from .verdict import FailureReason
 
 
@@ -57,6 +58,7 @@ class Follower:
         # The last engine run's own pose (3x3) and covariance (of its parameters) before the track fused it:
         # for diagnostics and calibration (bb_align.lab.tracking).
         self.last_measured: tuple[np.ndarray, np.ndarray | None] | None = None
+        self.last_boxes = Measurement(False)  # the last tracked frame's box measurement (left increments)
 
     def step(
         self,
@@ -77,6 +79,7 @@ class Follower:
         that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants.
         ``crosscheck=False``: the periodic cross-check is left to the caller (see the module's docstring)."""
         runs: list[AlignResult] = []
+        self.last_boxes = Measurement(False)
         with_odometry = O_ego is not None and O_peer is not None
         c = self.cfg
         inflation = c.measurement_inflation if with_odometry else c.measurement_inflation_without_odometry
@@ -85,7 +88,12 @@ class Follower:
         def measure(T_pred: np.ndarray) -> Measurement:
             runs.append(self.aligner.measure(ego, peer, T_pred))
             runs[-1].source = "tracking"
-            return as_measurement(runs[-1], inflation)
+            m = as_measurement(runs[-1], inflation)
+            self.last_boxes = self._boxes(ego, peer, T_pred)
+            if self.last_boxes.ok:
+                m, used = combine(m, self.last_boxes, c.box_agreement_chi2)
+                runs[-1].notes.append(f"box measurement {'fused' if used else 'left out: disagrees'}")
+            return m
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
@@ -101,6 +109,23 @@ class Follower:
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
+
+    def _boxes(self, ego: PreparedFrame, peer: PreparedFrame, T_pred: np.ndarray) -> Measurement:
+        """The boxes both cars detected, paired under the prediction, as a measurement (track.boxes)."""
+        c = self.cfg
+        if not c.boxes or len(ego.boxes) == 0 or len(peer.boxes) == 0:
+            return Measurement(False, reason="no boxes")
+        b = box_measurement(
+            ego.boxes,
+            peer.boxes,
+            T_pred,
+            c.box_sigma_m,
+            pair_gate_m=c.box_pair_gate_m,
+            min_pairs=c.box_min_pairs,
+            min_inliers=c.box_min_inliers,
+            cfg=self.aligner.config.box,
+        )
+        return Measurement(False, reason="too few box pairs") if b is None else Measurement(True, *b)
 
     def crosscheck(
         self,

@@ -77,6 +77,23 @@ def log_left(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
     return np.array([float(wrap_angle(yaw)), tx, ty])
 
 
+def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[Measurement, bool]:
+    """Two independent measurements of the same frame's T_ego_peer as one (information-weighted, on left increments
+    about ``m``'s pose), and whether ``other`` was used: it is left out when ``m`` is a measurement and the two lie
+    farther apart than ``agreement_chi2`` (squared Mahalanobis). A failed ``m`` gives way to ``other``."""
+    if not other.ok:
+        return m, False
+    if not m.ok:
+        return other, True
+    nu = log_left(other.T_ego_peer, m.T_ego_peer)
+    C_m, C_o = np.asarray(m.covariance, float), np.asarray(other.covariance, float)
+    if float(nu @ np.linalg.solve(C_m + C_o, nu)) > agreement_chi2:
+        return m, False
+    C = np.linalg.inv(np.linalg.inv(C_m) + np.linalg.inv(C_o))
+    C = 0.5 * (C + C.T)
+    return Measurement(True, se2(*(C @ np.linalg.solve(C_o, nu))) @ m.T_ego_peer, C), True
+
+
 class PeerTrack:
     """The track of one ego-peer pair. ``step`` once per peer frame, in time order."""
 

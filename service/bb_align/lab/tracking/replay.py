@@ -107,6 +107,9 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "truth": list(se2_params(T_true)),
                 "measured_err": None if measured is None else error_components(measured, T_true),
                 "measured_cov": None if measured_cov is None else np.asarray(measured_cov).tolist(),
+                # The boxes' own measurement of this frame (fused with the refinement's when they agree).
+                "box_measured": list(se2_params(follower.last_boxes.T_ego_peer)) if follower.last_boxes.ok else None,
+                "box_cov": np.asarray(follower.last_boxes.covariance).tolist() if follower.last_boxes.ok else None,
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 "ran_acquisition": "acquire" in r.timings_ms,
