@@ -30,6 +30,8 @@ GRID = {
     "odometry_drift_m_per_s": (0.05, 0.1, 0.2),
     "odometry_drift_deg_per_s": (0.05, 0.1),
     "answer_sigma_m": (0.3, 0.35),
+    "boxes": (True,),
+    "box_sigma_m": (1.3,),
 }
 
 
@@ -52,7 +54,9 @@ def _measurement(r: dict, inflation: float, cfg: TrackConfig) -> Measurement:
         scale = inflation if r["source"] != "acquisition" else 1.0
         m = Measurement(True, T, scale * left_covariance(np.array(r["measured_cov"]), T))
     if r.get("box_measured") is not None and r["source"] != "acquisition" and cfg.boxes:
-        box = Measurement(True, se2(*r["box_measured"]), np.array(r["box_cov"]))
+        # Recorded at the default box_sigma_m; the covariance scales with its square.
+        scale = (cfg.box_sigma_m / TrackConfig().box_sigma_m) ** 2
+        box = Measurement(True, se2(*r["box_measured"]), scale * np.array(r["box_cov"]))
         m, _ = combine(m, box, cfg.box_agreement_chi2)
     return m
 
@@ -99,14 +103,15 @@ def main() -> None:
     args = ap.parse_args()
     grid = GRID | (json.loads(args.grid) if args.grid else {})
     seqs = _sequences(args.records)
-    lines = ["inflation drift_m drift_deg answer_sigma | within70 70+ wrong inside3sigma frames"]
+    lines = ["inflation drift_m drift_deg answer_sigma boxes box_sigma | within70 70+ wrong inside3sigma frames"]
     for values in itertools.product(*grid.values()):
         p = dict(zip(grid, values))
         infl = p.pop("measurement_inflation")
         cfg = TrackConfig(**p, measurement_inflation=infl, measurement_inflation_without_odometry=infl)
         s = run(seqs, cfg, infl, odometry=not args.no_odometry)
         lines.append(
-            f"{infl:9g} {p['odometry_drift_m_per_s']:7g} {p['odometry_drift_deg_per_s']:9g} {p['answer_sigma_m']:12g} |"
+            f"{infl:9g} {p['odometry_drift_m_per_s']:7g} {p['odometry_drift_deg_per_s']:9g} {p['answer_sigma_m']:12g}"
+            f" {str(p['boxes']):>5} {p['box_sigma_m']:9g} |"
             f" {100 * s['within_70m']:7.1f} {100 * s['70+']:5.1f} {100 * s['wrong']:5.2f} "
             f"{100 * s['inside_3sigma']:11.1f} {s['frames']:6d}"
         )

@@ -62,3 +62,20 @@ def test_box_validation_names_the_problem():
     with pytest.raises(ValueError, match="finite"):
         as_boxes([[0, 0, 0, 4, 2, np.nan, 0]])
     assert as_boxes(None).shape == (0, 7)
+
+
+def test_box_measurement_recovers_a_known_transform_and_its_covariance_by_hand():
+    from bb_align.engine.boxes import box_measurement
+
+    T_ego_peer = se2(np.radians(20.0), 30.0, -4.0)
+    # Two cars both see, 10 m either side of the ego along its x axis (in the ego frame), and the same cars as
+    # the peer detects them (its own frame): noise-free, so the fit is exact.
+    cars_ego = np.array([[10.0, 0.0, 0.0, 4.5, 1.9, 1.6, 0.3], [-10.0, 0.0, 0.0, 4.2, 1.8, 1.5, -0.1]])
+    cars_peer = transform_boxes(np.linalg.inv(T_ego_peer), cars_ego)
+    T_pred = se2(np.radians(1.0), 1.0, -0.7) @ T_ego_peer  # a track's prediction, 1.2 m / 1 deg off
+    T, cov = box_measurement(cars_ego, cars_peer, T_pred, sigma_m=1.0)
+    np.testing.assert_allclose(T, T_ego_peer, atol=1e-6)
+    # By hand: centres (10, 0) and (-10, 0); rows [0 1 0], [10 0 1], [0 1 0], [-10 0 1]: H = diag(200, 2, 2).
+    np.testing.assert_allclose(cov, np.diag([1 / 200, 0.5, 0.5]), atol=1e-9)
+    assert box_measurement(cars_ego[:1], cars_peer[:1], T_pred, sigma_m=1.0) is None  # one pair is not enough
+    assert box_measurement(cars_ego, cars_peer, se2(0.0, 5.0, 0.0) @ T_pred, sigma_m=1.0) is None  # out of gate

@@ -56,6 +56,8 @@ def test_acquires_once_then_tracks_without_descriptors(sequence):
         assert not ego.has_features and not peer.has_features  # no MIM, keypoints or descriptors were made
         assert "acquire" not in r.timings_ms
         assert r.covariance is not None and 0 < r.confidence <= 1
+    # The boxes both cars detected are a second measurement of the tracked frames (fused when they agree).
+    assert sum("box measurement fused" in r.notes for r, _, _ in rest) >= len(rest) // 2
 
 
 def test_the_track_covers_its_true_error(sequence):

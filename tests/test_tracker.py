@@ -253,3 +253,19 @@ def test_no_cross_check_beside_a_track_without_odometry():
     assert track.begin_crosscheck(15 * DT) is None  # it needs the constant offset odometry gives
     acquired = [k for k, _, a in rows if a.source == "acquisition"]
     assert acquired[-1] - acquired[-2] == 10  # the periodic cross-check (1 s) ran inline, as before
+
+
+def test_combine_weighs_by_information_and_leaves_out_a_disagreeing_measurement():
+    from bb_align.engine.tracker import combine
+
+    C = np.diag([np.radians(0.2) ** 2, 0.5**2, 0.5**2])
+    a = Measurement(True, se2(0.0, 40.0, 0.0), C)
+    b = Measurement(True, se2(0.0, 40.6, 0.0), C)  # 0.6 m along x: equal weights meet in the middle
+    m, used = combine(a, b, 11.345)
+    assert used and np.allclose(m.T_ego_peer, se2(0.0, 40.3, 0.0), atol=1e-9)
+    np.testing.assert_allclose(m.covariance, C / 2, rtol=1e-12)
+    far = Measurement(True, se2(0.0, 44.0, 0.0), C)  # 4 m apart: d2 = 16 / 0.5 = 32 > 11.3
+    m, used = combine(a, far, 11.345)
+    assert not used and m is a
+    m, used = combine(Measurement(False, reason="no overlap"), b, 11.345)
+    assert used and m is b
