@@ -82,17 +82,18 @@ def test_cache_returns_nearest_in_time_and_keeps_the_last_k():
     assert cache.prepared() == 0
 
 
-def test_cache_wait_for_returns_when_an_ego_frame_within_the_skew_lands():
+def test_cache_wait_for_waits_for_the_ego_frame_of_the_sweep_not_an_older_one():
     cache = EgoCache(size=3)
     cache.add(_ego(1.0, 0), bev=None)
-    assert cache.wait_for(1.05, 0.15, timeout=5.0)  # already there: no wait
+    assert cache.wait_for(1.01, 0.02, timeout=5.0)  # the sweep's frame is there: no wait
     t0 = time.perf_counter()
-    assert not cache.wait_for(2.0, 0.15, timeout=0.2)  # none comes: the bounded wait, then no
+    # The frame of 1.0 s is within any usual skew of 1.1 s, but a whole sweep older: the wait goes on (bounded).
+    assert not cache.wait_for(1.1, 0.02, timeout=0.2)
     assert 0.15 <= time.perf_counter() - t0 < 2.0
-    landing = threading.Timer(0.1, lambda: cache.add(_ego(1.98, 1), bev=None))
+    landing = threading.Timer(0.1, lambda: cache.add(_ego(1.1, 1), bev=None))
     landing.start()
     t0 = time.perf_counter()
-    assert cache.wait_for(2.0, 0.15, timeout=5.0)  # the sweep's ego frame lands 0.1 s later: woken by it
+    assert cache.wait_for(1.1, 0.02, timeout=5.0)  # the sweep's ego frame lands 0.1 s later: woken by it
     assert time.perf_counter() - t0 < 2.0
     landing.join()
 

@@ -53,11 +53,13 @@ class EgoCache:
             self._added.notify_all()
         return entry
 
-    def wait_for(self, stamp: float, max_skew: float, timeout: float) -> bool:
-        """Wait at most ``timeout`` seconds until an entry within ``max_skew`` of ``stamp`` is cached; whether one
-        is (at once when one already is)."""
+    def wait_for(self, stamp: float, same_sweep_s: float, timeout: float) -> bool:
+        """Wait at most ``timeout`` seconds until the ego stream has reached ``stamp``: an entry stamped no earlier
+        than ``stamp - same_sweep_s`` is cached (only then is the nearest in time known; an older frame within the
+        skew may be a whole sweep away while the sweep's own frame is still in flight). Whether it has (at once
+        when it already has)."""
         with self._added:
-            return self._added.wait_for(lambda: any(abs(e.stamp - stamp) <= max_skew for e in self._entries), timeout)
+            return self._added.wait_for(lambda: any(e.stamp >= stamp - same_sweep_s for e in self._entries), timeout)
 
     def rewind(self, stamp: float) -> int:
         """The ego's recording started over at ``stamp`` (replay profile): frames of the previous pass stamped

@@ -636,7 +636,7 @@ class AlignService:
         else:  # look again: a nearer ego frame may have come in while the peer was prepared. With none within the
             # skew yet, wait briefly for it: a tracked peer frame is prepared in a few ms, sooner than the ego frame
             # of its sweep may land (before tracking, the peer's MIM took longer than that)
-            self.cache.wait_for(peer.stamp, s.max_ego_skew_s, s.ego_wait_s)
+            self.cache.wait_for(peer.stamp, s.ego_same_sweep_s, s.ego_wait_s)
             picked = self._pick_ego(peer, job, base, timings, wait=True)
             if isinstance(picked, Result):
                 return picked

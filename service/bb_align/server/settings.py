@@ -164,8 +164,16 @@ class Settings(BaseSettings):
         0.1,
         ge=0,
         le=1.0,
-        description="a prepared peer frame with no cached ego frame within max_ego_skew_s waits this long at most "
-        "for one (the ego frame of its sweep travels in another Zenoh session and may land a little later)",
+        description="a prepared peer frame newer than every cached ego frame waits this long at most for the ego "
+        "frame of its sweep (it travels in another Zenoh session and may land a little later); then the nearest "
+        "in time within max_ego_skew_s is used",
+    )
+    ego_same_sweep_s: float = Field(
+        0.02,
+        ge=0,
+        le=1.0,
+        description="an ego frame stamped at most this much before a peer frame counts as of the same sweep (the "
+        "wait above ends when one is cached)",
     )
     workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
     crosscheck_beside_track: bool = Field(
