@@ -94,23 +94,27 @@ class BoxStage:
         return align_boxes(boxes_ego, boxes_peer, T_bv, self.cfg, self.seed)
 
 
+def _fit_pairs(boxes_ego, boxes_peer, T: np.ndarray, gate: float, cfg: BoxConfig, seed: int, min_pairs: int = 1):
+    """Boxes paired under T (centres within ``gate``) and the rigid fit of their corners: (peer rows paired, the
+    fit or None). The fit is not tried with fewer than ``min_pairs`` pairs."""
+    peer_in_ego = transform_boxes(T, boxes_peer)
+    ia, ib = pair_boxes(boxes_ego[:, :2], peer_in_ego[:, :2], gate)
+    if len(ia) < max(min_pairs, 1):
+        return ib, None
+    c_ego = box_corners_bev(boxes_ego[ia])
+    c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
+    return ib, RigidRansac(cfg.ransac, seed).fit(c_peer.reshape(-1, 2), c_ego.reshape(-1, 2))
+
+
 def align_boxes(
     boxes_ego: np.ndarray, boxes_peer: np.ndarray, T_bv: np.ndarray, cfg: BoxConfig | None = None, seed: int = 0
 ) -> BoxAlignment:
     """Stage 2: T_box with ego corners ~ T_box @ (T_bv @ peer corners); pairs == 0 when nothing overlaps."""
     cfg = cfg or BoxConfig()
-    boxes_ego, boxes_peer = as_boxes(boxes_ego), as_boxes(boxes_peer)
-    peer_in_ego = transform_boxes(T_bv, boxes_peer)
-    ia, ib = pair_boxes(boxes_ego[:, :2], peer_in_ego[:, :2], cfg.pair_gate_m)
-    if len(ia) == 0:
-        return BoxAlignment(np.eye(3), 0, 0)
-    c_ego = box_corners_bev(boxes_ego[ia])
-    c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
-    src, dst = c_peer.reshape(-1, 2), c_ego.reshape(-1, 2)
-    fit = RigidRansac(cfg.ransac, seed).fit(src, dst)
+    ib, fit = _fit_pairs(as_boxes(boxes_ego), as_boxes(boxes_peer), T_bv, cfg.pair_gate_m, cfg, seed)
     if fit is None:
-        return BoxAlignment(np.eye(3), 0, len(ia))
-    return BoxAlignment(fit.T_dst_src, fit.num_inliers, len(ia))
+        return BoxAlignment(np.eye(3), 0, len(ib))
+    return BoxAlignment(fit.T_dst_src, fit.num_inliers, len(ib))
 
 
 def box_measurement(
@@ -132,15 +136,8 @@ def box_measurement(
     ``sigma_m`` (the four corners of a box share its detection error, so they are not four measurements): with
     J_i = d(T p_i)/d(left increment) = [[-y_i, 1, 0], [x_i, 0, 1]] at the centre p_i in the ego frame,
     Cov = sigma_m^2 (sum J_i^T J_i)^-1. Two boxes far apart fix the yaw; one box fixes only the translation."""
-    cfg = cfg or BoxConfig()
-    boxes_ego, boxes_peer = as_boxes(boxes_ego), as_boxes(boxes_peer)
-    peer_in_ego = transform_boxes(T_pred, boxes_peer)
-    ia, ib = pair_boxes(boxes_ego[:, :2], peer_in_ego[:, :2], pair_gate_m)
-    if len(ia) < min_pairs:
-        return None
-    c_ego = box_corners_bev(boxes_ego[ia])
-    c_peer = match_corners(c_ego, box_corners_bev(peer_in_ego[ib]))
-    fit = RigidRansac(cfg.ransac, seed).fit(c_peer.reshape(-1, 2), c_ego.reshape(-1, 2))
+    boxes_peer = as_boxes(boxes_peer)
+    ib, fit = _fit_pairs(as_boxes(boxes_ego), boxes_peer, T_pred, pair_gate_m, cfg or BoxConfig(), seed, min_pairs)
     if fit is None or fit.num_inliers < min_inliers:
         return None
     T = fit.T_dst_src @ T_pred

@@ -94,6 +94,16 @@ def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[
     return Measurement(True, se2(*(C @ np.linalg.solve(C_o, nu))) @ m.T_ego_peer, C), True
 
 
+def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """One Kalman update for innovation ``nu`` (covariance R) of a state with covariance P seen through H: the
+    innovation's squared Mahalanobis distance, the state increment and the updated covariance (symmetrised)."""
+    S = H @ P @ H.T + R
+    d2 = float(nu @ np.linalg.solve(S, nu))
+    K = P @ H.T @ np.linalg.inv(S)
+    P = (np.eye(len(P)) - K @ H) @ P
+    return d2, K @ nu, 0.5 * (P + P.T)
+
+
 class PeerTrack:
     """The track of one ego-peer pair. ``step`` once per peer frame, in time order."""
 
@@ -183,18 +193,14 @@ class PeerTrack:
         O_e, O_p = np.asarray(O_ego, float), np.asarray(O_peer, float)
         A = adjoint(O_e)  # left increments of that frame's T_ego_peer -> of X
         nu = log_left(O_e @ m.T_ego_peer @ np.linalg.inv(O_p), self.X)
-        # The drift since that frame is left out of S: a little tighter gate, never a looser one.
-        S = self.P + A @ np.asarray(m.covariance, float) @ A.T
-        d2 = float(nu @ np.linalg.solve(S, nu))
+        # The drift since that frame is left out: a little tighter gate, never a looser one.
+        d2, dx, P = kalman_step(self.P, np.eye(3), A @ np.asarray(m.covariance, float) @ A.T, nu)
         if d2 > self.cfg.gate_chi2:
             self.pending_event = self._drop(
                 f"the cross-check acquisition disagrees with the track (Mahalanobis^2 {d2:.1f})"
             )
             return self.pending_event
-        K = self.P @ np.linalg.inv(S)
-        self.X = se2(*(K @ nu)) @ self.X
-        self.P = (np.eye(3) - K) @ self.P
-        self.P = 0.5 * (self.P + self.P.T)
+        self.X, self.P = se2(*dx) @ self.X, P
         self.rejects = 0
         return None
 
@@ -236,8 +242,7 @@ class PeerTrack:
     ) -> TrackAnswer:
         """Kalman update on left increments; a measurement outside the Mahalanobis gate is rejected."""
         nu = log_left(m.T_ego_peer, T_pred)
-        S = H @ P @ H.T + np.asarray(m.covariance, float)
-        d2 = float(nu @ np.linalg.solve(S, nu))
+        d2, dx, P_new = kalman_step(P, H, np.asarray(m.covariance, float), nu)
         if d2 > self.cfg.gate_chi2:
             if crosscheck:  # a full acquisition that disagrees with the track: the track was wrong
                 event = self._drop(f"the cross-check acquisition disagrees with the track (Mahalanobis^2 {d2:.1f})")
@@ -248,15 +253,12 @@ class PeerTrack:
                 return self._answer(stamp, "none", False, None, None, event, d2)
             return self._coast(stamp, X, P, T_pred, H @ P @ H.T, f"measurement outside the gate ({d2:.1f})", True, d2)
         self.rejects = 0
-        K = P @ H.T @ np.linalg.inv(S)
-        dx = K @ nu
         if self.with_odometry:
             X = se2(*dx) @ X
         else:
             X = se2(*dx[:3]) @ X
             self.w = self.w + dx[3:]
-        P = (np.eye(len(P)) - K @ H) @ P
-        self._keep(stamp, X, 0.5 * (P + P.T))
+        self._keep(stamp, X, P_new)
         self.last_fused = stamp
         T, P_T = np.linalg.inv(O_e) @ X @ O_p, H @ self.P @ H.T
         return self._answer(stamp, source, self._confident(P_T), T, P_T, None, d2)

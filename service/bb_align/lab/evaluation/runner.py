@@ -20,7 +20,15 @@ from tqdm import tqdm
 
 from bb_align.engine.boxes import transform_boxes
 from bb_align.engine.config import AlignConfig
-from bb_align.engine.geometry import ground_se2, pose_error, se2, se2_params, se3_from_se2, transform_points_2d
+from bb_align.engine.geometry import (
+    ground_se2,
+    pose_error,
+    se2,
+    se2_params,
+    se3_from_se2,
+    transform_points_2d,
+    wrap_angle,
+)
 from bb_align.engine.matching import match_descriptors
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.verdict import STAGE2_FAILURES
@@ -237,7 +245,7 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
         rep, correct = _oracle(ego, peer, T_true, cfg)
         yaw, tx, ty = se2_params(T_true)
         err = np.subtract((yaw, tx, ty), se2_params(ground_se2(res.T_ego_peer)))
-        err[0] = math.remainder(float(err[0]), 2 * math.pi)
+        err[0] = wrap_angle(err[0])
         records.append(
             PairRecord(
                 scenario=group.scenario,

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from bb_align.engine.covariance import mahalanobis2
+
 from .ap import ApAccumulator
 from .runner import AP_IOUS, AP_RANGES, DIST_BUCKETS, POSES, PairRecord
 
@@ -126,8 +128,7 @@ def mahalanobis2_of(x: PairRecord) -> float | None:
     """The squared Mahalanobis distance of a pair's true error under its own covariance (None without one)."""
     if x.covariance is None or x.error_params is None:
         return None
-    e = np.asarray(x.error_params, float)
-    return float(e @ np.linalg.solve(np.asarray(x.covariance, float), e))
+    return mahalanobis2(np.asarray(x.covariance, float), x.error_params)
 
 
 def covariance_coverage(records: list[PairRecord]) -> dict:
