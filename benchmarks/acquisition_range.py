@@ -20,6 +20,7 @@ import time
 from multiprocessing import get_context
 
 import numpy as np
+from tqdm import tqdm
 
 from bb_align.engine.config import AcquireConfig, AlignConfig, BevConfig, CovarianceConfig
 from bb_align.engine.geometry import pose_error, se2_params
@@ -160,7 +161,7 @@ def main() -> None:
     with get_context("spawn").Pool(
         args.workers, initializer=_init, initargs=(names, args.range_m, args.overrides)
     ) as pool:
-        for out in pool.imap(_run, groups):
+        for out in tqdm(pool.imap(_run, groups), total=len(groups), desc="pairs", unit="pair"):
             rows += out
     if args.records:
         with open(args.records, "w") as fh:

@@ -96,3 +96,102 @@ def test_paper_mode_is_still_available(world):
     )
     assert res.success and res.acquisition is None
     assert pose_error(res.T_ego_peer, T_true)[0] < 0.3
+
+
+# ---- the boxes both cars detected: hypotheses, confirmation, fusion --------------------------------------------
+
+
+def _boxes_seen_from(boxes_world: np.ndarray, T_world_sensor: np.ndarray, rng, noise_m: float = 0.1) -> np.ndarray:
+    """World boxes in a sensor's frame, centres jittered as a detector's."""
+    from bb_align.engine.boxes import transform_boxes
+
+    out = transform_boxes(np.linalg.inv(T_world_sensor)[np.ix_([0, 1, 3], [0, 1, 3])], boxes_world)
+    out[:, :2] += rng.normal(0, noise_m, (len(out), 2))
+    return out
+
+
+def test_box_hypotheses_recover_a_known_pose_despite_heading_flips_and_strangers():
+    """Eight cars seen by both, a detector that reports some headings 180 degrees off, and cars only one car sees:
+    the first box hypothesis is the true pose."""
+    from bb_align.engine.acquire import box_hypotheses
+
+    rng = np.random.default_rng(4)
+    T_world_peer = se3_from_se2(se2(np.radians(-72.0), 83.0, 12.0))
+    common = np.column_stack(
+        [rng.uniform(-30, 110, 8), rng.uniform(-20, 30, 8), np.full(8, 0.8), np.full(8, 4.5), np.full(8, 1.9)]
+        + [np.full(8, 1.6), rng.uniform(-np.pi, np.pi, 8)]
+    )
+    ego = np.vstack(
+        [
+            _boxes_seen_from(common, np.eye(4), rng),
+            _boxes_seen_from(common[:5] + [0, 60, 0, 0, 0, 0, 0], np.eye(4), rng),
+        ]
+    )
+    peer = _boxes_seen_from(common, T_world_peer, rng)
+    peer[[1, 4, 6], 6] += np.pi  # flipped headings
+    peer = np.vstack([peer, peer[:4] + [-45, 25, 0, 0, 0, 0, 0.3]])  # cars the ego does not see
+    hyps = box_hypotheses(ego, peer, AcquireConfig())
+    assert hyps and all(h.source == "boxes" for h in hyps)
+    t_err, r_err = pose_error(se3_from_se2(hyps[0].T), T_world_peer)
+    assert t_err < 0.3 and r_err < 0.3
+    assert hyps[0].votes == 8  # every common car paired
+    assert box_hypotheses(ego[:2], peer, AcquireConfig()) == []  # fewer boxes than box_min_pairs
+
+
+def _corridor_frame(T_world_sensor: np.ndarray, cars_world: np.ndarray, seed: int) -> np.ndarray:
+    """Two long straight walls along the world's x axis (y = +-8 m) and a ground plane, seen from a sensor pose:
+    nothing in the image pins the motion along the corridor. The cars are left out of the image on purpose, so
+    only their detected boxes can."""
+    rng = np.random.default_rng(seed)
+    xs = rng.uniform(-120, 120, 40000)
+    walls = np.column_stack([xs, np.where(rng.random(len(xs)) < 0.5, -8.0, 8.0), rng.uniform(0, 4, len(xs))])
+    ground = np.column_stack([rng.uniform(-120, 120, (40000, 2)), rng.normal(0, 0.02, 40000)])
+    del cars_world
+    return view_from(np.vstack([walls, ground]), T_world_sensor, max_range=60.0, drop=0.3, seed=seed)
+
+
+def test_boxes_pin_a_pose_the_images_cannot():
+    """A corridor: the images fix the pose across it, not along it. With the cars both detected the multi path
+    acquires the pose (box confirmation), and the fused box measurement pins it along the corridor; without boxes
+    it refuses rather than guess."""
+    rng = np.random.default_rng(7)
+    T_world_peer = se3_from_se2(se2(np.radians(2.0), 13.7, 0.6))
+    xs = np.array([-41.0, -33.5, -12.0, 2.5, 7.5, 27.0, 44.0])  # parked irregularly: no alias along the corridor
+    ys = np.array([5.2, 4.6, -5.8, 5.5, -4.9, -5.3, 4.8])
+    cars = np.column_stack(
+        [xs, ys, np.full(7, 0.8), np.full(7, 4.5), np.full(7, 1.9), np.full(7, 1.6), rng.normal(0, 0.05, 7)]
+    )
+    cfg = AlignConfig.model_validate({"bev": {"range_m": 50.0}})
+    aligner = Aligner(cfg)
+    ego = aligner.prepare(_corridor_frame(np.eye(4), cars, 0), _boxes_seen_from(cars, np.eye(4), rng))
+    peer = aligner.prepare(_corridor_frame(T_world_peer, cars, 1), _boxes_seen_from(cars, T_world_peer, rng))
+
+    r = aligner.align(ego, peer)
+    assert r.success, (r.reason, r.notes)
+    t_err, r_err = pose_error(r.T_ego_peer, T_world_peer)
+    assert t_err < 0.5 and r_err < 0.5
+    assert "box measurement fused with the refined pose" in r.notes
+    assert np.sqrt(np.linalg.eigvalsh(np.asarray(r.covariance)[1:, 1:]).max()) < 1.0
+
+    blind = aligner.align(aligner.prepare(ego.bev), aligner.prepare(peer.bev))
+    assert not blind.success
+
+
+def test_box_confirmation_needs_a_clear_lead_over_every_distinct_pose():
+    from bb_align.engine.acquire import Hypothesis, _box_confirmed
+
+    cfg = AcquireConfig()  # at least 3 pairs, 2 more and 1.5 x as many as any distinct pose
+
+    def hyps(*pairs_and_shift):
+        return [Hypothesis(T=se2(0.0, dx, 0.0), inliers=0, box_pairs=b) for b, dx in pairs_and_shift]
+
+    h = hyps((6, 0.0), (3, 10.0))
+    assert _box_confirmed(h[0], h, cfg)
+    h = hyps((6, 0.0), (5, 0.5), (3, 10.0))  # the 5 is the same pose (closer than distinct_m): not a rival
+    assert _box_confirmed(h[0], h, cfg)
+    h = hyps((16, 0.0), (11, 30.0))  # a lead of 5 but not 1.5 x: a row of cars seen from both ends
+    assert not _box_confirmed(h[0], h, cfg)
+    h = hyps((4, 0.0), (3, 12.0))  # 1 more only
+    assert not _box_confirmed(h[0], h, cfg)
+    h = hyps((2, 0.0))  # too few, even alone
+    assert not _box_confirmed(h[0], h, cfg)

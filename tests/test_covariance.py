@@ -111,3 +111,16 @@ def test_covariance_covers_the_true_error_over_seeded_runs():
     d2 = np.array(d2)
     assert np.mean(d2 <= CHI2_3_99) >= 0.9, d2
     assert np.median(d2) > 0.01, d2  # not absurdly loose
+
+
+def test_fuse_poses_by_hand():
+    """Two measurements of one pose, 2 m apart along x: variances 4 and 1 along x give the weighted mean
+    2 * (1/1) / (1/4 + 1) = 1.6 m and variance 1 / (1/4 + 1) = 0.8; across (y) the first one's 0.01 m^2 keeps it;
+    20 m apart they disagree (squared Mahalanobis 400 / 5 > chi2(3) 99 %) and are not fused."""
+    from bb_align.engine.covariance import fuse_poses
+
+    C_a, C_b = np.diag([1e-4, 4.0, 0.01]), np.diag([1e-4, 1.0, 1.0])
+    T, C = fuse_poses(se2(0.0, 0.0, 0.0), C_a, se2(0.0, 2.0, 0.0), C_b, CHI2_3_99)
+    np.testing.assert_allclose(se2_params(T), (0.0, 1.6, 0.0), atol=1e-12)
+    np.testing.assert_allclose(np.diag(C), (5e-5, 0.8, 0.01 / 1.01), rtol=1e-9)
+    assert fuse_poses(se2(0.0, 0.0, 0.0), C_a, se2(0.0, 20.0, 0.0), C_b, CHI2_3_99) is None

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from bb_align.engine.config import TrackConfig
-from bb_align.engine.geometry import pose_error, se2
-from bb_align.engine.tracker import Measurement, PeerTrack, TrackState, adjoint, log_left
+from bb_align.engine.geometry import log_left, pose_error, se2
+from bb_align.engine.tracker import Measurement, PeerTrack, TrackState, adjoint
 
 DT = 0.1
 

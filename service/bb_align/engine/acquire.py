@@ -25,9 +25,10 @@ import cv2
 import numpy as np
 from numba import njit
 
+from .boxes import pair_boxes
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
-from .geometry import se2, se2_params
+from .geometry import kabsch_2d, se2, se2_params, transform_points_2d
 from .matching import sq_distances
 from .refine import BevCloud, bev_points, overlap_fitness, refine_icp
 from .result import AlignResult
@@ -225,6 +226,8 @@ class Hypothesis:
     rmse_m: float = float("inf")
     refined: bool = False
     inlier_mask: np.ndarray | None = field(default=None, repr=False)
+    source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes) or "boxes"
+    box_pairs: int = 0  # peer boxes landing within AcquireConfig.box_gate_m of an ego box under T
 
     @property
     def relative_fitness(self) -> float:
@@ -311,6 +314,101 @@ def pose_hypotheses(
     return out
 
 
+# ---- 2b. hypotheses from the boxes both cars detected ---------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _box_seeds(c_peer, h_peer, c_ego, h_ego, gate2):
+    """Every (peer box i, ego box k, heading flip f) implies a pose: yaw from the two headings (a detector's heading
+    may be 180 degrees off), translation from the two centres. Returns (yaw, tx, ty, support) per seed, support =
+    the peer boxes landing within sqrt(gate2) of some ego box under it."""
+    p, e = len(c_peer), len(c_ego)
+    n = p * e * 2
+    yaw, tx, ty = np.empty(n), np.empty(n), np.empty(n)
+    sup = np.zeros(n, np.int64)
+    h = 0
+    for i in range(p):
+        for k in range(e):
+            for f in range(2):
+                th = h_ego[k] - h_peer[i] + f * np.pi
+                c, s = np.cos(th), np.sin(th)
+                x = c_ego[k, 0] - (c * c_peer[i, 0] - s * c_peer[i, 1])
+                y = c_ego[k, 1] - (s * c_peer[i, 0] + c * c_peer[i, 1])
+                m = 0
+                for a in range(p):
+                    px = c * c_peer[a, 0] - s * c_peer[a, 1] + x
+                    py = s * c_peer[a, 0] + c * c_peer[a, 1] + y
+                    for b in range(e):
+                        dx, dy = px - c_ego[b, 0], py - c_ego[b, 1]
+                        if dx * dx + dy * dy < gate2:
+                            m += 1
+                            break
+                yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
+                h += 1
+    return yaw, tx, ty, sup
+
+
+def box_support(T: np.ndarray, c_peer: np.ndarray, c_ego: np.ndarray, gate_m: float) -> int:
+    """Peer box centres landing within ``gate_m`` of an ego box centre under T (ego <- peer)."""
+    if len(c_peer) == 0 or len(c_ego) == 0:
+        return 0
+    p = transform_points_2d(T, c_peer)
+    return int((((p[:, None, :] - c_ego[None, :, :]) ** 2).sum(-1).min(1) < gate_m * gate_m).sum())
+
+
+def _nearest_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
+    """The n boxes nearest the sensor (the ones a detector places best), at most."""
+    return boxes[np.argsort(np.hypot(boxes[:, 0], boxes[:, 1]), kind="stable")[:n]] if len(boxes) > n else boxes
+
+
+def box_hypotheses(boxes_ego: np.ndarray, boxes_peer: np.ndarray, cfg: AcquireConfig) -> list[Hypothesis]:
+    """Up to ``cfg.box_hypotheses`` distinct poses (most paired boxes first) at which at least
+    ``cfg.box_min_pairs`` of the peer's boxes land on the ego's. Where the two views' descriptors no longer agree
+    (70-100 m apart) the cars both detected still do. Seeds from one box correspondence each (``_box_seeds``), then
+    the strongest are refitted on their paired centres (Kabsch; the headings only seed the yaw)."""
+    be, bp = _nearest_boxes(boxes_ego, cfg.box_max), _nearest_boxes(boxes_peer, cfg.box_max)
+    if cfg.box_hypotheses == 0 or min(len(be), len(bp)) < cfg.box_min_pairs:
+        return []
+    c_ego, c_peer = np.ascontiguousarray(be[:, :2]), np.ascontiguousarray(bp[:, :2])
+    yaw, tx, ty, sup = _box_seeds(
+        c_peer, np.ascontiguousarray(bp[:, 6]), c_ego, np.ascontiguousarray(be[:, 6]), cfg.box_seed_gate_m**2
+    )
+    out: list[Hypothesis] = []
+    attempts = 0
+    for h in np.argsort(-sup, kind="stable"):
+        if len(out) >= cfg.box_hypotheses or sup[h] < cfg.box_min_pairs or attempts >= cfg.max_refit_attempts:
+            break
+        T = se2(yaw[h], tx[h], ty[h])
+        if not _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
+            continue
+        attempts += 1
+        for gate in (cfg.box_seed_gate_m, cfg.box_gate_m):
+            ia, ib = pair_boxes(c_ego, transform_points_2d(T, c_peer), gate)
+            if len(ia) < cfg.box_min_pairs:
+                break
+            T = kabsch_2d(c_peer[ib], c_ego[ia])
+        else:
+            ia, _ = pair_boxes(c_ego, transform_points_2d(T, c_peer), cfg.box_gate_m)
+            if len(ia) >= cfg.box_min_pairs and _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
+                out.append(Hypothesis(T=T, inliers=0, votes=float(len(ia)), source="boxes"))
+    return out
+
+
+def _with_keypoint_inliers(
+    extra: list[Hypothesis], have: list[Hypothesis], kp_peer, kp_ego, cand: np.ndarray, cfg: AcquireConfig, thr: float
+) -> list[Hypothesis]:
+    """Copies of the ``extra`` hypotheses distinct from ``have``, with their keypoint candidate inliers counted as
+    pose_hypotheses counts them (so every verified hypothesis reports the same evidence)."""
+    q, k = cand.shape
+    src, dst = np.repeat(kp_peer, k, axis=0), kp_ego[cand.ravel()]
+    out = []
+    for h in extra:
+        if _distinct(h.T, have, cfg.distinct_m, cfg.distinct_deg):
+            mask, n = _inliers(h.T, src, dst, k, thr * thr)
+            out.append(Hypothesis(T=h.T.copy(), inliers=n, votes=h.votes, inlier_mask=mask, source=h.source))
+    return out
+
+
 # ---- 3. dense verification -------------------------------------------------------------------------------------
 
 
@@ -356,6 +454,8 @@ class Acquisition:
                 "covisible": x.covisible,
                 "relative_fitness": x.relative_fitness,
                 "refined": x.refined,
+                "source": x.source,
+                "box_pairs": x.box_pairs,
             }
 
         return {
@@ -368,11 +468,16 @@ class Acquisition:
         }
 
 
-def score(h: Hypothesis, cfg: AcquireConfig) -> float:
-    """What ranks verified hypotheses: dense overlap (optionally normalised by the co-visible fraction)."""
+def dense_score(h: Hypothesis, cfg: AcquireConfig) -> float:
+    """The images' evidence for a hypothesis: dense overlap (optionally normalised by the co-visible fraction)."""
     if cfg.score == "fitness":
         return h.fitness
     return h.relative_fitness * h.fitness**0.5 if cfg.score == "blend" else h.relative_fitness
+
+
+def score(h: Hypothesis, cfg: AcquireConfig) -> float:
+    """What ranks verified hypotheses: the dense score plus ``box_weight`` per peer box landing on an ego box."""
+    return dense_score(h, cfg) + cfg.box_weight * h.box_pairs
 
 
 def verify(
@@ -383,30 +488,45 @@ def verify(
     full_pts: np.ndarray,
     config: AlignConfig,
     coarse: RefineConfig,
+    boxes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Coarse dense refinement (``coarse``, on ``coarse_pts``) + score for every hypothesis, then a full refinement
-    of the finalists on ``full_pts`` (in place)."""
+    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) box centres, counted per pose."""
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
+    c_ego, c_peer = boxes if boxes is not None else (np.zeros((0, 2)), np.zeros((0, 2)))
     for h in hyps:
         ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
         h.T = ref.T
         h.fitness, h.rmse_m = overlap_fitness(ego_cloud, coarse_pts, h.T, final_gate)
         h.covisible = covisible_fraction(covis, ego_cloud, coarse_pts, h.T)
+        h.box_pairs = box_support(h.T, c_peer, c_ego, a.box_gate_m)
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:
         ref = refine_icp(ego_cloud, full_pts, h.T, rf)
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
+        h.box_pairs = box_support(h.T, c_peer, c_ego, a.box_gate_m)
     finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
     hyps[: a.finalists] = finals
 
 
 def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:
-    """The best score over the runner-up's (floored at cfg.runner_up_floor; the floor alone without a runner-up)."""
-    runner = runner_up_of(hyps, cfg)
-    s_runner = cfg.runner_up_floor if runner is None else max(score(runner, cfg), cfg.runner_up_floor)
-    return float(score(hyps[0], cfg) / s_runner)
+    """The images' margin: the first hypothesis's dense score over the best dense score of any distinct one
+    (floored at cfg.runner_up_floor; the floor alone without one). The boxes, which helped rank, are left out: they
+    are judged on their own (``_box_confirmed``), not counted twice."""
+    rivals = [dense_score(h, cfg) for h in hyps[1:] if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg)]
+    return float(dense_score(hyps[0], cfg) / max(max(rivals, default=0.0), cfg.runner_up_floor))
+
+
+def _box_confirmed(best: Hypothesis, hyps: list[Hypothesis], cfg: AcquireConfig) -> bool:
+    """The boxes single out the best pose: at least ``box_confirm_pairs`` peer boxes on ego boxes, and at least
+    ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many as under any distinct hypothesis (a row of
+    parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
+    if cfg.box_confirm_pairs == 0 or best.box_pairs < cfg.box_confirm_pairs:
+        return False
+    others = max((h.box_pairs for h in hyps if _distinct(h.T, [best], cfg.distinct_m, cfg.distinct_deg)), default=0)
+    return best.box_pairs - others >= cfg.box_confirm_margin and best.box_pairs >= cfg.box_confirm_ratio * others
 
 
 def runner_up_of(hyps: list[Hypothesis], cfg: AcquireConfig) -> Hypothesis | None:
@@ -469,13 +589,18 @@ class Acquirer:
         coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=cfg.seed)
         full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
 
+        with timed("hypotheses"):
+            from_boxes = box_hypotheses(ego.boxes, peer.boxes, a)
+        centres = (ego.boxes[:, :2], peer.boxes[:, :2])
+
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
                 hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half)
+                hs += _with_keypoint_inliers(from_boxes, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0
             with timed("verify"):
-                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse)
+                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, centres)
             return hs, _margin(hs, a)
 
         hyps: list[Hypothesis] = []
@@ -501,8 +626,11 @@ class Acquirer:
         mask = best.inlier_mask
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
-        if margin < a.min_margin or margin * best.relative_fitness < a.min_evidence:
+        dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
+        if not dense_ok and not _box_confirmed(best, hyps, a):
             return FailureReason.ambiguous_bv, full_pts
+        if not dense_ok:
+            result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_pts
         return None, full_pts

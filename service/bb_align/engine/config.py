@@ -176,6 +176,18 @@ class BoxConfig(_Frozen):
     )
     max_correction_m: float = Field(4.0, gt=0, description="stage 2 may move stage 1 by at most this")
     max_correction_deg: float = Field(6.0, gt=0)
+    fuse: bool = Field(
+        True,
+        description="after stage 2 verified the pose, fuse the paired boxes as a second measurement "
+        "of it, by information with the refined pose's covariance (not in the paper; docs/acquisition.md)",
+    )
+    fuse_sigma_m: float = Field(
+        1.3, gt=0, description="1-sigma of one paired box centre (the tracker's track.box_sigma_m, docs/tracking.md)"
+    )
+    fuse_min_pairs: int = Field(2, ge=2, description="box pairs needed for the fused measurement (two fix the yaw)")
+    fuse_chi2: float = Field(
+        11.345, gt=0, description="fused only when the two measurements agree (squared Mahalanobis, chi2(3) 99 %)"
+    )
 
 
 class SuccessRule(_Frozen):
@@ -256,6 +268,35 @@ class AcquireConfig(_Frozen):
     distinct_deg: float = Field(2.0, gt=0, description="see distinct_m")
     min_hypothesis_inliers: int = Field(
         6, ge=2, description="hypotheses with fewer distinct inlier keypoints are not verified"
+    )
+    box_hypotheses: int = Field(
+        8,
+        ge=0,
+        le=64,
+        description="distinct poses proposed by the boxes both cars detected, verified densely beside the "
+        "keypoint hypotheses (0: off); at 70-100 m the descriptors rarely agree but the cars do",
+    )
+    box_min_pairs: int = Field(3, ge=2, description="a box hypothesis needs this many peer boxes on ego boxes")
+    box_seed_gate_m: float = Field(
+        4.0, gt=0, description="pairing gate of a box seed (its yaw is only the two headings' difference)"
+    )
+    box_gate_m: float = Field(2.0, gt=0, description="pairing gate after the seed's Kabsch refit")
+    box_max: int = Field(40, ge=2, le=200, description="boxes per car used, nearest the sensor first (bounds the work)")
+    box_weight: float = Field(
+        0.015,
+        ge=0,
+        description="score added per peer box landing on an ego box (within box_gate_m) under a "
+        "hypothesis: the cars both detected help rank the poses",
+    )
+    box_confirm_pairs: int = Field(
+        3, ge=0, description="a pose the dense margin cannot settle is accepted when this many boxes pair (0: off)"
+    )
+    box_confirm_margin: int = Field(2, ge=1, description="... this many more than under any distinct hypothesis ...")
+    box_confirm_ratio: float = Field(
+        1.5,
+        ge=1,
+        description="... and this many times as many (calibrated on the simulated seeds 2024 and 777: no "
+        "wrong success; benchmarks/acquisition_range.py, docs/acquisition.md)",
     )
     coarse_points: int = Field(400, ge=50, description="peer pixels of the coarse verification refinement")
     coarse_gates_m: tuple[float, ...] = Field((2.0, 1.0), description="gates of the coarse verification")

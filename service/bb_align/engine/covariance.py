@@ -21,6 +21,7 @@ from math import erf, exp, radians, sqrt
 import numpy as np
 from numba import njit
 
+from .geometry import log_left, se2
 from .refine import BevCloud
 
 _HUGE = 1e6  # variance reported along a direction with no information at all (m^2 or rad^2)
@@ -101,3 +102,18 @@ def params_covariance(cov_left: np.ndarray, T: np.ndarray) -> np.ndarray:
     J = _params_jacobian(T)
     cov = J @ np.asarray(cov_left, dtype=float) @ J.T
     return 0.5 * (cov + cov.T)
+
+
+def fuse_poses(
+    T_a: np.ndarray, C_a: np.ndarray, T_b: np.ndarray, C_b: np.ndarray, agreement_chi2: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Two independent measurements of one pose (3x3, covariances of left increments) as one, information-weighted
+    about T_a: (T, C); None when they lie farther apart than ``agreement_chi2`` (squared Mahalanobis distance under
+    C_a + C_b), i.e. one of them is wrong."""
+    nu = log_left(T_b, T_a)
+    C_a, C_b = np.asarray(C_a, float), np.asarray(C_b, float)
+    if float(nu @ np.linalg.solve(C_a + C_b, nu)) > agreement_chi2:
+        return None
+    C = np.linalg.inv(np.linalg.inv(C_a) + np.linalg.inv(C_b))
+    C = 0.5 * (C + C.T)
+    return se2(*(C @ np.linalg.solve(C_b, nu))) @ T_a, C

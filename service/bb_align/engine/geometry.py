@@ -65,6 +65,12 @@ def wrap_angle(a):
     return -((-np.asarray(a) + np.pi) % (2 * np.pi) - np.pi)
 
 
+def log_left(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
+    """The left increment d = (yaw, tx, ty) with T_a = se2(d) @ T_b (yaw wrapped)."""
+    yaw, tx, ty = se2_params(T_a @ np.linalg.inv(T_b))
+    return np.array([float(wrap_angle(yaw)), tx, ty])
+
+
 def kabsch_2d(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Closed-form least-squares rigid transform T (3x3) with dst ~ T @ src; (N, 2) each, N >= 2.
 

@@ -23,8 +23,9 @@ from threadpoolctl import ThreadpoolController
 
 from .acquire import Acquirer, pose_uncertainty
 from .bev import BevImage, make_bev
-from .boxes import BoxStage, as_boxes
+from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
+from .covariance import fuse_poses, left_covariance, params_covariance
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2_params
@@ -198,8 +199,9 @@ class Aligner:
             reason = (
                 self.verdict.inputs(ego, peer)
                 or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
-                or self._uncertainty(pair)  # not in the paper: the pose's covariance; a degenerate one is refused
-                or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box
+                or self._covariance(pair)  # not in the paper: the refined pose's covariance (never fails)
+                or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box; fused
+                or self._uncertain(pair)  # not in the paper: a degenerate final pose is refused
             )
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
 
@@ -254,7 +256,7 @@ class Aligner:
         r.inlier_xy_peer, r.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         return self.verdict.stage1(r)
 
-    def _uncertainty(self, pair: _Pair) -> FailureReason | None:
+    def _covariance(self, pair: _Pair) -> None:
         """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""
         if not self.config.covariance.enabled or pair.peer_pts is None:
             return None
@@ -267,7 +269,10 @@ class Aligner:
                 self.config.refine.gates_m[-1],
                 self.config.covariance,
             )
-        return self.verdict.uncertain(r)
+        return None
+
+    def _uncertain(self, pair: _Pair) -> FailureReason | None:
+        return None if pair.result.covariance is None else self.verdict.uncertain(pair.result)
 
     def _refine(self, pair: _Pair) -> FailureReason | None:
         """Dense point-to-line ICP of T_bv on the lit pixels; bounded (a correction that wanders is discarded)."""
@@ -294,8 +299,38 @@ class Aligner:
         if reason is None and self.verdict.boxes_verified(r):
             self._apply_box_correction(pair, boxes.T_box)
             if r.stage2_applied:  # the pose moved: its uncertainty is the final pose's
-                return self._uncertainty(pair)
+                self._covariance(pair)
+            self._fuse_boxes(pair)
         return reason
+
+    def _fuse_boxes(self, pair: _Pair) -> None:
+        """Not in the paper: the boxes both cars detected as a second, independent measurement of the final pose,
+        fused with the refined one by information (box.fuse). The refinement pins a far pair across the street but
+        hardly along it; the cars' positions pin it along. Left out when the two disagree."""
+        r, box = pair.result, self.config.box
+        if not box.fuse or r.covariance is None:
+            return
+        T = r.T_box @ r.T_bv
+        with _timed(r.timings_ms, "boxes"):
+            meas = box_measurement(
+                pair.ego.boxes,
+                pair.peer.boxes,
+                T,
+                box.fuse_sigma_m,
+                pair_gate_m=box.pair_gate_m,
+                min_pairs=box.fuse_min_pairs,
+                min_inliers=self.config.success.min_inliers_box + 1,
+                cfg=box,
+                seed=self.config.seed,
+            )
+            fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, box.fuse_chi2)
+        if fused is None:
+            r.notes.append("box measurement " + ("left out: disagrees" if meas is not None else "not formed"))
+            return
+        T_fused, C_fused = fused
+        r.T_box = T_fused @ np.linalg.inv(r.T_bv)
+        r.covariance = params_covariance(C_fused, T_fused)
+        r.notes.append("box measurement fused with the refined pose")
 
     def _apply_box_correction(self, pair: _Pair, T_box: np.ndarray) -> None:
         """Stage 2's T_box on top of the (refined) stage-1 pose, per config.box.apply (see BoxConfig)."""

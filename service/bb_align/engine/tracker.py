@@ -30,7 +30,8 @@ from enum import Enum
 import numpy as np
 
 from .config import TrackConfig
-from .geometry import se2, se2_params, worst_sigma_m, wrap_angle
+from .covariance import fuse_poses
+from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
 
@@ -71,12 +72,6 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return np.array([[1.0, 0.0, 0.0], [ty, c, -s], [-tx, s, c]])
 
 
-def log_left(T_a: np.ndarray, T_b: np.ndarray) -> np.ndarray:
-    """The left increment d with T_a = se2(d) @ T_b (yaw wrapped)."""
-    yaw, tx, ty = se2_params(T_a @ np.linalg.inv(T_b))
-    return np.array([float(wrap_angle(yaw)), tx, ty])
-
-
 def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[Measurement, bool]:
     """Two independent measurements of the same frame's T_ego_peer as one (information-weighted, on left increments
     about ``m``'s pose), and whether ``other`` was used: it is left out when ``m`` is a measurement and the two lie
@@ -85,13 +80,8 @@ def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[
         return m, False
     if not m.ok:
         return other, True
-    nu = log_left(other.T_ego_peer, m.T_ego_peer)
-    C_m, C_o = np.asarray(m.covariance, float), np.asarray(other.covariance, float)
-    if float(nu @ np.linalg.solve(C_m + C_o, nu)) > agreement_chi2:
-        return m, False
-    C = np.linalg.inv(np.linalg.inv(C_m) + np.linalg.inv(C_o))
-    C = 0.5 * (C + C.T)
-    return Measurement(True, se2(*(C @ np.linalg.solve(C_o, nu))) @ m.T_ego_peer, C), True
+    fused = fuse_poses(m.T_ego_peer, m.covariance, other.T_ego_peer, other.covariance, agreement_chi2)
+    return (m, False) if fused is None else (Measurement(True, *fused), True)
 
 
 def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
