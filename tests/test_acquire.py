@@ -138,7 +138,7 @@ def test_box_hypotheses_recover_a_known_pose_despite_heading_flips_and_strangers
     assert box_hypotheses(ego[:2], peer, AcquireConfig()) == []  # fewer boxes than box_min_pairs
 
 
-def _corridor_frame(T_world_sensor: np.ndarray, cars_world: np.ndarray, seed: int) -> np.ndarray:
+def _corridor_frame(T_world_sensor: np.ndarray, seed: int) -> np.ndarray:
     """Two long straight walls along the world's x axis (y = +-8 m) and a ground plane, seen from a sensor pose:
     nothing in the image pins the motion along the corridor. The cars are left out of the image on purpose, so
     only their detected boxes can."""
@@ -146,7 +146,6 @@ def _corridor_frame(T_world_sensor: np.ndarray, cars_world: np.ndarray, seed: in
     xs = rng.uniform(-120, 120, 40000)
     walls = np.column_stack([xs, np.where(rng.random(len(xs)) < 0.5, -8.0, 8.0), rng.uniform(0, 4, len(xs))])
     ground = np.column_stack([rng.uniform(-120, 120, (40000, 2)), rng.normal(0, 0.02, 40000)])
-    del cars_world
     return view_from(np.vstack([walls, ground]), T_world_sensor, max_range=60.0, drop=0.3, seed=seed)
 
 
@@ -163,8 +162,8 @@ def test_boxes_pin_a_pose_the_images_cannot():
     )
     cfg = AlignConfig.model_validate({"bev": {"range_m": 50.0}})
     aligner = Aligner(cfg)
-    ego = aligner.prepare(_corridor_frame(np.eye(4), cars, 0), _boxes_seen_from(cars, np.eye(4), rng))
-    peer = aligner.prepare(_corridor_frame(T_world_peer, cars, 1), _boxes_seen_from(cars, T_world_peer, rng))
+    ego = aligner.prepare(_corridor_frame(np.eye(4), 0), _boxes_seen_from(cars, np.eye(4), rng))
+    peer = aligner.prepare(_corridor_frame(T_world_peer, 1), _boxes_seen_from(cars, T_world_peer, rng))
 
     r = aligner.align(ego, peer)
     assert r.success, (r.reason, r.notes)
@@ -186,12 +185,12 @@ def test_box_confirmation_needs_a_clear_lead_over_every_distinct_pose():
         return [Hypothesis(T=se2(0.0, dx, 0.0), inliers=0, box_pairs=b) for b, dx in pairs_and_shift]
 
     h = hyps((6, 0.0), (3, 10.0))
-    assert _box_confirmed(h[0], h, cfg)
+    assert _box_confirmed(h, cfg)
     h = hyps((6, 0.0), (5, 0.5), (3, 10.0))  # the 5 is the same pose (closer than distinct_m): not a rival
-    assert _box_confirmed(h[0], h, cfg)
+    assert _box_confirmed(h, cfg)
     h = hyps((16, 0.0), (11, 30.0))  # a lead of 5 but not 1.5 x: a row of cars seen from both ends
-    assert not _box_confirmed(h[0], h, cfg)
+    assert not _box_confirmed(h, cfg)
     h = hyps((4, 0.0), (3, 12.0))  # 1 more only
-    assert not _box_confirmed(h[0], h, cfg)
+    assert not _box_confirmed(h, cfg)
     h = hyps((2, 0.0))  # too few, even alone
-    assert not _box_confirmed(h[0], h, cfg)
+    assert not _box_confirmed(h, cfg)

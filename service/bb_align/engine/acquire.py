@@ -399,7 +399,9 @@ def _with_keypoint_inliers(
 ) -> list[Hypothesis]:
     """Copies of the ``extra`` hypotheses distinct from ``have``, with their keypoint candidate inliers counted as
     pose_hypotheses counts them (so every verified hypothesis reports the same evidence)."""
-    q, k = cand.shape
+    if not extra:
+        return []
+    k = cand.shape[1]
     src, dst = np.repeat(kp_peer, k, axis=0), kp_ego[cand.ravel()]
     out = []
     for h in extra:
@@ -515,26 +517,29 @@ def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:
     """The images' margin: the first hypothesis's dense score over the best dense score of any distinct one
     (floored at cfg.runner_up_floor; the floor alone without one). The boxes, which helped rank, are left out: they
     are judged on their own (``_box_confirmed``), not counted twice."""
-    rivals = [dense_score(h, cfg) for h in hyps[1:] if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg)]
-    return float(dense_score(hyps[0], cfg) / max(max(rivals, default=0.0), cfg.runner_up_floor))
+    best_rival = max((dense_score(h, cfg) for h in _rivals(hyps, cfg)), default=0.0)
+    return float(dense_score(hyps[0], cfg) / max(best_rival, cfg.runner_up_floor))
 
 
-def _box_confirmed(best: Hypothesis, hyps: list[Hypothesis], cfg: AcquireConfig) -> bool:
-    """The boxes single out the best pose: at least ``box_confirm_pairs`` peer boxes on ego boxes, and at least
-    ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many as under any distinct hypothesis (a row of
-    parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
+def _box_confirmed(hyps: list[Hypothesis], cfg: AcquireConfig) -> bool:
+    """The boxes single out the best pose (``hyps[0]``): at least ``box_confirm_pairs`` peer boxes on ego boxes,
+    and at least ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many as under any distinct
+    hypothesis (a row of parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
+    best = hyps[0]
     if cfg.box_confirm_pairs == 0 or best.box_pairs < cfg.box_confirm_pairs:
         return False
-    others = max((h.box_pairs for h in hyps if _distinct(h.T, [best], cfg.distinct_m, cfg.distinct_deg)), default=0)
+    others = max((h.box_pairs for h in _rivals(hyps, cfg)), default=0)
     return best.box_pairs - others >= cfg.box_confirm_margin and best.box_pairs >= cfg.box_confirm_ratio * others
 
 
+def _rivals(hyps: list[Hypothesis], cfg: AcquireConfig) -> list[Hypothesis]:
+    """The hypotheses distinct from the first, in order (after refinement two may have met)."""
+    return [h for h in hyps[1:] if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg)]
+
+
 def runner_up_of(hyps: list[Hypothesis], cfg: AcquireConfig) -> Hypothesis | None:
-    """The best-scoring hypothesis distinct from the first (after refinement two may have met)."""
-    for h in hyps[1:]:
-        if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg):
-            return h
-    return None
+    """The best-scoring hypothesis distinct from the first."""
+    return next(iter(_rivals(hyps, cfg)), None)
 
 
 # ---- pipeline steps ------------------------------------------------------------------------------------------
@@ -627,7 +632,7 @@ class Acquirer:
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
-        if not dense_ok and not _box_confirmed(best, hyps, a):
+        if not dense_ok and not _box_confirmed(hyps, a):
             return FailureReason.ambiguous_bv, full_pts
         if not dense_ok:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
