@@ -25,10 +25,10 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .boxes import pair_boxes
+from .box_poses import BoxSet, box_agreement, box_poses
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
-from .geometry import kabsch_2d, se2, se2_params, transform_points_2d
+from .geometry import distinct_pose, se2, se2_params
 from .matching import sq_distances
 from .refine import BevCloud, bev_points, overlap_fitness, refine_icp
 from .result import AlignResult
@@ -227,7 +227,8 @@ class Hypothesis:
     refined: bool = False
     inlier_mask: np.ndarray | None = field(default=None, repr=False)
     source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes) or "boxes"
-    box_pairs: int = 0  # peer boxes landing within AcquireConfig.box_gate_m of an ego box under T
+    box_pairs: int = 0  # peer boxes paired with an agreeing ego box under T (box_poses.box_agreement)
+    box_score: float = 0.0  # the boxes' soft score under T (box_poses.box_agreement)
 
     @property
     def relative_fitness(self) -> float:
@@ -242,13 +243,7 @@ def _inliers(T, src, dst, k, thr2):
 
 
 def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float) -> bool:
-    yaw, tx, ty = se2_params(T)
-    for h in chosen:
-        y2, x2, z2 = se2_params(h.T)
-        dyaw = abs((yaw - y2 + np.pi) % (2 * np.pi) - np.pi)
-        if np.hypot(tx - x2, ty - z2) < dist_m and np.degrees(dyaw) < deg:
-            return False
-    return True
+    return distinct_pose(T, [h.T for h in chosen], dist_m, deg)
 
 
 def pose_hypotheses(
@@ -314,84 +309,15 @@ def pose_hypotheses(
     return out
 
 
-# ---- 2b. hypotheses from the boxes both cars detected ---------------------------------------------------------
-
-
-@njit(cache=True, nogil=True)
-def _box_seeds(c_peer, h_peer, c_ego, h_ego, gate2):
-    """Every (peer box i, ego box k, heading flip f) implies a pose: yaw from the two headings (a detector's heading
-    may be 180 degrees off), translation from the two centres. Returns (yaw, tx, ty, support) per seed, support =
-    the peer boxes landing within sqrt(gate2) of some ego box under it."""
-    p, e = len(c_peer), len(c_ego)
-    n = p * e * 2
-    yaw, tx, ty = np.empty(n), np.empty(n), np.empty(n)
-    sup = np.zeros(n, np.int64)
-    h = 0
-    for i in range(p):
-        for k in range(e):
-            for f in range(2):
-                th = h_ego[k] - h_peer[i] + f * np.pi
-                c, s = np.cos(th), np.sin(th)
-                x = c_ego[k, 0] - (c * c_peer[i, 0] - s * c_peer[i, 1])
-                y = c_ego[k, 1] - (s * c_peer[i, 0] + c * c_peer[i, 1])
-                m = 0
-                for a in range(p):
-                    px = c * c_peer[a, 0] - s * c_peer[a, 1] + x
-                    py = s * c_peer[a, 0] + c * c_peer[a, 1] + y
-                    for b in range(e):
-                        dx, dy = px - c_ego[b, 0], py - c_ego[b, 1]
-                        if dx * dx + dy * dy < gate2:
-                            m += 1
-                            break
-                yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
-                h += 1
-    return yaw, tx, ty, sup
-
-
-def box_support(T: np.ndarray, c_peer: np.ndarray, c_ego: np.ndarray, gate_m: float) -> int:
-    """Peer box centres landing within ``gate_m`` of an ego box centre under T (ego <- peer)."""
-    if len(c_peer) == 0 or len(c_ego) == 0:
-        return 0
-    p = transform_points_2d(T, c_peer)
-    return int((((p[:, None, :] - c_ego[None, :, :]) ** 2).sum(-1).min(1) < gate_m * gate_m).sum())
-
-
-def _nearest_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
-    """The n boxes nearest the sensor (the ones a detector places best), at most."""
-    return boxes[np.argsort(np.hypot(boxes[:, 0], boxes[:, 1]), kind="stable")[:n]] if len(boxes) > n else boxes
+# ---- 2b. hypotheses from the boxes both cars detected (bb_align.engine.box_poses) -------------------------------
 
 
 def box_hypotheses(boxes_ego: np.ndarray, boxes_peer: np.ndarray, cfg: AcquireConfig) -> list[Hypothesis]:
-    """Up to ``cfg.box_hypotheses`` distinct poses (most paired boxes first) at which at least
-    ``cfg.box_min_pairs`` of the peer's boxes land on the ego's. Where the two views' descriptors no longer agree
-    (70-100 m apart) the cars both detected still do. Seeds from one box correspondence each (``_box_seeds``), then
-    the strongest are refitted on their paired centres (Kabsch; the headings only seed the yaw)."""
-    be, bp = _nearest_boxes(boxes_ego, cfg.box_max), _nearest_boxes(boxes_peer, cfg.box_max)
-    if cfg.box_hypotheses == 0 or min(len(be), len(bp)) < cfg.box_min_pairs:
-        return []
-    c_ego, c_peer = np.ascontiguousarray(be[:, :2]), np.ascontiguousarray(bp[:, :2])
-    yaw, tx, ty, sup = _box_seeds(
-        c_peer, np.ascontiguousarray(bp[:, 6]), c_ego, np.ascontiguousarray(be[:, 6]), cfg.box_seed_gate_m**2
-    )
-    out: list[Hypothesis] = []
-    attempts = 0
-    for h in np.argsort(-sup, kind="stable"):
-        if len(out) >= cfg.box_hypotheses or sup[h] < cfg.box_min_pairs or attempts >= cfg.max_refit_attempts:
-            break
-        T = se2(yaw[h], tx[h], ty[h])
-        if not _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
-            continue
-        attempts += 1
-        for gate in (cfg.box_seed_gate_m, cfg.box_gate_m):
-            ia, ib = pair_boxes(c_ego, transform_points_2d(T, c_peer), gate)
-            if len(ia) < cfg.box_min_pairs:
-                break
-            T = kabsch_2d(c_peer[ib], c_ego[ia])
-        else:
-            ia, _ = pair_boxes(c_ego, transform_points_2d(T, c_peer), cfg.box_gate_m)
-            if len(ia) >= cfg.box_min_pairs and _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
-                out.append(Hypothesis(T=T, inliers=0, votes=float(len(ia)), source="boxes"))
-    return out
+    """The poses the boxes both cars detected propose (``box_poses``), as hypotheses (votes = paired boxes)."""
+    return [
+        Hypothesis(T=b.T, inliers=0, votes=float(b.pairs), source="boxes")
+        for b in box_poses(boxes_ego, boxes_peer, cfg)
+    ]
 
 
 def _with_keypoint_inliers(
@@ -458,6 +384,7 @@ class Acquisition:
                 "refined": x.refined,
                 "source": x.source,
                 "box_pairs": x.box_pairs,
+                "box_score": x.box_score,
             }
 
         return {
@@ -490,25 +417,26 @@ def verify(
     full_pts: np.ndarray,
     config: AlignConfig,
     coarse: RefineConfig,
-    boxes: tuple[np.ndarray, np.ndarray] | None = None,
+    boxes: tuple[BoxSet, BoxSet] | None = None,
 ) -> None:
     """Coarse dense refinement (``coarse``, on ``coarse_pts``) + score for every hypothesis, then a full refinement
-    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) box centres, counted per pose."""
+    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) boxes, paired per pose."""
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
-    c_ego, c_peer = boxes if boxes is not None else (np.zeros((0, 2)), np.zeros((0, 2)))
+    no_boxes = BoxSet.of(np.zeros((0, 7)))
+    ego_boxes, peer_boxes = boxes if boxes is not None else (no_boxes, no_boxes)
     for h in hyps:
         ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
         h.T = ref.T
         h.fitness, h.rmse_m = overlap_fitness(ego_cloud, coarse_pts, h.T, final_gate)
         h.covisible = covisible_fraction(covis, ego_cloud, coarse_pts, h.T)
-        h.box_pairs = box_support(h.T, c_peer, c_ego, a.box_gate_m)
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:
         ref = refine_icp(ego_cloud, full_pts, h.T, rf)
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
-        h.box_pairs = box_support(h.T, c_peer, c_ego, a.box_gate_m)
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
     finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
     hyps[: a.finalists] = finals
 
@@ -596,7 +524,7 @@ class Acquirer:
 
         with timed("hypotheses"):
             from_boxes = box_hypotheses(ego.boxes, peer.boxes, a)
-        centres = (ego.boxes[:, :2], peer.boxes[:, :2])
+        boxes = (BoxSet.of(ego.boxes), BoxSet.of(peer.boxes))
 
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
@@ -605,7 +533,7 @@ class Acquirer:
             if not hs:
                 return hs, 0.0
             with timed("verify"):
-                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, centres)
+                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, boxes)
             return hs, _margin(hs, a)
 
         hyps: list[Hypothesis] = []

@@ -281,6 +281,22 @@ class AcquireConfig(_Frozen):
         4.0, gt=0, description="pairing gate of a box seed (its yaw is only the two headings' difference)"
     )
     box_gate_m: float = Field(2.0, gt=0, description="pairing gate after the seed's Kabsch refit")
+    box_heading_tol_deg: float = Field(
+        20.0,
+        gt=0,
+        le=90,
+        description="two boxes pair only if their headings agree within this, modulo 180 degrees (a detector may "
+        "report a car backwards); rows of parked cars otherwise pair many boxes at wrong poses",
+    )
+    box_size_tol_m: float = Field(
+        1.0, gt=0, description="... and their footprints (length, width) differ by less than this"
+    )
+    box_sigma_m: float = Field(
+        0.7,
+        gt=0,
+        description="box poses are ranked by sum exp(-d^2 / 2 sigma^2) over the pairs (a tight fit of a few cars "
+        "beats a loose fit of many); about twice a detector's centre noise at 100 m",
+    )
     box_max: int = Field(40, ge=2, le=200, description="boxes per car used, nearest the sensor first (bounds the work)")
     box_weight: float = Field(
         0.015,

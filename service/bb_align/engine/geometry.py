@@ -23,6 +23,17 @@ def ground_se2(T: np.ndarray) -> np.ndarray:
     return se2(*se2_params(T))
 
 
+def distinct_pose(T: np.ndarray, others: list[np.ndarray], dist_m: float, deg: float) -> bool:
+    """True when the 3x3 pose T is at least ``dist_m`` or ``deg`` away from every pose in ``others``."""
+    yaw, tx, ty = se2_params(T)
+    for T2 in others:
+        y2, x2, z2 = se2_params(T2)
+        dyaw = abs((yaw - y2 + np.pi) % (2 * np.pi) - np.pi)
+        if np.hypot(tx - x2, ty - z2) < dist_m and np.degrees(dyaw) < deg:
+            return False
+    return True
+
+
 def transform_points_2d(T_a_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
     """Apply a 3x3 transform to (N, 2) points."""
     pts_b = np.asarray(pts_b, dtype=float)
