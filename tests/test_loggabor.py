@@ -146,3 +146,20 @@ def test_circular_span_hand_worked():
     mask[3:6] = True
     assert _circular_span(mask) == (3, 3)
     assert _circular_span(np.ones(7, bool)) == (0, 7)
+
+
+def test_fft_size_is_the_smallest_fast_length():
+    """Brute force over lengths: a multiple of 16 whose odd part is 3-, 5- and 7-smooth, the smallest >= n."""
+    from bb_align.engine.loggabor import fft_size
+
+    def fast(m: int) -> bool:
+        if m % 16:
+            return False
+        for p in (2, 3, 5, 7):
+            while m % p == 0:
+                m //= p
+        return m == 1
+
+    for n in range(1, 1200):
+        assert fft_size(n) == next(m for m in range(max(n, 16), 4 * n + 32) if fast(m))
+    assert fft_size(532) == 560 and fft_size(432) == 432  # a 500 px image with its 16 px margins; a 400 px one

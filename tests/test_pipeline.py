@@ -126,3 +126,27 @@ def test_warm_reference_gives_the_same_result(world):
     warm = aligner.align(ego, aligner.prepare(pts_peer, boxes_peer))
     np.testing.assert_array_equal(cold.T_ego_peer, warm.T_ego_peer)
     assert warm.timings_ms["matching"] < cold.timings_ms["matching"] + 1000  # sanity: no rebuild error
+
+
+def test_boxes_that_contradict_the_refined_pose_refuse_it(world):
+    """The peer's boxes all 2 m off (a mis-calibrated detector): stage 2 still pairs them, but as a measurement they
+    disagree with the densely refined pose beyond chi2(3) 99 %. Two independent measurements contradict each other,
+    so the alignment fails, keeping the refined pose; with box.fuse_disagreement_fails off the boxes are left out
+    and the refined pose stands. The same boxes unshifted are fused."""
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
+    shifted = boxes_peer.copy()
+    shifted[:, 0] += 2.0
+    aligner = Aligner()
+    ego, peer = aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, shifted)
+    res = aligner.align(ego, peer)
+    assert not res.success and res.reason == "box_correction_too_large", (res.reason, res.notes)
+    assert "box measurement disagrees with the refined pose: refused" in res.notes
+    assert pose_error(res.T_ego_peer, T_true)[0] < 0.5
+
+    lenient = Aligner(AlignConfig.model_validate({"box": {"fuse_disagreement_fails": False}}))
+    kept = lenient.align(ego, peer)
+    assert kept.success and "box measurement left out: disagrees" in kept.notes
+    assert pose_error(kept.T_ego_peer, T_true)[0] < 0.3
+
+    fused = aligner.align(ego, aligner.prepare(pts_peer, boxes_peer))
+    assert fused.success and "box measurement fused with the refined pose" in fused.notes

@@ -171,8 +171,26 @@ def _blocks(shape: tuple[int, int], cfg: MimConfig) -> tuple[tuple[_Block, ...],
     return tuple(tuple(_block(bank[o, s]) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
 
 
+def fft_size(n: int) -> int:
+    """The smallest transform length >= n that OpenCV's DFT runs fast: a multiple of 16 whose odd part has no factor
+    but 3, 5 and 7. ``cv2.getOptimalDFTSize`` allows any 5-smooth length, but lengths with only 4 as their power of
+    two run at about twice the cost per pixel (single-threaded: 540 = 4 x 135 takes 1.12 ms per complex inverse
+    transform, 560 = 16 x 35 takes 0.65 ms; docs/performance.md)."""
+    m = max(16, -(-n // 16) * 16)
+    while True:
+        odd = m
+        while odd % 2 == 0:
+            odd //= 2
+        for p in (3, 5, 7):
+            while odd % p == 0:
+                odd //= p
+        if odd == 1:
+            return m
+        m += 16
+
+
 def fft_shape(image_shape: tuple[int, int], margin: int) -> tuple[int, int]:
-    return tuple(cv2.getOptimalDFTSize(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
+    return tuple(fft_size(n + 2 * margin) for n in image_shape)  # type: ignore[return-value]
 
 
 def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int, int]]:

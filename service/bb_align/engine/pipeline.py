@@ -300,16 +300,17 @@ class Aligner:
             self._apply_box_correction(pair, boxes.T_box)
             if r.stage2_applied:  # the pose moved: its uncertainty is the final pose's
                 self._covariance(pair)
-            self._fuse_boxes(pair)
+            reason = self._fuse_boxes(pair)
         return reason
 
-    def _fuse_boxes(self, pair: _Pair) -> None:
+    def _fuse_boxes(self, pair: _Pair) -> FailureReason | None:
         """Not in the paper: the boxes both cars detected as a second, independent measurement of the final pose,
         fused with the refined one by information (box.fuse). The refinement pins a far pair across the street but
-        hardly along it; the cars' positions pin it along. Left out when the two disagree."""
+        hardly along it; the cars' positions pin it along. When the two disagree the pose is refused
+        (box.fuse_disagreement_fails), or the boxes are left out."""
         r, box = pair.result, self.config.box
         if not box.fuse or r.covariance is None:
-            return
+            return None
         T = r.T_box @ r.T_bv
         with _timed(r.timings_ms, "boxes"):
             meas = box_measurement(
@@ -324,13 +325,20 @@ class Aligner:
                 seed=self.config.seed,
             )
             fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, box.fuse_chi2)
+        if meas is None:
+            r.notes.append("box measurement not formed")
+            return None
         if fused is None:
-            r.notes.append("box measurement " + ("left out: disagrees" if meas is not None else "not formed"))
-            return
+            if box.fuse_disagreement_fails:
+                r.notes.append("box measurement disagrees with the refined pose: refused")
+                return FailureReason.box_correction_too_large
+            r.notes.append("box measurement left out: disagrees")
+            return None
         T_fused, C_fused = fused
         r.T_box = T_fused @ np.linalg.inv(r.T_bv)
         r.covariance = params_covariance(C_fused, T_fused)
         r.notes.append("box measurement fused with the refined pose")
+        return None
 
     def _apply_box_correction(self, pair: _Pair, T_box: np.ndarray) -> None:
         """Stage 2's T_box on top of the (refined) stage-1 pose, per config.box.apply (see BoxConfig)."""
