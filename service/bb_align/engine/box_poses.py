@@ -9,7 +9,8 @@ Gaussian of each pair's distance), so a tight fit of a few cars beats a loose fi
 1. seeds: every (peer box, ego box, heading flip) that agrees in size implies a pose: yaw from the two headings,
    translation from the two centres. Its support is the number of peer boxes that pair within ``box_seed_gate_m``.
 2. refits: the best-supported distinct seeds are refitted by Kabsch on their paired centres (``box_seed_gate_m``,
-   then ``box_gate_m``). The headings only seed the yaw: 3 degrees of heading noise move a car 50 m away by 2.6 m.
+   then ``box_gate_m``; compiled, one-to-one pairs by nearest agreeing box). The headings only seed the yaw: 3
+   degrees of heading noise move a car 50 m away by 2.6 m.
 3. ranking: the refitted poses with at least ``box_min_pairs`` pairs, by soft score, at most ``box_hypotheses``.
 """
 
@@ -20,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .boxes import as_boxes, pair_boxes
+from .boxes import as_boxes
 from .config import AcquireConfig
-from .geometry import distinct_pose, kabsch_2d, se2, se2_params, transform_points_2d
+from .geometry import distinct_pose, se2, se2_params, transform_points_2d
 
 
 @dataclass(frozen=True)
@@ -59,20 +60,24 @@ def _heading_gap(h_peer: np.ndarray, h_ego: np.ndarray, yaw: float) -> np.ndarra
     return np.minimum(d, np.pi - d)
 
 
-def agreeing(T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig) -> tuple[np.ndarray, np.ndarray]:
+def agreeing(
+    T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig, size_ok: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Squared distances (P, E) of the peer's box centres under T (ego <- peer) to the ego's, and the mask of the
-    (peer, ego) boxes that agree in heading and size."""
+    (peer, ego) boxes that agree in heading and size (``size_ok``: ``same_size`` when already computed)."""
     d2 = ((transform_points_2d(T, peer.centres)[:, None, :] - ego.centres[None, :, :]) ** 2).sum(-1)
     heading_ok = _heading_gap(peer.headings, ego.headings, se2_params(T)[0]) < np.radians(cfg.box_heading_tol_deg)
-    return d2, heading_ok & same_size(peer, ego, cfg)
+    return d2, heading_ok & (same_size(peer, ego, cfg) if size_ok is None else size_ok)
 
 
-def box_agreement(T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig) -> tuple[int, float]:
+def box_agreement(
+    T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig, size_ok: np.ndarray | None = None
+) -> tuple[int, float]:
     """Under T: the peer boxes paired with an agreeing ego box within ``box_gate_m``, and the soft score (sum over
     peer boxes of the best agreeing ego box's exp(-d^2 / 2 box_sigma_m^2))."""
     if len(peer) == 0 or len(ego) == 0:
         return 0, 0.0
-    d2, ok = agreeing(T, peer, ego, cfg)
+    d2, ok = agreeing(T, peer, ego, cfg, size_ok)
     d2 = np.where(ok, d2, np.inf)
     pairs = int((d2.min(1) < cfg.box_gate_m**2).sum())
     return pairs, float(np.exp(-d2.min(1) / (2 * cfg.box_sigma_m**2)).sum())
@@ -115,15 +120,57 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
     return yaw, tx, ty, sup
 
 
-def _refit(T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig) -> np.ndarray | None:
-    """Kabsch on the agreeing pairs at the seed gate, then at the final gate; None when too few pair."""
-    for gate in (cfg.box_seed_gate_m, cfg.box_gate_m):
-        d2, ok = agreeing(T, peer, ego, cfg)
-        ia, ib = pair_boxes(ego.centres, transform_points_2d(T, peer.centres), gate, allowed=ok.T)
-        if len(ia) < cfg.box_min_pairs:
-            return None
-        T = kabsch_2d(peer.centres[ib], ego.centres[ia])
-    return T
+@njit(cache=True, nogil=True)
+def _refit(yaw, tx, ty, c_peer, h_peer, c_ego, h_ego, size_ok, gates, heading_tol, min_pairs):
+    """Kabsch on the agreeing pairs at each gate in turn (the seed gate, then the final one), the pose refitted
+    between them. Pairs are one-to-one: each peer box takes its nearest agreeing ego box within the gate, and an ego
+    box claimed twice keeps the nearer peer box. Returns (ok, yaw, tx, ty); ok False when fewer than min_pairs
+    pair at some gate."""
+    p, e = len(c_peer), len(c_ego)
+    for gate in gates:
+        c, s = np.cos(yaw), np.sin(yaw)
+        best_d = np.full(e, np.inf)
+        owner = np.full(e, -1)
+        for a in range(p):
+            px = c * c_peer[a, 0] - s * c_peer[a, 1] + tx
+            py = s * c_peer[a, 0] + c * c_peer[a, 1] + ty
+            bd, bb = gate * gate, -1
+            for b in range(e):
+                if not size_ok[a, b]:
+                    continue
+                g = (h_peer[a] + yaw - h_ego[b]) % np.pi
+                if min(g, np.pi - g) >= heading_tol:
+                    continue
+                d = (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2
+                if d < bd:
+                    bd, bb = d, b
+            if bb >= 0 and bd < best_d[bb]:
+                best_d[bb], owner[bb] = bd, a
+        n = 0
+        mp = np.zeros(2)
+        me = np.zeros(2)
+        for b in range(e):
+            if owner[b] >= 0:
+                n += 1
+                mp += c_peer[owner[b]]
+                me += c_ego[b]
+        if n < min_pairs:
+            return False, yaw, tx, ty
+        mp /= n
+        me /= n
+        sxx = 0.0  # sum of dot and cross products of the centred pairs: the 2-D Kabsch angle in closed form
+        sxy = 0.0
+        for b in range(e):
+            if owner[b] >= 0:
+                qx, qy = c_peer[owner[b], 0] - mp[0], c_peer[owner[b], 1] - mp[1]
+                rx, ry = c_ego[b, 0] - me[0], c_ego[b, 1] - me[1]
+                sxx += qx * rx + qy * ry
+                sxy += qx * ry - qy * rx
+        yaw = np.arctan2(sxy, sxx)
+        c, s = np.cos(yaw), np.sin(yaw)
+        tx = me[0] - (c * mp[0] - s * mp[1])
+        ty = me[1] - (s * mp[0] + c * mp[1])
+    return True, yaw, tx, ty
 
 
 @dataclass
@@ -138,27 +185,58 @@ def box_poses(boxes_ego, boxes_peer, cfg: AcquireConfig) -> list[BoxPose]:
     ego, peer = BoxSet.of(boxes_ego, cfg.box_max), BoxSet.of(boxes_peer, cfg.box_max)
     if cfg.box_hypotheses == 0 or min(len(ego), len(peer)) < cfg.box_min_pairs:
         return []
+    size_ok, tol = same_size(peer, ego, cfg), np.radians(cfg.box_heading_tol_deg)
+    gates = np.array([cfg.box_seed_gate_m, cfg.box_gate_m])
     yaw, tx, ty, sup = _seeds(
-        peer.centres,
-        peer.headings,
-        ego.centres,
-        ego.headings,
-        same_size(peer, ego, cfg),
-        cfg.box_seed_gate_m**2,
-        np.radians(cfg.box_heading_tol_deg),
+        peer.centres, peer.headings, ego.centres, ego.headings, size_ok, cfg.box_seed_gate_m**2, tol
     )
     found: list[BoxPose] = []
-    tried: list[np.ndarray] = []
+    seen = _PoseSet(cfg)  # the seeds tried and the poses found
     for h in np.argsort(-sup, kind="stable"):
-        if sup[h] < cfg.box_min_pairs or len(tried) >= cfg.max_refit_attempts:
+        if sup[h] < cfg.box_min_pairs or seen.tried >= cfg.max_refit_attempts:
             break
-        T = se2(yaw[h], tx[h], ty[h])
-        if not distinct_pose(T, tried + [b.T for b in found], cfg.distinct_m, cfg.distinct_deg):
+        if seen.near(yaw[h], tx[h], ty[h]):
             continue  # a pose already tried or found (each car of one alignment seeds it again)
-        tried.append(T)
-        T = _refit(T, peer, ego, cfg)
-        if T is not None and distinct_pose(T, [b.T for b in found], cfg.distinct_m, cfg.distinct_deg):
-            found.append(BoxPose(T, *box_agreement(T, peer, ego, cfg)))
+        seen.add(yaw[h], tx[h], ty[h], tried=True)
+        ok, *params = _refit(
+            yaw[h],
+            tx[h],
+            ty[h],
+            peer.centres,
+            peer.headings,
+            ego.centres,
+            ego.headings,
+            size_ok,
+            gates,
+            tol,
+            cfg.box_min_pairs,
+        )
+        T = se2(*params)
+        if not ok or not distinct_pose(T, [b.T for b in found], cfg.distinct_m, cfg.distinct_deg):
+            continue
+        found.append(BoxPose(T, *box_agreement(T, peer, ego, cfg, size_ok)))
+        seen.add(*se2_params(T))
     found = [b for b in found if b.pairs >= cfg.box_min_pairs]
     found.sort(key=lambda b: -b.score)
     return found[: cfg.box_hypotheses]
+
+
+class _PoseSet:
+    """(yaw, tx, ty) of the poses seen so far, in growing arrays: a seed near one of them is not refitted again."""
+
+    def __init__(self, cfg: AcquireConfig):
+        self.cfg, self.tried, self.n = cfg, 0, 0
+        self.params = np.empty((2 * cfg.max_refit_attempts + 1, 3))
+
+    def add(self, yaw: float, tx: float, ty: float, tried: bool = False) -> None:
+        self.params[self.n] = yaw, tx, ty
+        self.n += 1
+        self.tried += tried
+
+    def near(self, yaw: float, tx: float, ty: float) -> bool:
+        p = self.params[: self.n]
+        dyaw = np.abs((p[:, 0] - yaw + np.pi) % (2 * np.pi) - np.pi)
+        close = (np.hypot(p[:, 1] - tx, p[:, 2] - ty) < self.cfg.distinct_m) & (
+            np.degrees(dyaw) < self.cfg.distinct_deg
+        )
+        return bool(close.any())

@@ -57,16 +57,11 @@ def transform_boxes(T_a_b: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     return out
 
 
-def pair_boxes(
-    centres_a: np.ndarray, centres_b: np.ndarray, gate: float, allowed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one pairing of box centres (Hungarian on distance), pairs farther apart than ``gate`` dropped;
-    ``allowed`` (A, B) bool: only those pairs may form."""
+def pair_boxes(centres_a: np.ndarray, centres_b: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one pairing of box centres (Hungarian on distance), pairs farther apart than ``gate`` dropped."""
     if len(centres_a) == 0 or len(centres_b) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     d = np.linalg.norm(centres_a[:, None, :] - centres_b[None, :, :], axis=2)
-    if allowed is not None:
-        d = np.where(allowed, d, np.inf)
     cost = np.where(d < gate, d, 1e6)
     ia, ib = linear_sum_assignment(cost)
     keep = d[ia, ib] < gate
