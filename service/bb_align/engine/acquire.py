@@ -423,8 +423,7 @@ def verify(
     of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) boxes, paired per pose."""
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
-    no_boxes = BoxSet.of(np.zeros((0, 7)))
-    ego_boxes, peer_boxes = boxes if boxes is not None else (no_boxes, no_boxes)
+    ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
     for h in hyps:
         ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
         h.T = ref.T

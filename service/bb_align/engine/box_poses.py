@@ -23,7 +23,7 @@ from numba import njit
 
 from .boxes import as_boxes
 from .config import AcquireConfig
-from .geometry import distinct_pose, se2, se2_params, transform_points_2d
+from .geometry import distinct_pose, poses_near, se2, se2_params
 
 
 @dataclass(frozen=True)
@@ -54,33 +54,54 @@ def same_size(peer: BoxSet, ego: BoxSet, cfg: AcquireConfig) -> np.ndarray:
     return (d**2).sum(-1) < cfg.box_size_tol_m**2
 
 
-def _heading_gap(h_peer: np.ndarray, h_ego: np.ndarray, yaw: float) -> np.ndarray:
-    """(P, E) heading difference modulo 180 degrees (a detector may report a car backwards) under the pose's yaw."""
-    d = np.mod(h_peer[:, None] + yaw - h_ego[None, :], np.pi)
-    return np.minimum(d, np.pi - d)
+@njit(cache=True, nogil=True)
+def _nearest_agreeing(px, py, heading, size_ok_row, c_ego, h_ego, gate2, heading_tol):
+    """The ego box nearest (px, py) closer than sqrt(gate2) that agrees with a peer box seen there with ``heading``
+    (both in the ego frame): same footprint (``size_ok_row``) and heading within heading_tol modulo 180 degrees (a
+    detector may report a car backwards). Returns (index, squared distance), or (-1, gate2) when there is none."""
+    best, best_d2 = -1, gate2
+    for b in range(len(c_ego)):
+        if not size_ok_row[b]:
+            continue
+        d2 = (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2
+        if d2 >= best_d2:
+            continue
+        g = (heading - h_ego[b]) % np.pi  # the costlier test last
+        if min(g, np.pi - g) < heading_tol:
+            best, best_d2 = b, d2
+    return best, best_d2
 
 
-def agreeing(
-    T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig, size_ok: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Squared distances (P, E) of the peer's box centres under T (ego <- peer) to the ego's, and the mask of the
-    (peer, ego) boxes that agree in heading and size (``size_ok``: ``same_size`` when already computed)."""
-    d2 = ((transform_points_2d(T, peer.centres)[:, None, :] - ego.centres[None, :, :]) ** 2).sum(-1)
-    heading_ok = _heading_gap(peer.headings, ego.headings, se2_params(T)[0]) < np.radians(cfg.box_heading_tol_deg)
-    return d2, heading_ok & (same_size(peer, ego, cfg) if size_ok is None else size_ok)
+@njit(cache=True, nogil=True)
+def _agreeing_d2(yaw, tx, ty, c_peer, h_peer, c_ego, h_ego, size_ok, heading_tol):
+    """Per peer box under the pose (yaw, tx, ty): the squared distance to its nearest agreeing ego box (inf: none)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.empty(len(c_peer))
+    for a in range(len(c_peer)):
+        px = c * c_peer[a, 0] - s * c_peer[a, 1] + tx
+        py = s * c_peer[a, 0] + c * c_peer[a, 1] + ty
+        out[a] = _nearest_agreeing(px, py, h_peer[a] + yaw, size_ok[a], c_ego, h_ego, np.inf, heading_tol)[1]
+    return out
 
 
 def box_agreement(
     T: np.ndarray, peer: BoxSet, ego: BoxSet, cfg: AcquireConfig, size_ok: np.ndarray | None = None
 ) -> tuple[int, float]:
-    """Under T: the peer boxes paired with an agreeing ego box within ``box_gate_m``, and the soft score (sum over
-    peer boxes of the best agreeing ego box's exp(-d^2 / 2 box_sigma_m^2))."""
+    """Under T (ego <- peer): the peer boxes paired with an agreeing ego box within ``box_gate_m``, and the soft
+    score (sum over peer boxes of the nearest agreeing ego box's exp(-d^2 / 2 box_sigma_m^2)). ``size_ok``:
+    ``same_size(peer, ego, cfg)`` when already computed."""
     if len(peer) == 0 or len(ego) == 0:
         return 0, 0.0
-    d2, ok = agreeing(T, peer, ego, cfg, size_ok)
-    d2 = np.where(ok, d2, np.inf)
-    pairs = int((d2.min(1) < cfg.box_gate_m**2).sum())
-    return pairs, float(np.exp(-d2.min(1) / (2 * cfg.box_sigma_m**2)).sum())
+    d2 = _agreeing_d2(
+        *se2_params(T),
+        peer.centres,
+        peer.headings,
+        ego.centres,
+        ego.headings,
+        same_size(peer, ego, cfg) if size_ok is None else size_ok,
+        np.radians(cfg.box_heading_tol_deg),
+    )
+    return int((d2 < cfg.box_gate_m**2).sum()), float(np.exp(-d2 / (2 * cfg.box_sigma_m**2)).sum())
 
 
 @njit(cache=True, nogil=True)
@@ -106,16 +127,7 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
                 for a in range(p):
                     px = c * c_peer[a, 0] - s * c_peer[a, 1] + x
                     py = s * c_peer[a, 0] + c * c_peer[a, 1] + y
-                    for b in range(e):
-                        if not size_ok[a, b]:
-                            continue
-                        dx, dy = px - c_ego[b, 0], py - c_ego[b, 1]
-                        if dx * dx + dy * dy >= gate2:
-                            continue
-                        g = (h_peer[a] + th - h_ego[b]) % np.pi
-                        if min(g, np.pi - g) < heading_tol:
-                            m += 1
-                            break
+                    m += _nearest_agreeing(px, py, h_peer[a] + th, size_ok[a], c_ego, h_ego, gate2, heading_tol)[0] >= 0
                 yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
     return yaw, tx, ty, sup
 
@@ -134,16 +146,7 @@ def _refit(yaw, tx, ty, c_peer, h_peer, c_ego, h_ego, size_ok, gates, heading_to
         for a in range(p):
             px = c * c_peer[a, 0] - s * c_peer[a, 1] + tx
             py = s * c_peer[a, 0] + c * c_peer[a, 1] + ty
-            bd, bb = gate * gate, -1
-            for b in range(e):
-                if not size_ok[a, b]:
-                    continue
-                g = (h_peer[a] + yaw - h_ego[b]) % np.pi
-                if min(g, np.pi - g) >= heading_tol:
-                    continue
-                d = (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2
-                if d < bd:
-                    bd, bb = d, b
+            bb, bd = _nearest_agreeing(px, py, h_peer[a] + yaw, size_ok[a], c_ego, h_ego, gate * gate, heading_tol)
             if bb >= 0 and bd < best_d[bb]:
                 best_d[bb], owner[bb] = bd, a
         n = 0
@@ -234,9 +237,4 @@ class _PoseSet:
         self.tried += tried
 
     def near(self, yaw: float, tx: float, ty: float) -> bool:
-        p = self.params[: self.n]
-        dyaw = np.abs((p[:, 0] - yaw + np.pi) % (2 * np.pi) - np.pi)
-        close = (np.hypot(p[:, 1] - tx, p[:, 2] - ty) < self.cfg.distinct_m) & (
-            np.degrees(dyaw) < self.cfg.distinct_deg
-        )
-        return bool(close.any())
+        return bool(poses_near(self.params[: self.n], (yaw, tx, ty), self.cfg.distinct_m, self.cfg.distinct_deg).any())

@@ -23,15 +23,17 @@ def ground_se2(T: np.ndarray) -> np.ndarray:
     return se2(*se2_params(T))
 
 
+def poses_near(params: np.ndarray, pose: tuple[float, float, float], dist_m: float, deg: float) -> np.ndarray:
+    """(N,) bool: which rows of (N, 3) (yaw_rad, tx, ty) lie closer than ``dist_m`` and ``deg`` to ``pose``."""
+    p = np.asarray(params, dtype=float).reshape(-1, 3)
+    dyaw = np.abs((p[:, 0] - pose[0] + np.pi) % (2 * np.pi) - np.pi)
+    return (np.hypot(p[:, 1] - pose[1], p[:, 2] - pose[2]) < dist_m) & (np.degrees(dyaw) < deg)
+
+
 def distinct_pose(T: np.ndarray, others: list[np.ndarray], dist_m: float, deg: float) -> bool:
     """True when the 3x3 pose T is at least ``dist_m`` or ``deg`` away from every pose in ``others``."""
-    yaw, tx, ty = se2_params(T)
-    for T2 in others:
-        y2, x2, z2 = se2_params(T2)
-        dyaw = abs((yaw - y2 + np.pi) % (2 * np.pi) - np.pi)
-        if np.hypot(tx - x2, ty - z2) < dist_m and np.degrees(dyaw) < deg:
-            return False
-    return True
+    params = np.array([se2_params(T2) for T2 in others])
+    return not poses_near(params, se2_params(T), dist_m, deg).any()
 
 
 def transform_points_2d(T_a_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
