@@ -305,7 +305,15 @@ def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
             try:
                 wait_for(lambda: accepted() == (n, n), timeout=30, what=f"all {n} ego and car1 frames accepted")
             except AssertionError as e:
-                raise AssertionError(f"{e}: (ego, car1) accepted {accepted()}, flood {flooded}") from None
+                refusals = [
+                    ln
+                    for ln in httpx.get(f"{url}/metrics").text.splitlines()
+                    if ln.startswith(("bbalign_door_refused_total", "bbalign_frames_rejected_total"))
+                ]
+                car1_status = httpx.get(f"{url}/v1/peers").json().get("car1")
+                raise AssertionError(
+                    f"{e}: (ego, car1) accepted {accepted()}, flood {flooded}, car1 {car1_status}, refusals {refusals}"
+                ) from None
             text = httpx.get(f"{url}/metrics").text
             status = httpx.get(f"{url}/v1/peers").json()["car1"]
     assert _metric_value(text, "bbalign_door_refused_total", error="undecodable") > 10 * n  # the 1-byte junk
