@@ -57,6 +57,14 @@ class MimConfig(_Frozen):
         description="zero margin around the image before the FFT (no wrap-around; "
         "16 px: 432 x 432 transforms for 400 px images, 99.5% the same MIM as 24 px)",
     )
+    coarse_scales: int = Field(
+        4,
+        ge=0,
+        le=8,
+        description="the coarsest scales whose response is computed on a grid decimated by coarse_stride (their "
+        "band fits it) and interpolated back: fewer, smaller inverse DFTs",
+    )
+    coarse_stride: int = Field(2, ge=2, le=8, description="decimation of the coarse scales' grid, each way")
     threads: int = Field(2, ge=1, le=12, description="orientation groups computed in parallel (same result)")
     filter_cache_mb: float = Field(
         256.0,

@@ -74,14 +74,14 @@ class _BytesLRU:
         self._lock = threading.Lock()
         functools.update_wrapper(self, fn)
 
-    def __call__(self, shape, cfg):
-        key = (shape, _bank_fields(cfg))
+    def __call__(self, shape, cfg, *extra):
+        key = (shape, extra, _bank_fields(cfg))
         with self._lock:
             hit = self._entries.get(key)
             if hit is not None:
                 self._entries.move_to_end(key)
                 return hit[0]
-        value = self._fn(shape, cfg)
+        value = self._fn(shape, cfg, *extra)
         size = self._size_of(value)
         budget = int(cfg.filter_cache_mb * 2**20)
         with self._lock:
@@ -127,7 +127,8 @@ class _Block:
 
     r0: int
     c0: int
-    values: np.ndarray  # (bh, bw, 2) float32: the filter over the box, twice (re, im), times 1/(H W)
+    values: np.ndarray  # (bh, bw, 2) float32: the filter over the box times 1/(H W), twice (stride 1) or (re, im)
+    stride: int = 1  # the response is computed on every stride-th pixel each way (an (H/s, W/s) inverse DFT)
 
 
 def _circular_span(occupied: np.ndarray) -> tuple[int, int]:
@@ -148,15 +149,41 @@ def _circular_span(occupied: np.ndarray) -> tuple[int, int]:
 _NEGLIGIBLE = 1e-6  # bank entries below this fraction of the filter's peak are treated as zero (float32 noise)
 
 
-def _block(g: np.ndarray) -> _Block:
+def _block(g: np.ndarray, stride: int = 1, shift: tuple[float, float] = (0.0, 0.0)) -> _Block:
+    """The boxed filter. ``stride`` > 1 is kept only when the box fits the decimated grid (no two of its
+    frequencies alias), else the block is computed at full resolution. A decimated block carries the phase ramp
+    that moves its response by ``shift`` (rows, cols) px, so the kept samples lie at stride * k + shift."""
     support = g > _NEGLIGIBLE * g.max()
     r0, bh = _circular_span(support.any(axis=1))
     c0, bw = _circular_span(support.any(axis=0))
     rows, cols = (r0 + np.arange(bh)) % g.shape[0], (c0 + np.arange(bw)) % g.shape[1]
     box = np.where(support, g, 0)[np.ix_(rows, cols)]
-    values = np.repeat(box[..., None], 2, axis=-1).astype(np.float32)
+    fits = g.shape[0] % stride == 0 and g.shape[1] % stride == 0 and bh <= g.shape[0] // stride
+    fits = fits and bw <= g.shape[1] // stride
+    if not (fits and stride > 1):
+        values = np.repeat(box[..., None], 2, axis=-1).astype(np.float32)
+        values.setflags(write=False)
+        return _Block(r0, c0, values, 1)
+    # Frequencies numbered continuously across the box (a band-limited shift, no jump where the box wraps).
+    fr = _unwrapped(r0, bh, g.shape[0]) / g.shape[0]
+    fc = _unwrapped(c0, bw, g.shape[1]) / g.shape[1]
+    phase = 2 * np.pi * (shift[0] * fr[:, None] + shift[1] * fc[None, :])
+    values = np.stack([box * np.cos(phase), box * np.sin(phase)], axis=-1).astype(np.float32)
     values.setflags(write=False)
-    return _Block(r0, c0, values)
+    return _Block(r0, c0, values, stride)
+
+
+def _unwrapped(start: int, length: int, n: int) -> np.ndarray:
+    """Signed frequency indices of the circular run start..start+length-1 of n bins, continuous along the run."""
+    return start + np.arange(length) - n * np.round((start + length / 2) / n)
+
+
+def lattice_shift(image_shape: tuple[int, int], cfg: MimConfig) -> tuple[float, float]:
+    """Where the decimated samples sit (stride * k + shift, in FFT-grid px, each axis): the lattice is symmetric
+    about the image's centre, so a quarter turn or a mirror of the image maps samples onto samples and the MIM
+    stays equivariant."""
+    s, m = cfg.coarse_stride, cfg.fft_margin_px
+    return tuple(((n - 1 + 2 * m) % s) / 2.0 for n in image_shape)  # type: ignore[return-value]
 
 
 def _bank_fields(cfg: MimConfig) -> MimConfig:
@@ -165,10 +192,15 @@ def _bank_fields(cfg: MimConfig) -> MimConfig:
 
 
 @_bytes_cache(lambda blocks: sum(b.values.nbytes for row in blocks for b in row))
-def _blocks(shape: tuple[int, int], cfg: MimConfig) -> tuple[tuple[_Block, ...], ...]:
-    """[orientation][scale] boxed filters for an FFT of ``shape``, the 1/(H W) of the inverse DFT folded in."""
+def _blocks(
+    shape: tuple[int, int], cfg: MimConfig, shift: tuple[float, float] = (0.0, 0.0)
+) -> tuple[tuple[_Block, ...], ...]:
+    """[orientation][scale] boxed filters for an FFT of ``shape``, the 1/(H W) of the inverse DFT folded in; the
+    decimated (coarse) ones sample at ``shift`` (:func:`lattice_shift`)."""
     bank = filter_bank.__wrapped__(shape, cfg) / np.float32(shape[0] * shape[1])  # the full bank is not kept
-    return tuple(tuple(_block(bank[o, s]) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
+    first_coarse = cfg.n_scales - cfg.coarse_scales
+    stride = [cfg.coarse_stride if s >= first_coarse else 1 for s in range(cfg.n_scales)]
+    return tuple(tuple(_block(bank[o, s], stride[s], shift) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
 
 
 def fft_size(n: int) -> int:
@@ -202,7 +234,7 @@ def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int,
     shape = fft_shape((h, w), m)
     padded = np.zeros(shape, dtype=np.float32)
     padded[m : m + h, m : m + w] = image
-    blocks = _blocks(shape, cfg)
+    blocks = _blocks(shape, cfg, lattice_shift((h, w), cfg))
     bh = max(b.values.shape[0] for bs in blocks for b in bs)
     bw = max(b.values.shape[1] for bs in blocks for b in bs)
     spectrum = cv2.dft(padded, flags=cv2.DFT_COMPLEX_OUTPUT)
@@ -212,25 +244,63 @@ def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int,
 def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None, spectrum=None):
     """Yield (o, A_o) for each orientation: A_o = sum_s |IFFT(F * G_s * S_o)| (H, W) float32, margin cropped.
     ``spectrum``: what ``_spectrum(image, cfg)`` returns, when already computed. The yielded array is reused:
-    consume it before advancing."""
+    consume it before advancing.
+
+    A coarse scale's response (``cfg.coarse_scales``) is band-limited to its filter's box: when the box fits a grid
+    decimated by ``cfg.coarse_stride``, the response on every stride-th pixel is exactly the (H/s, W/s) inverse DFT
+    of the box (its frequencies taken modulo the smaller grid); the amplitudes of those scales are summed on the
+    small grid and added bilinearly interpolated (the one approximation; docs/performance.md measures it)."""
     h, w = image.shape
     m = cfg.fft_margin_px
     wrapped, shape = _spectrum(image, cfg) if spectrum is None else spectrum
-    blocks = _blocks(shape, cfg)
+    shift = lattice_shift((h, w), cfg)
+    blocks = _blocks(shape, cfg, shift)
     # Buffers allocated once per call and written in place: fresh 1.5 MB temporaries per transform cost more in
     # page faults than the arithmetic.
     product = np.zeros(shape + (2,), dtype=np.float32)  # zero outside the current box
     response = np.empty_like(product)
     acc = np.empty((h, w), dtype=np.float32)
+    small = {}  # stride -> (product, response, amplitude sum) on the decimated grid
+    upsampled = np.empty_like(acc)
     for o in range(cfg.n_orient) if orientations is None else orientations:
         acc.fill(0.0)
+        for bufs in small.values():
+            bufs[2].fill(0.0)
         for blk in blocks[o]:
-            box = product[: blk.values.shape[0], : blk.values.shape[1]]
-            cv2.multiply(wrapped[blk.r0 : blk.r0 + box.shape[0], blk.c0 : blk.c0 + box.shape[1]], blk.values, dst=box)
-            cv2.idft(product, dst=response, flags=cv2.DFT_COMPLEX_OUTPUT)
+            if blk.stride == 1:
+                prod, resp, out, offset = product, response, acc, m
+            else:
+                if blk.stride not in small:
+                    sub = (shape[0] // blk.stride, shape[1] // blk.stride)
+                    prod = np.zeros(sub + (2,), dtype=np.float32)
+                    small[blk.stride] = (prod, np.empty_like(prod), np.zeros(sub, dtype=np.float32))
+                prod, resp, out = small[blk.stride]
+                offset = 0
+            box = prod[: blk.values.shape[0], : blk.values.shape[1]]
+            src = wrapped[blk.r0 : blk.r0 + box.shape[0], blk.c0 : blk.c0 + box.shape[1]]
+            if blk.stride == 1:
+                cv2.multiply(src, blk.values, dst=box)  # a real filter: both parts times the same value
+            else:
+                _complex_multiply(src, blk.values, box)
+            cv2.idft(prod, dst=resp, flags=cv2.DFT_COMPLEX_OUTPUT)
             box.fill(0.0)
-            _add_amplitude(acc, response, m)  # the image only, not the zero margin
+            _add_amplitude(out, resp, offset)  # full grid: the image only, not the zero margin
+        for stride, (_, _, coarse) in small.items():
+            _add_upsampled(acc, coarse, (m - shift[0], m - shift[1]), stride, upsampled)
         yield o, acc
+
+
+def _add_upsampled(
+    acc: np.ndarray, coarse: np.ndarray, offset: tuple[float, float], stride: int, scratch: np.ndarray
+) -> None:
+    """acc[i, j] += coarse bilinearly interpolated at ((offset_r + i) / stride, (offset_c + j) / stride): coarse
+    holds samples of a periodic map on a stride-spaced lattice (OpenCV's warp: its fixed-point coordinates are
+    exact at multiples of 1/32 px, which covers these)."""
+    inv = 1.0 / stride
+    to_coarse = np.float32([[inv, 0.0, offset[1] * inv], [0.0, inv, offset[0] * inv]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    cv2.warpAffine(coarse, to_coarse, acc.shape[::-1], dst=scratch, flags=flags, borderMode=cv2.BORDER_WRAP)
+    cv2.add(acc, scratch, dst=acc)
 
 
 def _running_max(pairs, shape) -> tuple[np.ndarray, np.ndarray]:
@@ -274,3 +344,13 @@ def _add_amplitude(acc, response, offset):
             re = response[offset + i, offset + j, 0]
             im = response[offset + i, offset + j, 1]
             acc[i, j] += np.sqrt(re * re + im * im)
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _complex_multiply(a, b, out):
+    """out = a * b elementwise, complex numbers as (..., 2) float32 pairs (out may be a view of a larger array)."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            ar, ai, br, bi = a[i, j, 0], a[i, j, 1], b[i, j, 0], b[i, j, 1]
+            out[i, j, 0] = ar * br - ai * bi
+            out[i, j, 1] = ar * bi + ai * br
