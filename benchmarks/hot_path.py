@@ -1,6 +1,6 @@
 """Quick hot-path timing used for each speed step of issue 5 (docs/performance.md, "What was done for speed").
 
-    .venv/bin/python benchmarks/hot_path.py
+    .venv/bin/python benchmarks/hot_path.py [--set mim.coarse_scales=0 ...]
 
 Three seeded simulated pairs (20, 30 and 45 m apart); per pair the ego frame is prepared and warmed once (the
 service's cache), then 12 times: peer PNG bytes -> decode -> Aligner.prepare -> Aligner.align. Prints the median
@@ -11,6 +11,7 @@ and p90 of the wall time (the first 3 runs dropped) and the median of each engin
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -25,8 +26,14 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--range", type=float, default=None, dest="range_m", help="BV half width (default: config's)")
     ap.add_argument("--mode", choices=["paper", "multi"], default=None, help="acquire.mode (default: config's)")
+    ap.add_argument("--set", action="append", default=[], help="section.key=JSON override, e.g. mim.coarse_scales=0")
     args = ap.parse_args()
-    cfg = AlignConfig()
+    data = AlignConfig().model_dump()
+    for o in args.set:
+        key, value = o.split("=", 1)
+        section, name = key.split(".")
+        data[section][name] = json.loads(value)
+    cfg = AlignConfig.model_validate(data)
     if args.range_m is not None:
         cfg = cfg.model_copy(update={"bev": BevConfig(range_m=args.range_m)})
     if args.mode is not None:
@@ -47,7 +54,7 @@ def main() -> None:
             rows.append(((time.perf_counter() - t0) * 1e3, {**peer.timings_ms, **result.timings_ms}))
     wall = [ms for ms, _ in rows[3:]]
     stages = {k: round(float(np.median([t.get(k, 0.0) for _, t in rows[3:]])), 1) for k in rows[0][1]}
-    print(f"range {cfg.bev.range_m} m, acquire {cfg.acquire.mode}:", end=" ")
+    print(f"range {cfg.bev.range_m} m, acquire {cfg.acquire.mode}, overrides {args.set}:", end=" ")
     print(f"hot path p50 {np.median(wall):.1f} ms, p90 {np.percentile(wall, 90):.1f} ms; stages p50 ms {stages}")
 
 
