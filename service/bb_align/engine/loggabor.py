@@ -3,7 +3,9 @@
 The bank lives in the frequency domain and is built once per image shape (LRU cache). One forward FFT, then
 per (scale, orientation) a complex inverse FFT (OpenCV's, float32: about twice as fast here as numpy/scipy's);
 amplitudes are summed over scales and the MIM is 1 + the index of the strongest orientation (0 where the
-strongest amplitude is negligible). The 1/(H W) of the inverse transform is folded into the cached bank.
+strongest amplitude is negligible). The 1/(H W) of the inverse transform is folded into the cached bank. By
+default (``MimConfig.coarse_scales``) every filter's band fits a half-resolution grid, so its inverse DFT runs at a
+quarter of the size and the amplitudes are interpolated back: half the MIM's cost, 95-97 % of the same values.
 
 Each oriented filter is non-zero on a 30-degree wedge of the plane only (about 6 % of it), so the product with
 the spectrum is formed on the wedge's bounding box alone, and the amplitude is accumulated by a compiled loop
@@ -249,7 +251,7 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
     A coarse scale's response (``cfg.coarse_scales``) is band-limited to its filter's box: when the box fits a grid
     decimated by ``cfg.coarse_stride``, the response on every stride-th pixel is exactly the (H/s, W/s) inverse DFT
     of the box (its frequencies taken modulo the smaller grid); the amplitudes of those scales are summed on the
-    small grid and added bilinearly interpolated (the one approximation; docs/performance.md measures it)."""
+    small grid and added bilinearly interpolated (the one approximation; docs/acquisition.md, Speed, measures it)."""
     h, w = image.shape
     m = cfg.fft_margin_px
     wrapped, shape = _spectrum(image, cfg) if spectrum is None else spectrum
