@@ -22,23 +22,13 @@ from multiprocessing import get_context
 import numpy as np
 from tqdm import tqdm
 
-from bb_align.engine.config import AcquireConfig, AlignConfig, BevConfig, CovarianceConfig
+from bb_align.engine.config import AcquireConfig, AlignConfig, BevConfig, CovarianceConfig, with_overrides
 from bb_align.engine.geometry import pose_error, se2_params
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.dataset import iter_frames
 
 BUCKETS = {"0-20": (0, 20), "20-40": (20, 40), "40-70": (40, 70), "70+": (70, 1e9)}
 CHI2_3_99 = 11.345
-
-
-def _with(cfg: AlignConfig, overrides: list[str]) -> AlignConfig:
-    """section.key=value overrides (e.g. acquire.top_k=8) on top of a variant; values parsed as JSON."""
-    data = cfg.model_dump()
-    for o in overrides:
-        key, value = o.split("=", 1)
-        section, name = key.split(".")
-        data[section][name] = json.loads(value)
-    return AlignConfig.model_validate(data)
 
 
 def variants(range_m: float, overrides: list[str] = ()) -> dict[str, AlignConfig]:
@@ -55,7 +45,7 @@ def variants(range_m: float, overrides: list[str] = ()) -> dict[str, AlignConfig
             covariance=CovarianceConfig(max_sigma_m=1e9, max_sigma_deg=1e9),
         ),
     }
-    return {k: (_with(c, list(overrides)) if k != "paper" else c) for k, c in v.items()}
+    return {k: (with_overrides(c, list(overrides)) if k != "paper" else c) for k, c in v.items()}
 
 
 _state: dict = {}

@@ -11,14 +11,13 @@ and p90 of the wall time (the first 3 runs dropped) and the median of each engin
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import numpy as np
 
 from bb_align import AlignConfig, Aligner, make_bev
 from bb_align.engine.bev import BevImage
-from bb_align.engine.config import BevConfig
+from bb_align.engine.config import BevConfig, with_overrides
 from bb_align.lab.sim import simulate_sequence
 
 
@@ -28,12 +27,7 @@ def main() -> None:
     ap.add_argument("--mode", choices=["paper", "multi"], default=None, help="acquire.mode (default: config's)")
     ap.add_argument("--set", action="append", default=[], help="section.key=JSON override, e.g. mim.coarse_scales=0")
     args = ap.parse_args()
-    data = AlignConfig().model_dump()
-    for o in args.set:
-        key, value = o.split("=", 1)
-        section, name = key.split(".")
-        data[section][name] = json.loads(value)
-    cfg = AlignConfig.model_validate(data)
+    cfg = with_overrides(AlignConfig(), args.set)
     if args.range_m is not None:
         cfg = cfg.model_copy(update={"bev": BevConfig(range_m=args.range_m)})
     if args.mode is not None:

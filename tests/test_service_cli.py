@@ -288,3 +288,16 @@ def test_compose_needs_no_shared_secret_healthchecks_and_start_order():
     connected = f"   1: 0100007F:{port:04X} 0100007F:B2C4 01 00000000:00000000 00:00000000 00000000"
     assert re.search(pattern, listening_v4) and re.search(pattern, listening_v6)
     assert not re.search(pattern, connected)
+
+
+def test_benchmark_overrides_set_nested_fields_and_name_bad_ones():
+    from bb_align.engine.config import AlignConfig, with_overrides
+
+    cfg = with_overrides(AlignConfig(), ["mim.coarse_scales=0", "acquire.top_k=8", "box.fuse=false"])
+    assert (cfg.mim.coarse_scales, cfg.acquire.top_k, cfg.box.fuse) == (0, 8, False)
+    assert cfg.mim.n_orient == AlignConfig().mim.n_orient  # the rest untouched
+    for bad in ["mim.coarse_scales", "coarse_scales=0", "nosuch.key=1", "seed.x=1"]:
+        with pytest.raises(ValueError, match="section.key=JSON"):
+            with_overrides(AlignConfig(), [bad])
+    with pytest.raises(ValueError, match="coarse_scales"):  # pydantic names the field and its bound
+        with_overrides(AlignConfig(), ["mim.coarse_scales=99"])

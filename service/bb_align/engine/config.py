@@ -8,6 +8,7 @@ service's own settings (ports, Zenoh, limits) live in ``bb_align.server.settings
 
 from __future__ import annotations
 
+import json
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -524,3 +525,16 @@ class AlignConfig(_Frozen):
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
     min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
     seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")
+
+
+def with_overrides(cfg: AlignConfig, overrides: list[str] | tuple[str, ...]) -> AlignConfig:
+    """``cfg`` with ``section.key=JSON`` overrides applied (e.g. ``acquire.top_k=8``, ``mim.coarse_scales=0``), as
+    the benchmarks' ``--set`` takes them; validated like any config (a bad name or value raises)."""
+    data = cfg.model_dump()
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        section, dot, name = key.partition(".")
+        if not (sep and dot) or section not in data or not isinstance(data[section], dict):
+            raise ValueError(f"override {o!r}: expected section.key=JSON with a section of AlignConfig")
+        data[section][name] = json.loads(value)
+    return AlignConfig.model_validate(data)

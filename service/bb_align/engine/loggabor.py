@@ -262,32 +262,32 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
     product = np.zeros(shape + (2,), dtype=np.float32)  # zero outside the current box
     response = np.empty_like(product)
     acc = np.empty((h, w), dtype=np.float32)
-    small = {}  # stride -> (product, response, amplitude sum) on the decimated grid
-    upsampled = np.empty_like(acc)
+    stride = cfg.coarse_stride
+    decimated = any(b.stride > 1 for bs in blocks for b in bs)
+    if decimated:  # the half-resolution grid's buffers, shared by every coarse block
+        sub = (shape[0] // stride, shape[1] // stride)
+        small_product = np.zeros(sub + (2,), dtype=np.float32)
+        small_response, coarse = np.empty_like(small_product), np.empty(sub, dtype=np.float32)
+        upsampled = np.empty_like(acc)
     for o in range(cfg.n_orient) if orientations is None else orientations:
         acc.fill(0.0)
-        for bufs in small.values():
-            bufs[2].fill(0.0)
+        if decimated:
+            coarse.fill(0.0)
         for blk in blocks[o]:
-            if blk.stride == 1:
+            if blk.stride == 1:  # amplitude on the image only, not the zero margin
                 prod, resp, out, offset = product, response, acc, m
-            else:
-                if blk.stride not in small:
-                    sub = (shape[0] // blk.stride, shape[1] // blk.stride)
-                    prod = np.zeros(sub + (2,), dtype=np.float32)
-                    small[blk.stride] = (prod, np.empty_like(prod), np.zeros(sub, dtype=np.float32))
-                prod, resp, out = small[blk.stride]
-                offset = 0
+            else:  # amplitude on the whole small grid, interpolated onto the image below
+                prod, resp, out, offset = small_product, small_response, coarse, 0
             box = prod[: blk.values.shape[0], : blk.values.shape[1]]
             src = wrapped[blk.r0 : blk.r0 + box.shape[0], blk.c0 : blk.c0 + box.shape[1]]
             if blk.stride == 1:
                 cv2.multiply(src, blk.values, dst=box)  # a real filter: both parts times the same value
             else:
-                _complex_multiply(src, blk.values, box)
+                _complex_multiply(src, blk.values, box)  # the filter times its phase ramp
             cv2.idft(prod, dst=resp, flags=cv2.DFT_COMPLEX_OUTPUT)
             box.fill(0.0)
-            _add_amplitude(out, resp, offset)  # full grid: the image only, not the zero margin
-        for stride, (_, _, coarse) in small.items():
+            _add_amplitude(out, resp, offset)
+        if decimated:
             _add_upsampled(acc, coarse, (m - shift[0], m - shift[1]), stride, upsampled)
         yield o, acc
 
