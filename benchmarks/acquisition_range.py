@@ -88,6 +88,11 @@ def _run(group) -> list[dict]:
                     "t_err_m": t_err,
                     "r_err_deg": r_err,
                     "err": err,
+                    "truth": [
+                        y_t,
+                        x_t,
+                        z_t,
+                    ],  # (yaw_rad, tx, ty) of the true T_ego_peer: hypotheses can be judged offline
                     "align_ms": ms,
                     "inliers_bv": r.inliers_bv,
                     "fitness": r.refine_fitness,

@@ -194,3 +194,38 @@ def test_box_confirmation_needs_a_clear_lead_over_every_distinct_pose():
     assert not _box_confirmed(h, cfg)
     h = hyps((2, 0.0))  # too few, even alone
     assert not _box_confirmed(h, cfg)
+
+
+def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(world):
+    """Hypotheses: the true pose twice (two keypoint sets the coarse stage brought together), a neighbour in the same
+    basin (1.2 m, 2.5 deg off: distinct, not yet converged) and a wrong pose far away. The neighbour is refined fully,
+    meets the truth and stops being a rival: the margin is taken over the wrong pose only. Without the merge check
+    (merge_checks 0) the neighbour is the runner-up."""
+    from bb_align.engine.acquire import Hypothesis, _margin, _rivals, covisible_map, verify
+    from bb_align.engine.refine import bev_points
+
+    pts_w, _ = world
+    T_true = se2(np.radians(30.0), 20.0, 5.0)
+    neighbour = se2(np.radians(32.5), 20.0 + 1.2, 5.0)
+    wrong = se2(np.radians(-60.0), -40.0, 30.0)
+    for checks in (2, 0):
+        cfg = AlignConfig(acquire=AcquireConfig(mode="multi", merge_checks=checks))
+        aligner = Aligner(cfg)
+        ego = aligner.prepare(view_from(pts_w, np.eye(4), seed=0))
+        peer = aligner.prepare(view_from(pts_w, se3_from_se2(T_true), seed=1, sensor_height=1.5))
+        a, rf = cfg.acquire, cfg.refine
+        cloud = ego.cloud(rf)
+        covis = covisible_map(ego.bev.image, rf.min_pixel_value, 5)
+        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=0)
+        full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=0)
+        hyps = [Hypothesis(T=T.copy(), inliers=10) for T in (T_true, T_true, neighbour, wrong)]
+        # A coarse stage too short-sighted to converge the neighbour (one step at a 0.3 m gate).
+        coarse = rf.model_copy(update={"gates_m": (0.3,), "iters_per_gate": 1})
+        verify(hyps, cloud, covis, coarse_pts, full_pts, cfg, coarse)
+        assert pose_error(se3_from_se2(hyps[0].T), se3_from_se2(T_true))[0] < 0.1
+        near_wrong = [pose_error(se3_from_se2(h.T), se3_from_se2(wrong))[0] < 20 for h in _rivals(hyps, a)]
+        if checks:
+            assert near_wrong == [True]  # the neighbour met the truth
+            assert _margin(hyps, a) == pytest.approx(hyps[0].fitness / max(hyps[-1].fitness, a.runner_up_floor))
+        else:
+            assert near_wrong == [False, True]  # the unconverged neighbour is the runner-up

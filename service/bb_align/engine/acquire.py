@@ -438,6 +438,24 @@ def verify(
         h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
     finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
     hyps[: a.finalists] = finals
+    _merge_neighbours(hyps, ego_cloud, full_pts, config)
+
+
+def _merge_neighbours(hyps: list[Hypothesis], ego_cloud: BevCloud, full_pts: np.ndarray, config: AlignConfig) -> None:
+    """A rival close to the best (within merge_within_m and merge_within_deg) may be the same basin, only not yet
+    converged by the coarse stage. Refine it fully: if it meets the best it is the same pose and no longer a rival;
+    if not, it keeps its coarse values (the margin's calibration). Rivals only ever go away, so margins only grow
+    when a 'rival' was the best pose itself."""
+    a = config.acquire
+    for _ in range(a.merge_checks):
+        best, rivals = hyps[0], _rivals(hyps, a)
+        rival = max(rivals, key=lambda h: dense_score(h, a), default=None)  # the one the margin is taken over
+        if rival is None or rival.refined or _distinct(rival.T, [best], a.merge_within_m, a.merge_within_deg):
+            return
+        T = refine_icp(ego_cloud, full_pts, rival.T, config.refine).T
+        if _distinct(T, [best], a.distinct_m, a.distinct_deg):
+            return
+        rival.T = T  # the same pose as the best: _rivals skips it from now on
 
 
 def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:

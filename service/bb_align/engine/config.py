@@ -329,6 +329,13 @@ class AcquireConfig(_Frozen):
         description="... and this many times as many (calibrated on the simulated seeds 2024 and 777: no "
         "wrong success; benchmarks/acquisition_range.py, docs/acquisition.md)",
     )
+    merge_within_m: float = Field(
+        4.0,
+        gt=0,
+        description="a rival this close to the best (and merge_within_deg) is refined fully: it may be the same pose",
+    )
+    merge_within_deg: float = Field(4.0, gt=0, description="see merge_within_m")
+    merge_checks: int = Field(2, ge=0, le=8, description="such rivals refined at most per frame (0: off)")
     coarse_points: int = Field(400, ge=50, description="peer pixels of the coarse verification refinement")
     coarse_gates_m: tuple[float, ...] = Field((2.0, 1.0), description="gates of the coarse verification")
     coarse_iters_per_gate: int = Field(2, ge=1, le=20)
