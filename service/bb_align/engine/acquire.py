@@ -58,19 +58,58 @@ def topk_candidates(
 # ---- 2. hypotheses -------------------------------------------------------------------------------------------
 
 
+_VOTE_BUFFER = 2048  # votes computed before they are added to the accumulator (see _vote)
+
+
 @njit(cache=True, nogil=True)
-def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
-    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
-    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
-    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. Distances between ego keypoints are
-    computed once."""
-    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+def _scatter(acc, cell, frac, n, n_yaw, n_t):
+    """Adds the first ``n`` buffered votes to the accumulator, in order, each split over its 2x2x2 nearest cells:
+    ``cell`` (n, 3) the lower corner (yaw, tx, ty), ``frac`` (n, 3) the vote's offsets from it (the weights)."""
+    for m in range(n):
+        y0, x0, z0 = cell[m, 0], cell[m, 1], cell[m, 2]
+        ay, ax, az = frac[m, 0], frac[m, 1], frac[m, 2]
+        for e1 in range(2):
+            yy = (y0 + e1) % n_yaw
+            wy = ay if e1 else 1.0 - ay
+            for e2 in range(2):
+                xx = x0 + e2
+                if xx < 0 or xx >= n_t:
+                    continue
+                wx = ax if e2 else 1.0 - ax
+                for e3 in range(2):
+                    zz = z0 + e3
+                    if zz < 0 or zz >= n_t:
+                        continue
+                    acc[yy, xx, zz] += wy * wx * (az if e3 else 1.0 - az)
+
+
+@njit(cache=True, nogil=True)
+def ego_pairs(kp_dst):
+    """What the vote needs of every ordered pair (i, j) of ego keypoints, computed once per ego frame: the distance
+    (float32, (n, n)) and the direction angle of j - i (radians, (n, n))."""
     n_e = len(kp_dst)
     d_e = np.empty((n_e, n_e), np.float32)
+    phi = np.empty((n_e, n_e))
     for i in range(n_e):
         for j in range(n_e):
             dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
             d_e[i, j] = np.sqrt(dx * dx + dy * dy)
+            phi[i, j] = np.arctan2(dy, dx)
+    return d_e, phi
+
+
+@njit(cache=True, nogil=True)
+def _vote(kp_src, kp_dst, cand, d_e, phi, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
+    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
+    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
+    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. ``d_e``, ``phi``: ``ego_pairs(kp_dst)``;
+    the pose's yaw is the ego pair's direction minus the peer pair's (one arctan2 per peer pair, not per vote).
+    The votes are buffered and added in batches, in the order they were cast: the accumulator (several MB) is then
+    written in a tight loop whose cache misses overlap."""
+    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+    cell = np.empty((_VOTE_BUFFER, 3), np.int64)
+    frac = np.empty((_VOTE_BUFFER, 3))
+    nb = 0
     q, k = cand.shape
     for a in range(q):
         for b in range(a + 1, q):
@@ -79,15 +118,22 @@ def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n
             if ds < min_d:
                 continue
             msx, msy = 0.5 * (kp_src[a, 0] + kp_src[b, 0]), 0.5 * (kp_src[a, 1] + kp_src[b, 1])
+            psi = np.nan  # the peer pair's direction, computed at its first vote
             for u in range(k):
                 i = cand[a, u]
                 for v in range(k):
                     j = cand[b, v]
                     if i == j or abs(ds - d_e[i, j]) > len_tol:
                         continue
+                    if psi != psi:
+                        psi = np.arctan2(sy, sx)
+                    th = phi[i, j] - psi
+                    if th > np.pi:
+                        th -= 2 * np.pi
+                    elif th <= -np.pi:
+                        th += 2 * np.pi
                     dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
                     cr, dt = sx * dy - sy * dx, sx * dx + sy * dy
-                    th = np.arctan2(cr, dt)
                     nrm = np.sqrt(cr * cr + dt * dt)
                     c, s = dt / nrm, cr / nrm
                     mdx, mdy = 0.5 * (kp_dst[i, 0] + kp_dst[j, 0]), 0.5 * (kp_dst[i, 1] + kp_dst[j, 1])
@@ -97,20 +143,13 @@ def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n
                     fx = (tx + t_half) / t_bin - 0.5
                     fz = (ty + t_half) / t_bin - 0.5
                     y0, x0, z0 = int(np.floor(fy)), int(np.floor(fx)), int(np.floor(fz))
-                    ay, ax, az = fy - y0, fx - x0, fz - z0
-                    for e1 in range(2):
-                        yy = (y0 + e1) % n_yaw
-                        wy = ay if e1 else 1.0 - ay
-                        for e2 in range(2):
-                            xx = x0 + e2
-                            if xx < 0 or xx >= n_t:
-                                continue
-                            wx = ax if e2 else 1.0 - ax
-                            for e3 in range(2):
-                                zz = z0 + e3
-                                if zz < 0 or zz >= n_t:
-                                    continue
-                                acc[yy, xx, zz] += wy * wx * (az if e3 else 1.0 - az)
+                    cell[nb, 0], cell[nb, 1], cell[nb, 2] = y0, x0, z0
+                    frac[nb, 0], frac[nb, 1], frac[nb, 2] = fy - y0, fx - x0, fz - z0
+                    nb += 1
+                    if nb == _VOTE_BUFFER:
+                        _scatter(acc, cell, frac, nb, n_yaw, n_t)
+                        nb = 0
+    _scatter(acc, cell, frac, nb, n_yaw, n_t)
     return acc
 
 
@@ -247,13 +286,20 @@ def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float
 
 
 def pose_hypotheses(
-    kp_peer: np.ndarray, kp_ego: np.ndarray, cand: np.ndarray, cfg: AcquireConfig, threshold: float, t_half: float
+    kp_peer: np.ndarray,
+    kp_ego: np.ndarray,
+    cand: np.ndarray,
+    cfg: AcquireConfig,
+    threshold: float,
+    t_half: float,
+    pairs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[Hypothesis]:
     """Up to cfg.max_hypotheses distinct poses (most inliers first) from the candidates ``cand`` (Q, k): row q
-    lists the ego keypoints that may be peer keypoint q's partner."""
+    lists the ego keypoints that may be peer keypoint q's partner. ``pairs``: ``ego_pairs(kp_ego)`` when cached."""
     q, k = cand.shape
     if q < 2:
         return []
+    d_e, phi = ego_pairs(np.ascontiguousarray(kp_ego, np.float64)) if pairs is None else pairs
     yaw_bin = np.radians(cfg.vote_yaw_deg)
     n_yaw = int(np.ceil(2 * np.pi / yaw_bin))
     yaw_bin = 2 * np.pi / n_yaw
@@ -262,6 +308,8 @@ def pose_hypotheses(
         np.ascontiguousarray(kp_peer, np.float64),
         np.ascontiguousarray(kp_ego, np.float64),
         np.ascontiguousarray(cand, np.int64),
+        d_e,
+        phi,
         cfg.min_sample_dist_m,
         cfg.length_tolerance_m,
         yaw_bin,
@@ -527,7 +575,8 @@ class Acquirer:
 
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
-                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half)
+                pairs = ego.cached("ego_pairs", lambda: ego_pairs(np.ascontiguousarray(ego.keypoints_xy, np.float64)))
+                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs)
                 hs += _with_keypoint_inliers(from_boxes, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0
