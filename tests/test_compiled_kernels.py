@@ -1,5 +1,6 @@
 """The engine's compiled hot loops against plain Python/numpy versions of the same math (the independent truth):
-the acquisition's pose vote, the refinement's nearest-pixel look-up."""
+the acquisition's pose vote, the refinement's nearest-pixel look-up, the ICP iterations and the acquisition's coarse
+verification."""
 
 from __future__ import annotations
 
@@ -9,11 +10,27 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from bb_align.engine.acquire import _VOTE_BUFFER, _vote, ego_pairs
+from bb_align import AlignConfig
+from bb_align.engine.acquire import (
+    _VOTE_BUFFER,
+    _vote,
+    coarse_verification,
+    covisible_fraction,
+    covisible_map,
+    ego_pairs,
+)
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
-from bb_align.engine.geometry import se2
-from bb_align.engine.refine import _clearance, bev_cloud
+from bb_align.engine.geometry import se2, se2_params
+from bb_align.engine.refine import (
+    Refinement,
+    _clearance,
+    _normal_equations,
+    bev_cloud,
+    bev_points,
+    overlap_fitness,
+    refine_icp,
+)
 from synthetic import synthetic_world, view_from
 
 
@@ -114,3 +131,87 @@ def test_clearance_is_the_exact_distance_to_the_nearest_lit_pixel():
     lit = np.random.default_rng(4).random((300, 240)) < 0.003
     np.testing.assert_allclose(_clearance(lit), distance_transform_edt(~lit), atol=1e-4)
     assert np.all(np.isinf(_clearance(np.zeros((5, 5), bool))))
+
+
+def _refine_icp_reference(ego, pts_peer, T_init, cfg):
+    """refine_icp as first written, its iterations in numpy (each step's look-up and normal equations compiled)."""
+    gates = cfg.gates_m
+    T = np.array(T_init, dtype=float)
+    prev = None
+    for gate in gates:
+        for _ in range(cfg.iters_per_gate):
+            p = pts_peer @ T[:2, :2].T + T[:2, 2]
+            d, j = ego.nearest(p, gate)
+            if np.isfinite(d).sum() < cfg.min_points:
+                T0 = np.array(T_init, dtype=float)
+                return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
+            H, g = _normal_equations(p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight)
+            delta = np.linalg.solve(H, -g)
+            if prev is not None and float(delta @ prev) > 0:
+                delta = delta * cfg.step_relaxation
+            prev = delta
+            T = se2(delta[0], delta[1], delta[2]) @ T
+            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
+                break
+    yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
+    accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
+    T_out = T if accepted else np.array(T_init, dtype=float)
+    return Refinement(T_out, *overlap_fitness(ego, pts_peer, T_out, gates[-1]), accepted)
+
+
+@pytest.fixture(scope="module")
+def sim_pair():
+    """A simulated pair 30 m apart at the default BV range: the ego cloud, co-visibility mask and peer points, the
+    true pose, and starts around it (near: accepted corrections; farther: beyond max_correction; far: few matches)."""
+    from bb_align.lab.sim import simulate_sequence
+
+    cfg = AlignConfig()
+    frame = simulate_sequence(3, 1, 2, 30.0)[0]
+    ego_car, peer_car = frame.agents["0"], frame.agents["1"]
+    ego_bev, peer_bev = make_bev(ego_car.points, cfg.bev), make_bev(peer_car.points, cfg.bev)
+    cloud = bev_cloud(ego_bev, cfg.refine)
+    covis = covisible_map(ego_bev.image, cfg.refine.min_pixel_value, 5)
+    T_true = np.linalg.inv(ego_car.T_world_sensor) @ peer_car.T_world_sensor
+    T_true = se2(*se2_params(T_true))
+    rng = np.random.default_rng(11)
+    starts = [
+        se2(rng.normal(0, np.radians(s)), *rng.normal(0, m, 2)) @ T_true for s, m in [(1, 0.5)] * 8 + [(4, 2.5)] * 8
+    ]
+    starts += [se2(rng.uniform(-np.pi, np.pi), *rng.uniform(-60, 60, 2)) for _ in range(8)]
+    return cfg, cloud, covis, peer_bev, starts
+
+
+@pytest.mark.parametrize("min_points", [None, 100])
+def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points):
+    """min_points 100: some far starts match fewer pixels at some step (the start pose kept)."""
+    cfg, cloud, covis, peer_bev, starts = sim_pair
+    a = cfg.acquire
+    coarse = cfg.refine.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
+    if min_points is not None:
+        coarse = coarse.model_copy(update={"min_points": min_points})
+    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, a.coarse_points, seed=cfg.seed)
+    Ts, fitness, rmse, covisible = coarse_verification(cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1])
+    accepted = 0
+    for n, T0 in enumerate(starts):
+        ref = _refine_icp_reference(cloud, pts, T0, coarse)
+        accepted += ref.accepted and not np.array_equal(ref.T, T0)
+        np.testing.assert_allclose(Ts[n], ref.T, rtol=0, atol=1e-9)
+        fit_ref, rmse_ref = overlap_fitness(cloud, pts, ref.T, cfg.refine.gates_m[-1])
+        assert fitness[n] == fit_ref
+        np.testing.assert_allclose(rmse[n], rmse_ref, rtol=1e-9)
+        assert covisible[n] == covisible_fraction(covis, cloud, pts, ref.T)
+    assert 4 <= accepted < len(starts)  # both outcomes exercised
+    assert fitness.max() > 0.3 and fitness.min() < 0.1
+
+
+def test_refine_icp_equals_the_numpy_iterations(sim_pair):
+    cfg, cloud, _, peer_bev, starts = sim_pair
+    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, cfg.refine.max_peer_points, seed=cfg.seed)
+    outcomes = set()
+    for T0 in starts[::2]:
+        ref, new = _refine_icp_reference(cloud, pts, T0, cfg.refine), refine_icp(cloud, pts, T0, cfg.refine)
+        outcomes.add(ref.accepted)
+        assert new.accepted == ref.accepted and new.fitness == ref.fitness
+        np.testing.assert_allclose(new.T, ref.T, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(new.rmse_m, ref.rmse_m, rtol=1e-9)
+    assert outcomes == {True, False}

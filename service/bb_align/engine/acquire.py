@@ -30,7 +30,7 @@ from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
 from .geometry import distinct_pose, se2, se2_params
 from .matching import sq_distances
-from .refine import BevCloud, bev_points, overlap_fitness, refine_icp
+from .refine import BevCloud, bev_points, coarse_verification_loop, icp_params, refine_icp
 from .result import AlignResult
 from .verdict import FailureReason
 
@@ -407,6 +407,29 @@ def covisible_fraction(mask: np.ndarray, cloud: BevCloud, pts: np.ndarray, T: np
     return float(mask[r[ok], c[ok]].sum() / len(pts))
 
 
+def coarse_verification(
+    cloud: BevCloud, covis: np.ndarray, pts: np.ndarray, Ts: list[np.ndarray], coarse: RefineConfig, final_gate: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each pose of ``Ts`` refined (refine_icp with ``coarse``) and scored at it (overlap_fitness within
+    ``final_gate``, covisible_fraction), in one compiled call: (poses (H, 3, 3), fitness, rmse_m, covisible)."""
+    T = np.ascontiguousarray(np.array(Ts, dtype=np.float64).reshape(-1, 3, 3))
+    return coarse_verification_loop(
+        cloud.index,
+        cloud.clearance,
+        cloud.xy,
+        cloud.normals,
+        cloud.range_m,
+        cloud.resolution_m,
+        covis,
+        np.ascontiguousarray(pts, dtype=np.float64),
+        T,
+        *icp_params(coarse),
+        coarse.max_correction_m,
+        coarse.max_correction_deg,
+        final_gate,
+    )
+
+
 @dataclass
 class Acquisition:
     best: Hypothesis | None
@@ -472,11 +495,11 @@ def verify(
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
-    for h in hyps:
-        ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
-        h.T = ref.T
-        h.fitness, h.rmse_m = overlap_fitness(ego_cloud, coarse_pts, h.T, final_gate)
-        h.covisible = covisible_fraction(covis, ego_cloud, coarse_pts, h.T)
+    Ts, fitness, rmse, covisible = coarse_verification(
+        ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate
+    )
+    for n, h in enumerate(hyps):
+        h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
         h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from .bev import BevImage
 from .config import RefineConfig
-from .geometry import se2, se2_params
+from .geometry import se2_params
 
 
 @dataclass
@@ -115,28 +115,137 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, cfg: Ref
     T = np.array(T_init, dtype=float)
     if len(ego.xy) < cfg.min_points or len(pts_peer) < cfg.min_points:
         return Refinement(T, *overlap_fitness(ego, pts_peer, T, gates[-1]), False)
-    prev = None
-    for gate in gates:
-        for _ in range(cfg.iters_per_gate):
-            p = pts_peer @ T[:2, :2].T + T[:2, 2]
-            d, j = ego.nearest(p, gate)
-            ok = np.isfinite(d)
-            if ok.sum() < cfg.min_points:
-                T0 = np.array(T_init, dtype=float)
-                return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
-            H, g = _normal_equations(p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight)
-            delta = np.linalg.solve(H, -g)
-            if prev is not None and float(delta @ prev) > 0:  # the same way again: ICP creeps along a valley
-                delta = delta * cfg.step_relaxation
-            prev = delta
-            T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
-                break
+    T, ok = _icp(ego, np.ascontiguousarray(pts_peer, dtype=np.float64), T, cfg)
+    if not ok:
+        T0 = np.array(T_init, dtype=float)
+        return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
     T_out = T if accepted else np.array(T_init, dtype=float)
     fitness, rmse = overlap_fitness(ego, pts_peer, T_out, gates[-1])
     return Refinement(T_out, fitness, rmse, accepted)
+
+
+def _icp(ego: BevCloud, pts: np.ndarray, T: np.ndarray, cfg: RefineConfig) -> tuple[np.ndarray, bool]:
+    """The ICP iterations of refine_icp (compiled): (the pose they end at, False when a step matched fewer than
+    cfg.min_points points)."""
+    return _icp_loop(
+        ego.index, ego.clearance, ego.xy, ego.normals, ego.range_m, ego.resolution_m, pts, T, *icp_params(cfg)
+    )
+
+
+def icp_params(cfg: RefineConfig) -> tuple:
+    """The refinement config as _icp_loop's trailing arguments."""
+    return (
+        np.asarray(cfg.gates_m, dtype=np.float64),
+        cfg.iters_per_gate,
+        cfg.huber_fraction,
+        cfg.point_weight,
+        cfg.step_relaxation,
+        cfg.converged_rad,
+        cfg.converged_m,
+        cfg.min_points,
+    )
+
+
+@njit(cache=True, nogil=True)
+def transform_into(pts, T, out):
+    """out[i] = T applied to the 2-D point pts[i] (3x3 T)."""
+    for i in range(len(pts)):
+        x, y = pts[i, 0], pts[i, 1]
+        out[i, 0] = T[0, 0] * x + T[0, 1] * y + T[0, 2]
+        out[i, 1] = T[1, 0] * x + T[1, 1] * y + T[1, 2]
+
+
+@njit(cache=True, nogil=True)
+def _icp_loop(
+    index, clearance, xy, normals, range_m, resolution_m, pts, T_init, gates, iters, huber_fraction, point_weight,
+    relaxation, converged_rad, converged_m, min_points,
+):  # fmt: skip
+    """refine_icp's iterations: per gate up to ``iters`` Gauss-Newton steps (nearest ego pixel within the gate,
+    point-to-line normal equations, the step lengthened by ``relaxation`` when it continues the previous one),
+    the gate left when a step is below converged_rad and converged_m. Returns (T, ok); ok False (and T_init)
+    when a step finds fewer than min_points matches."""
+    T = T_init.copy()
+    p = np.empty_like(pts)
+    prev = np.zeros(3)
+    have_prev = False
+    for gate in gates:
+        for _ in range(iters):
+            transform_into(pts, T, p)
+            _, j = _nearest_on_grid(index, clearance, xy, p, range_m, resolution_m, gate)
+            if np.count_nonzero(j >= 0) < min_points:
+                return T_init.copy(), False
+            H, g = _normal_equations(p, xy, normals, j, huber_fraction * gate, point_weight)
+            delta = np.linalg.solve(H, -g)
+            if have_prev and delta[0] * prev[0] + delta[1] * prev[1] + delta[2] * prev[2] > 0:
+                delta = delta * relaxation  # the same way again: ICP creeps along a valley
+            prev = delta
+            have_prev = True
+            c, s = np.cos(delta[0]), np.sin(delta[0])
+            T2 = np.empty((3, 3))
+            for col in range(3):
+                T2[0, col] = c * T[0, col] - s * T[1, col] + delta[1] * T[2, col]
+                T2[1, col] = s * T[0, col] + c * T[1, col] + delta[2] * T[2, col]
+                T2[2, col] = T[2, col]
+            T = T2
+            if abs(delta[0]) < converged_rad and max(abs(delta[1]), abs(delta[2])) < converged_m:
+                break
+    return T, True
+
+
+@njit(cache=True, nogil=True)
+def coarse_verification_loop(
+    index, clearance, xy, normals, range_m, resolution_m, covis, pts, Ts, gates, iters, huber_fraction, point_weight,
+    relaxation, converged_rad, converged_m, min_points, max_correction_m, max_correction_deg, final_gate,
+):  # fmt: skip
+    """The acquisition's coarse verification of the poses Ts (acquire.coarse_verification): per pose the ICP
+    iterations, the correction kept when within max_correction_m and max_correction_deg of the start (as
+    refine_icp), then the overlap within final_gate (overlap_fitness: fraction of points with an ego pixel, RMS
+    distance of those) and the fraction of points on the co-visibility mask ``covis`` (acquire.covisible_fraction).
+    Here, beside the loops it calls: numba's on-disk cache is invalidated by its own file's changes only."""
+    n_h, n = len(Ts), len(pts)
+    out = np.empty_like(Ts)
+    fitness, rmse, covisible = np.zeros(n_h), np.full(n_h, np.inf), np.zeros(n_h)
+    p = np.empty_like(pts)
+    h_img, w_img = covis.shape
+    for h in range(n_h):
+        T0 = Ts[h]
+        T = T0.copy()
+        if len(xy) >= min_points and n >= min_points:
+            T, ok = _icp_loop(
+                index, clearance, xy, normals, range_m, resolution_m, pts, T0, gates, iters, huber_fraction,
+                point_weight, relaxation, converged_rad, converged_m, min_points,
+            )  # fmt: skip
+            if ok:
+                rel = T @ np.linalg.inv(T0)
+                yaw = np.arctan2(rel[1, 0], rel[0, 0])
+                if not (
+                    np.hypot(rel[0, 2], rel[1, 2]) <= max_correction_m and abs(np.degrees(yaw)) <= max_correction_deg
+                ):
+                    T = T0.copy()
+        out[h] = T
+        if n == 0:
+            continue
+        transform_into(pts, T, p)
+        if len(xy) > 0:
+            d, _ = _nearest_on_grid(index, clearance, xy, p, range_m, resolution_m, final_gate)
+            m, ss = 0, 0.0
+            for i in range(n):
+                if d[i] < np.inf:
+                    m += 1
+                    ss += d[i] * d[i]
+            fitness[h] = m / n
+            if m > 0:
+                rmse[h] = np.sqrt(ss / m)
+        seen = 0
+        for i in range(n):
+            r = int(np.floor((range_m - p[i, 0]) / resolution_m))
+            c = int(np.floor((range_m - p[i, 1]) / resolution_m))
+            if 0 <= r < h_img and 0 <= c < w_img:
+                seen += covis[r, c]
+        covisible[h] = seen / n
+    return out, fitness, rmse, covisible
 
 
 def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: float) -> tuple[float, float]:
