@@ -21,7 +21,7 @@ from bb_align.engine.acquire import (
 )
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
-from bb_align.engine.geometry import se2, se2_params
+from bb_align.engine.geometry import distinct_pose, pose_is_distinct, poses_near, se2, se2_params
 from bb_align.engine.refine import (
     Refinement,
     _clearance,
@@ -215,3 +215,35 @@ def test_refine_icp_equals_the_numpy_iterations(sim_pair):
         np.testing.assert_allclose(new.T, ref.T, rtol=0, atol=1e-9)
         np.testing.assert_allclose(new.rmse_m, ref.rmse_m, rtol=1e-9)
     assert outcomes == {True, False}
+
+
+def test_pose_is_distinct_equals_poses_near():
+    """Random poses, many of them just inside or outside the distance and angle (also across +-pi)."""
+    rng = np.random.default_rng(8)
+    outcomes = []
+    for _ in range(300):
+        pose = (rng.uniform(-np.pi, np.pi), *rng.uniform(-50, 50, 2))
+        n = rng.integers(0, 6)
+        ang = rng.uniform(0, 2 * np.pi) if rng.random() < 0.5 else rng.uniform(0, 0.1)
+        params = np.stack(
+            [
+                (pose[0] + rng.choice([-1, 1], n) * np.radians(2.0 + rng.normal(0, 1e-9, n)) + np.pi) % (2 * np.pi)
+                - np.pi,
+                pose[1] + 2.0 * np.cos(ang) * (1 + rng.normal(0, 1e-9, n)),
+                pose[2] + 2.0 * np.sin(ang) * (1 + rng.normal(0, 1e-9, n)),
+            ],
+            axis=1,
+        )
+        params[rng.random(n) < 0.3] += rng.normal(0, 1.0, 3)
+        truth = not poses_near(params, pose, 2.0, 2.0).any()
+        outcomes.append(truth)
+        assert pose_is_distinct(params, pose, 2.0, 2.0) == truth
+        assert distinct_pose(se2(*pose), [se2(*p) for p in params], 2.0, 2.0) == (
+            not poses_near(
+                np.array([se2_params(se2(*p)) for p in params]).reshape(-1, 3), se2_params(se2(*pose)), 2.0, 2.0
+            ).any()
+        )
+    assert 50 < sum(outcomes) < 250
+    across = np.array([[-np.pi + 0.01, 1.0, 2.0], [np.pi - 0.01, 1.0, 2.0]])  # 1.15 degrees apart, across +-pi
+    assert not pose_is_distinct(across[:1], tuple(across[1]), 2.0, 2.0)
+    assert not pose_is_distinct(across[1:], tuple(across[0]), 2.0, 2.0)

@@ -28,7 +28,7 @@ from numba import njit
 from .box_poses import BoxSet, box_agreement, box_poses
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
-from .geometry import distinct_pose, se2, se2_params
+from .geometry import pose_is_distinct, se2, se2_params
 from .matching import sq_distances
 from .refine import BevCloud, bev_points, coarse_verification_loop, icp_params, refine_icp
 from .result import AlignResult
@@ -268,6 +268,16 @@ class Hypothesis:
     source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes) or "boxes"
     box_pairs: int = 0  # peer boxes paired with an agreeing ego box under T (box_poses.box_agreement)
     box_score: float = 0.0  # the boxes' soft score under T (box_poses.box_agreement)
+    _params: tuple = field(default=(None, None), init=False, repr=False, compare=False)
+
+    @property
+    def params(self) -> tuple[float, float, float]:
+        """se2_params(T), kept until T is replaced (T is assigned anew, never changed in place)."""
+        of, params = self._params
+        if of is not self.T:
+            params = se2_params(self.T)
+            self._params = (self.T, params)
+        return params
 
     @property
     def relative_fitness(self) -> float:
@@ -282,7 +292,7 @@ def _inliers(T, src, dst, k, thr2):
 
 
 def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float) -> bool:
-    return distinct_pose(T, [h.T for h in chosen], dist_m, deg)
+    return not chosen or pose_is_distinct(np.array([h.params for h in chosen]), se2_params(T), dist_m, deg)
 
 
 def pose_hypotheses(
@@ -334,6 +344,7 @@ def pose_hypotheses(
     n_wide = _peak_support(kp_src, kp_dst, cand_c, yaw, tx, ty, (2 * threshold) ** 2)
     thr2 = threshold * threshold
     out: list[Hypothesis] = []
+    found = np.empty((cfg.max_hypotheses, 3))  # se2_params of out's poses
     attempts = 0
     for h in np.argsort(-n_wide, kind="stable"):
         if (
@@ -342,16 +353,22 @@ def pose_hypotheses(
             or attempts >= cfg.max_refit_attempts
         ):
             break
-        T = se2(yaw[h], tx[h], ty[h])
-        if not _distinct(T, out, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg):
+        cell = se2_params(se2(yaw[h], tx[h], ty[h]))
+        if not pose_is_distinct(
+            found[: len(out)], cell, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg
+        ):
             continue  # a neighbouring cell of a pose already found
         attempts += 1
         y, x, z, n, mask = _refit(
             kp_src, kp_dst, cand_c, float(yaw[h]), float(tx[h]), float(ty[h]), (2 * threshold) ** 2, thr2, cfg.refits
         )
         T = se2(y, x, z)
-        if n < cfg.min_hypothesis_inliers or not _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
+        params = se2_params(T)
+        if n < cfg.min_hypothesis_inliers or not pose_is_distinct(
+            found[: len(out)], params, cfg.distinct_m, cfg.distinct_deg
+        ):
             continue
+        found[len(out)] = params
         out.append(Hypothesis(T=T, inliers=n, votes=float(flat[idx[h]]), inlier_mask=mask))
     out.sort(key=lambda h: -h.inliers)
     return out
