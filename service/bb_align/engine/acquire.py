@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .box_poses import BoxSet, box_agreement, box_poses
+from .box_poses import BoxSet, box_agreement, box_poses, same_size
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
 from .geometry import pose_is_distinct, se2, se2_params
@@ -512,18 +512,19 @@ def verify(
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
+    size_ok = same_size(peer_boxes, ego_boxes, a)  # the boxes' footprint agreement, the same under every pose
     Ts, fitness, rmse, covisible = coarse_verification(
         ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate
     )
     for n, h in enumerate(hyps):
         h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
-        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:
         ref = refine_icp(ego_cloud, full_pts, h.T, rf)
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
-        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
     finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
     hyps[: a.finalists] = finals
 
