@@ -25,12 +25,12 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .box_poses import BoxSet, box_agreement, box_poses
+from .box_poses import BoxSet, box_agreement, box_poses, same_size
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
-from .geometry import distinct_pose, se2, se2_params
+from .geometry import pose_is_distinct, se2, se2_params
 from .matching import sq_distances
-from .refine import BevCloud, bev_points, overlap_fitness, refine_icp
+from .refine import BevCloud, bev_points, coarse_verification_loop, icp_params, refine_icp
 from .result import AlignResult
 from .verdict import FailureReason
 
@@ -58,19 +58,58 @@ def topk_candidates(
 # ---- 2. hypotheses -------------------------------------------------------------------------------------------
 
 
+_VOTE_BUFFER = 2048  # votes computed before they are added to the accumulator (see _vote)
+
+
 @njit(cache=True, nogil=True)
-def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
-    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
-    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
-    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. Distances between ego keypoints are
-    computed once."""
-    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+def _scatter(acc, cell, frac, n, n_yaw, n_t):
+    """Adds the first ``n`` buffered votes to the accumulator, in order, each split over its 2x2x2 nearest cells:
+    ``cell`` (n, 3) the lower corner (yaw, tx, ty), ``frac`` (n, 3) the vote's offsets from it (the weights)."""
+    for m in range(n):
+        y0, x0, z0 = cell[m, 0], cell[m, 1], cell[m, 2]
+        ay, ax, az = frac[m, 0], frac[m, 1], frac[m, 2]
+        for e1 in range(2):
+            yy = (y0 + e1) % n_yaw
+            wy = ay if e1 else 1.0 - ay
+            for e2 in range(2):
+                xx = x0 + e2
+                if xx < 0 or xx >= n_t:
+                    continue
+                wx = ax if e2 else 1.0 - ax
+                for e3 in range(2):
+                    zz = z0 + e3
+                    if zz < 0 or zz >= n_t:
+                        continue
+                    acc[yy, xx, zz] += wy * wx * (az if e3 else 1.0 - az)
+
+
+@njit(cache=True, nogil=True)
+def ego_pairs(kp_dst):
+    """What the vote needs of every ordered pair (i, j) of ego keypoints, computed once per ego frame: the distance
+    (float32, (n, n)) and the direction angle of j - i (radians, (n, n))."""
     n_e = len(kp_dst)
     d_e = np.empty((n_e, n_e), np.float32)
+    phi = np.empty((n_e, n_e))
     for i in range(n_e):
         for j in range(n_e):
             dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
             d_e[i, j] = np.sqrt(dx * dx + dy * dy)
+            phi[i, j] = np.arctan2(dy, dx)
+    return d_e, phi
+
+
+@njit(cache=True, nogil=True)
+def _vote(kp_src, kp_dst, cand, d_e, phi, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
+    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
+    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
+    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. ``d_e``, ``phi``: ``ego_pairs(kp_dst)``;
+    the pose's yaw is the ego pair's direction minus the peer pair's (one arctan2 per peer pair, not per vote).
+    The votes are buffered and added in batches, in the order they were cast: the accumulator (several MB) is then
+    written in a tight loop whose cache misses overlap."""
+    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+    cell = np.empty((_VOTE_BUFFER, 3), np.int64)
+    frac = np.empty((_VOTE_BUFFER, 3))
+    nb = 0
     q, k = cand.shape
     for a in range(q):
         for b in range(a + 1, q):
@@ -79,15 +118,22 @@ def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n
             if ds < min_d:
                 continue
             msx, msy = 0.5 * (kp_src[a, 0] + kp_src[b, 0]), 0.5 * (kp_src[a, 1] + kp_src[b, 1])
+            psi = np.nan  # the peer pair's direction, computed at its first vote
             for u in range(k):
                 i = cand[a, u]
                 for v in range(k):
                     j = cand[b, v]
                     if i == j or abs(ds - d_e[i, j]) > len_tol:
                         continue
+                    if psi != psi:
+                        psi = np.arctan2(sy, sx)
+                    th = phi[i, j] - psi
+                    if th > np.pi:
+                        th -= 2 * np.pi
+                    elif th <= -np.pi:
+                        th += 2 * np.pi
                     dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
                     cr, dt = sx * dy - sy * dx, sx * dx + sy * dy
-                    th = np.arctan2(cr, dt)
                     nrm = np.sqrt(cr * cr + dt * dt)
                     c, s = dt / nrm, cr / nrm
                     mdx, mdy = 0.5 * (kp_dst[i, 0] + kp_dst[j, 0]), 0.5 * (kp_dst[i, 1] + kp_dst[j, 1])
@@ -97,20 +143,13 @@ def _vote(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n
                     fx = (tx + t_half) / t_bin - 0.5
                     fz = (ty + t_half) / t_bin - 0.5
                     y0, x0, z0 = int(np.floor(fy)), int(np.floor(fx)), int(np.floor(fz))
-                    ay, ax, az = fy - y0, fx - x0, fz - z0
-                    for e1 in range(2):
-                        yy = (y0 + e1) % n_yaw
-                        wy = ay if e1 else 1.0 - ay
-                        for e2 in range(2):
-                            xx = x0 + e2
-                            if xx < 0 or xx >= n_t:
-                                continue
-                            wx = ax if e2 else 1.0 - ax
-                            for e3 in range(2):
-                                zz = z0 + e3
-                                if zz < 0 or zz >= n_t:
-                                    continue
-                                acc[yy, xx, zz] += wy * wx * (az if e3 else 1.0 - az)
+                    cell[nb, 0], cell[nb, 1], cell[nb, 2] = y0, x0, z0
+                    frac[nb, 0], frac[nb, 1], frac[nb, 2] = fy - y0, fx - x0, fz - z0
+                    nb += 1
+                    if nb == _VOTE_BUFFER:
+                        _scatter(acc, cell, frac, nb, n_yaw, n_t)
+                        nb = 0
+    _scatter(acc, cell, frac, nb, n_yaw, n_t)
     return acc
 
 
@@ -229,6 +268,16 @@ class Hypothesis:
     source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes) or "boxes"
     box_pairs: int = 0  # peer boxes paired with an agreeing ego box under T (box_poses.box_agreement)
     box_score: float = 0.0  # the boxes' soft score under T (box_poses.box_agreement)
+    _params: tuple = field(default=(None, None), init=False, repr=False, compare=False)
+
+    @property
+    def params(self) -> tuple[float, float, float]:
+        """se2_params(T), kept until T is replaced (T is assigned anew, never changed in place)."""
+        of, params = self._params
+        if of is not self.T:
+            params = se2_params(self.T)
+            self._params = (self.T, params)
+        return params
 
     @property
     def relative_fitness(self) -> float:
@@ -243,17 +292,24 @@ def _inliers(T, src, dst, k, thr2):
 
 
 def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float) -> bool:
-    return distinct_pose(T, [h.T for h in chosen], dist_m, deg)
+    return not chosen or pose_is_distinct(np.array([h.params for h in chosen]), se2_params(T), dist_m, deg)
 
 
 def pose_hypotheses(
-    kp_peer: np.ndarray, kp_ego: np.ndarray, cand: np.ndarray, cfg: AcquireConfig, threshold: float, t_half: float
+    kp_peer: np.ndarray,
+    kp_ego: np.ndarray,
+    cand: np.ndarray,
+    cfg: AcquireConfig,
+    threshold: float,
+    t_half: float,
+    pairs: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[Hypothesis]:
     """Up to cfg.max_hypotheses distinct poses (most inliers first) from the candidates ``cand`` (Q, k): row q
-    lists the ego keypoints that may be peer keypoint q's partner."""
+    lists the ego keypoints that may be peer keypoint q's partner. ``pairs``: ``ego_pairs(kp_ego)`` when cached."""
     q, k = cand.shape
     if q < 2:
         return []
+    d_e, phi = ego_pairs(np.ascontiguousarray(kp_ego, np.float64)) if pairs is None else pairs
     yaw_bin = np.radians(cfg.vote_yaw_deg)
     n_yaw = int(np.ceil(2 * np.pi / yaw_bin))
     yaw_bin = 2 * np.pi / n_yaw
@@ -262,6 +318,8 @@ def pose_hypotheses(
         np.ascontiguousarray(kp_peer, np.float64),
         np.ascontiguousarray(kp_ego, np.float64),
         np.ascontiguousarray(cand, np.int64),
+        d_e,
+        phi,
         cfg.min_sample_dist_m,
         cfg.length_tolerance_m,
         yaw_bin,
@@ -286,6 +344,7 @@ def pose_hypotheses(
     n_wide = _peak_support(kp_src, kp_dst, cand_c, yaw, tx, ty, (2 * threshold) ** 2)
     thr2 = threshold * threshold
     out: list[Hypothesis] = []
+    found = np.empty((cfg.max_hypotheses, 3))  # se2_params of out's poses
     attempts = 0
     for h in np.argsort(-n_wide, kind="stable"):
         if (
@@ -294,16 +353,22 @@ def pose_hypotheses(
             or attempts >= cfg.max_refit_attempts
         ):
             break
-        T = se2(yaw[h], tx[h], ty[h])
-        if not _distinct(T, out, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg):
+        cell = se2_params(se2(yaw[h], tx[h], ty[h]))
+        if not pose_is_distinct(
+            found[: len(out)], cell, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg
+        ):
             continue  # a neighbouring cell of a pose already found
         attempts += 1
         y, x, z, n, mask = _refit(
             kp_src, kp_dst, cand_c, float(yaw[h]), float(tx[h]), float(ty[h]), (2 * threshold) ** 2, thr2, cfg.refits
         )
         T = se2(y, x, z)
-        if n < cfg.min_hypothesis_inliers or not _distinct(T, out, cfg.distinct_m, cfg.distinct_deg):
+        params = se2_params(T)
+        if n < cfg.min_hypothesis_inliers or not pose_is_distinct(
+            found[: len(out)], params, cfg.distinct_m, cfg.distinct_deg
+        ):
             continue
+        found[len(out)] = params
         out.append(Hypothesis(T=T, inliers=n, votes=float(flat[idx[h]]), inlier_mask=mask))
     out.sort(key=lambda h: -h.inliers)
     return out
@@ -357,6 +422,29 @@ def covisible_fraction(mask: np.ndarray, cloud: BevCloud, pts: np.ndarray, T: np
     h, w = mask.shape
     ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
     return float(mask[r[ok], c[ok]].sum() / len(pts))
+
+
+def coarse_verification(
+    cloud: BevCloud, covis: np.ndarray, pts: np.ndarray, Ts: list[np.ndarray], coarse: RefineConfig, final_gate: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each pose of ``Ts`` refined (refine_icp with ``coarse``) and scored at it (overlap_fitness within
+    ``final_gate``, covisible_fraction), in one compiled call: (poses (H, 3, 3), fitness, rmse_m, covisible)."""
+    T = np.ascontiguousarray(np.array(Ts, dtype=np.float64).reshape(-1, 3, 3))
+    return coarse_verification_loop(
+        cloud.index,
+        cloud.clearance,
+        cloud.xy,
+        cloud.normals,
+        cloud.range_m,
+        cloud.resolution_m,
+        covis,
+        np.ascontiguousarray(pts, dtype=np.float64),
+        T,
+        *icp_params(coarse),
+        coarse.max_correction_m,
+        coarse.max_correction_deg,
+        final_gate,
+    )
 
 
 @dataclass
@@ -424,18 +512,19 @@ def verify(
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
-    for h in hyps:
-        ref = refine_icp(ego_cloud, coarse_pts, h.T, coarse)
-        h.T = ref.T
-        h.fitness, h.rmse_m = overlap_fitness(ego_cloud, coarse_pts, h.T, final_gate)
-        h.covisible = covisible_fraction(covis, ego_cloud, coarse_pts, h.T)
-        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
+    size_ok = same_size(peer_boxes, ego_boxes, a)  # the boxes' footprint agreement, the same under every pose
+    Ts, fitness, rmse, covisible = coarse_verification(
+        ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate
+    )
+    for n, h in enumerate(hyps):
+        h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:
         ref = refine_icp(ego_cloud, full_pts, h.T, rf)
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
-        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a)
+        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
     finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
     hyps[: a.finalists] = finals
     _merge_neighbours(hyps, ego_cloud, full_pts, config)
@@ -545,7 +634,8 @@ class Acquirer:
 
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
-                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half)
+                pairs = ego.cached("ego_pairs", lambda: ego_pairs(np.ascontiguousarray(ego.keypoints_xy, np.float64)))
+                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs)
                 hs += _with_keypoint_inliers(from_boxes, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0

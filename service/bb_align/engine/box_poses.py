@@ -23,7 +23,7 @@ from numba import njit
 
 from .boxes import as_boxes
 from .config import AcquireConfig
-from .geometry import distinct_pose, poses_near, se2, se2_params
+from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 
 
 @dataclass(frozen=True)
@@ -237,4 +237,4 @@ class _PoseSet:
         self.tried += tried
 
     def near(self, yaw: float, tx: float, ty: float) -> bool:
-        return bool(poses_near(self.params[: self.n], (yaw, tx, ty), self.cfg.distinct_m, self.cfg.distinct_deg).any())
+        return not pose_is_distinct(self.params[: self.n], (yaw, tx, ty), self.cfg.distinct_m, self.cfg.distinct_deg)

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
 from .bev import BevImage
 from .config import RefineConfig
-from .geometry import se2, se2_params
+from .geometry import se2_params
 
 
 @dataclass
@@ -32,12 +33,13 @@ class BevCloud:
     index: np.ndarray  # (H, W) int32: row of xy at each lit pixel, -1 elsewhere
     range_m: float
     resolution_m: float
+    clearance: np.ndarray  # (H, W) float32: each pixel centre's distance (pixels) to the nearest lit one
 
     def nearest(self, pts: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
         """For each (M, 2) point: (distance, index) of the nearest point of this cloud closer than ``gate``
         metres; (inf, -1) when there is none (as a KD-tree query with distance_upper_bound)."""
         pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
-        return _nearest_on_grid(self.index, self.xy, pts, self.range_m, self.resolution_m, float(gate))
+        return _nearest_on_grid(self.index, self.clearance, self.xy, pts, self.range_m, self.resolution_m, float(gate))
 
 
 def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None, seed: int = 0) -> np.ndarray:
@@ -57,15 +59,24 @@ def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
     xy = bev.pixel_to_metre(rc)
     index = np.full(bev.shape, -1, dtype=np.int32)
     index[rc[:, 0], rc[:, 1]] = np.arange(len(rc), dtype=np.int32)
+    clearance = _clearance(index >= 0)
     if len(xy) < 3:
-        return BevCloud(xy, np.zeros_like(xy), index, bev.range_m, bev.resolution_m)
+        return BevCloud(xy, np.zeros_like(xy), index, bev.range_m, bev.resolution_m, clearance)
     _, nn = cKDTree(xy).query(xy, k=min(k, len(xy)))
     nb = xy[nn] - xy[nn].mean(axis=1, keepdims=True)
     sxx, syy, sxy = (nb[..., 0] ** 2).sum(1), (nb[..., 1] ** 2).sum(1), (nb[..., 0] * nb[..., 1]).sum(1)
     # Normal = eigenvector of the smaller eigenvalue of [[sxx, sxy], [sxy, syy]]: the line's perpendicular.
     angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the larger eigenvalue (the line)
     normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
-    return BevCloud(xy, normals, index, bev.range_m, bev.resolution_m)
+    return BevCloud(xy, normals, index, bev.range_m, bev.resolution_m, clearance)
+
+
+def _clearance(lit: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the Euclidean distance (pixels) from each pixel centre to the nearest lit one (OpenCV's
+    exact transform, within 1e-5 of scipy's distance_transform_edt); inf everywhere without a lit pixel."""
+    if not lit.any():
+        return np.full(lit.shape, np.inf, np.float32)
+    return cv2.distanceTransform((~lit).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
 
 
 @dataclass
@@ -104,28 +115,137 @@ def refine_icp(ego: BevCloud, pts_peer: np.ndarray, T_init: np.ndarray, cfg: Ref
     T = np.array(T_init, dtype=float)
     if len(ego.xy) < cfg.min_points or len(pts_peer) < cfg.min_points:
         return Refinement(T, *overlap_fitness(ego, pts_peer, T, gates[-1]), False)
-    prev = None
-    for gate in gates:
-        for _ in range(cfg.iters_per_gate):
-            p = pts_peer @ T[:2, :2].T + T[:2, 2]
-            d, j = ego.nearest(p, gate)
-            ok = np.isfinite(d)
-            if ok.sum() < cfg.min_points:
-                T0 = np.array(T_init, dtype=float)
-                return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
-            H, g = _normal_equations(p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight)
-            delta = np.linalg.solve(H, -g)
-            if prev is not None and float(delta @ prev) > 0:  # the same way again: ICP creeps along a valley
-                delta = delta * cfg.step_relaxation
-            prev = delta
-            T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
-                break
+    T, ok = _icp(ego, np.ascontiguousarray(pts_peer, dtype=np.float64), T, cfg)
+    if not ok:
+        T0 = np.array(T_init, dtype=float)
+        return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
     T_out = T if accepted else np.array(T_init, dtype=float)
     fitness, rmse = overlap_fitness(ego, pts_peer, T_out, gates[-1])
     return Refinement(T_out, fitness, rmse, accepted)
+
+
+def _icp(ego: BevCloud, pts: np.ndarray, T: np.ndarray, cfg: RefineConfig) -> tuple[np.ndarray, bool]:
+    """The ICP iterations of refine_icp (compiled): (the pose they end at, False when a step matched fewer than
+    cfg.min_points points)."""
+    return _icp_loop(
+        ego.index, ego.clearance, ego.xy, ego.normals, ego.range_m, ego.resolution_m, pts, T, *icp_params(cfg)
+    )
+
+
+def icp_params(cfg: RefineConfig) -> tuple:
+    """The refinement config as _icp_loop's trailing arguments."""
+    return (
+        np.asarray(cfg.gates_m, dtype=np.float64),
+        cfg.iters_per_gate,
+        cfg.huber_fraction,
+        cfg.point_weight,
+        cfg.step_relaxation,
+        cfg.converged_rad,
+        cfg.converged_m,
+        cfg.min_points,
+    )
+
+
+@njit(cache=True, nogil=True)
+def transform_into(pts, T, out):
+    """out[i] = T applied to the 2-D point pts[i] (3x3 T)."""
+    for i in range(len(pts)):
+        x, y = pts[i, 0], pts[i, 1]
+        out[i, 0] = T[0, 0] * x + T[0, 1] * y + T[0, 2]
+        out[i, 1] = T[1, 0] * x + T[1, 1] * y + T[1, 2]
+
+
+@njit(cache=True, nogil=True)
+def _icp_loop(
+    index, clearance, xy, normals, range_m, resolution_m, pts, T_init, gates, iters, huber_fraction, point_weight,
+    relaxation, converged_rad, converged_m, min_points,
+):  # fmt: skip
+    """refine_icp's iterations: per gate up to ``iters`` Gauss-Newton steps (nearest ego pixel within the gate,
+    point-to-line normal equations, the step lengthened by ``relaxation`` when it continues the previous one),
+    the gate left when a step is below converged_rad and converged_m. Returns (T, ok); ok False (and T_init)
+    when a step finds fewer than min_points matches."""
+    T = T_init.copy()
+    p = np.empty_like(pts)
+    prev = np.zeros(3)
+    have_prev = False
+    for gate in gates:
+        for _ in range(iters):
+            transform_into(pts, T, p)
+            _, j = _nearest_on_grid(index, clearance, xy, p, range_m, resolution_m, gate)
+            if np.count_nonzero(j >= 0) < min_points:
+                return T_init.copy(), False
+            H, g = _normal_equations(p, xy, normals, j, huber_fraction * gate, point_weight)
+            delta = np.linalg.solve(H, -g)
+            if have_prev and delta[0] * prev[0] + delta[1] * prev[1] + delta[2] * prev[2] > 0:
+                delta = delta * relaxation  # the same way again: ICP creeps along a valley
+            prev = delta
+            have_prev = True
+            c, s = np.cos(delta[0]), np.sin(delta[0])
+            T2 = np.empty((3, 3))
+            for col in range(3):
+                T2[0, col] = c * T[0, col] - s * T[1, col] + delta[1] * T[2, col]
+                T2[1, col] = s * T[0, col] + c * T[1, col] + delta[2] * T[2, col]
+                T2[2, col] = T[2, col]
+            T = T2
+            if abs(delta[0]) < converged_rad and max(abs(delta[1]), abs(delta[2])) < converged_m:
+                break
+    return T, True
+
+
+@njit(cache=True, nogil=True)
+def coarse_verification_loop(
+    index, clearance, xy, normals, range_m, resolution_m, covis, pts, Ts, gates, iters, huber_fraction, point_weight,
+    relaxation, converged_rad, converged_m, min_points, max_correction_m, max_correction_deg, final_gate,
+):  # fmt: skip
+    """The acquisition's coarse verification of the poses Ts (acquire.coarse_verification): per pose the ICP
+    iterations, the correction kept when within max_correction_m and max_correction_deg of the start (as
+    refine_icp), then the overlap within final_gate (overlap_fitness: fraction of points with an ego pixel, RMS
+    distance of those) and the fraction of points on the co-visibility mask ``covis`` (acquire.covisible_fraction).
+    Here, beside the loops it calls: numba's on-disk cache is invalidated by its own file's changes only."""
+    n_h, n = len(Ts), len(pts)
+    out = np.empty_like(Ts)
+    fitness, rmse, covisible = np.zeros(n_h), np.full(n_h, np.inf), np.zeros(n_h)
+    p = np.empty_like(pts)
+    h_img, w_img = covis.shape
+    for h in range(n_h):
+        T0 = Ts[h]
+        T = T0.copy()
+        if len(xy) >= min_points and n >= min_points:
+            T, ok = _icp_loop(
+                index, clearance, xy, normals, range_m, resolution_m, pts, T0, gates, iters, huber_fraction,
+                point_weight, relaxation, converged_rad, converged_m, min_points,
+            )  # fmt: skip
+            if ok:
+                rel = T @ np.linalg.inv(T0)
+                yaw = np.arctan2(rel[1, 0], rel[0, 0])
+                if not (
+                    np.hypot(rel[0, 2], rel[1, 2]) <= max_correction_m and abs(np.degrees(yaw)) <= max_correction_deg
+                ):
+                    T = T0.copy()
+        out[h] = T
+        if n == 0:
+            continue
+        transform_into(pts, T, p)
+        if len(xy) > 0:
+            d, _ = _nearest_on_grid(index, clearance, xy, p, range_m, resolution_m, final_gate)
+            m, ss = 0, 0.0
+            for i in range(n):
+                if d[i] < np.inf:
+                    m += 1
+                    ss += d[i] * d[i]
+            fitness[h] = m / n
+            if m > 0:
+                rmse[h] = np.sqrt(ss / m)
+        seen = 0
+        for i in range(n):
+            r = int(np.floor((range_m - p[i, 0]) / resolution_m))
+            c = int(np.floor((range_m - p[i, 1]) / resolution_m))
+            if 0 <= r < h_img and 0 <= c < w_img:
+                seen += covis[r, c]
+        covisible[h] = seen / n
+    return out, fitness, rmse, covisible
 
 
 def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: float) -> tuple[float, float]:
@@ -138,20 +258,41 @@ def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: fl
     return float(ok.mean()), (float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("inf"))
 
 
+_HALF_DIAGONAL_PX = 0.7072  # above sqrt(2) / 2: the farthest a point lies from its nearest pixel centre
+
+
 @njit(cache=True, nogil=True)
-def _nearest_on_grid(index, xy, pts, range_m, resolution_m, gate):
+def _nearest_on_grid(index, clearance, xy, pts, range_m, resolution_m, gate):
     """Exact nearest lit pixel centre within ``gate`` (strictly closer) of each point, scanning the pixels whose
-    centres can be that close; (inf, -1) when none is."""
+    centres can be that close; (inf, -1) when none is. Among equally near ones, the first in row-major order.
+
+    ``clearance``: each pixel centre's distance (pixels) to the nearest lit one. The point's nearest lit centre is
+    within half a pixel diagonal of its pixel's clearance either way, which narrows the square scanned from the
+    gate's to that distance's (a point on structure looks at 3x3 pixels, not 11x11) and skips the points with
+    nothing within the gate. The square still holds every centre as near as the nearest, scanned in the same
+    order: the result is that of the full square's scan."""
     n_rows, n_cols = index.shape
     dist = np.full(len(pts), np.inf)
     nearest = np.full(len(pts), -1, dtype=np.int64)
-    reach = gate / resolution_m
+    reach_gate = gate / resolution_m
     gate2 = gate * gate
     for i in range(len(pts)):
         r = (range_m - pts[i, 0]) / resolution_m - 0.5  # continuous pixel coordinates (bev.metre_to_pixel)
         c = (range_m - pts[i, 1]) / resolution_m - 0.5
-        if not (r + reach >= 0 and r - reach <= n_rows - 1 and c + reach >= 0 and c - reach <= n_cols - 1):
+        if not (
+            r + reach_gate >= 0
+            and r - reach_gate <= n_rows - 1
+            and c + reach_gate >= 0
+            and c - reach_gate <= n_cols - 1
+        ):
             continue  # off the image by more than the gate (or not a number): no pixel can be that close
+        reach = reach_gate
+        ra, ca = int(np.floor(r + 0.5)), int(np.floor(c + 0.5))  # the pixel the point falls in
+        if 0 <= ra < n_rows and 0 <= ca < n_cols:
+            near = clearance[ra, ca]
+            if near - _HALF_DIAGONAL_PX - 1e-3 >= reach_gate:
+                continue  # every lit centre at least a gate away
+            reach = min(reach_gate, near + _HALF_DIAGONAL_PX + 1e-3)
         r0, r1 = max(0, int(np.ceil(r - reach))), min(n_rows - 1, int(np.floor(r + reach)))
         c0, c1 = max(0, int(np.ceil(c - reach))), min(n_cols - 1, int(np.floor(c + reach)))
         best = gate2
