@@ -2,7 +2,8 @@
 pose (every refinement gate), the refinement started at the truth, and the overlap along the covariance's weakest
 translation axis. Used for issue #11's far-range wrong success (docs/acquisition.md, session 9).
 
-    PYTHONPATH=service:client .venv/bin/python benchmarks/pair_at_truth.py DIR sim_4242_0060 1  # DIR: bb-align sim DIR --scenarios 80 --seed 4242
+    bb-align sim DIR --scenarios 80 --seed 4242 --workers 2
+    PYTHONPATH=service:client .venv/bin/python benchmarks/pair_at_truth.py DIR sim_4242_0060 1
 """
 
 from __future__ import annotations
