@@ -21,7 +21,7 @@ from bb_align.engine.acquire import (
 )
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
-from bb_align.engine.geometry import distinct_pose, pose_is_distinct, poses_near, se2, se2_params
+from bb_align.engine.geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from bb_align.engine.refine import (
     Refinement,
     _clearance,
@@ -32,6 +32,23 @@ from bb_align.engine.refine import (
     refine_icp,
 )
 from synthetic import synthetic_world, view_from
+
+
+def _covisible_numpy(mask: np.ndarray, cloud, pts: np.ndarray, T: np.ndarray) -> float:
+    """The reference for acquire.covisible_fraction, in numpy: the share of points on a pixel of the mask."""
+    p = pts @ T[:2, :2].T + T[:2, 2]
+    r = np.floor((cloud.range_m - p[:, 0]) / cloud.resolution_m).astype(np.int64)
+    c = np.floor((cloud.range_m - p[:, 1]) / cloud.resolution_m).astype(np.int64)
+    h, w = mask.shape
+    ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    return float(mask[r[ok], c[ok]].sum() / len(pts))
+
+
+def poses_near(params: np.ndarray, pose: tuple[float, float, float], dist_m: float, deg: float) -> np.ndarray:
+    """The reference, in numpy: which rows of (N, 3) (yaw_rad, tx, ty) lie closer than ``dist_m`` and ``deg``."""
+    p = np.asarray(params, dtype=float).reshape(-1, 3)
+    dyaw = np.abs((p[:, 0] - pose[0] + np.pi) % (2 * np.pi) - np.pi)
+    return (np.hypot(p[:, 1] - pose[1], p[:, 2] - pose[2]) < dist_m) & (np.degrees(dyaw) < deg)
 
 
 def _vote_reference(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
@@ -199,7 +216,9 @@ def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points)
         fit_ref, rmse_ref = overlap_fitness(cloud, pts, ref.T, cfg.refine.gates_m[-1])
         assert fitness[n] == fit_ref
         np.testing.assert_allclose(rmse[n], rmse_ref, rtol=1e-9)
-        assert covisible[n] == covisible_fraction(covis, cloud, pts, ref.T)
+        assert (
+            covisible[n] == covisible_fraction(covis, cloud, pts, ref.T) == _covisible_numpy(covis, cloud, pts, ref.T)
+        )
     assert 4 <= accepted < len(starts)  # both outcomes exercised
     assert fitness.max() > 0.3 and fitness.min() < 0.1
 

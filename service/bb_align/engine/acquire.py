@@ -30,7 +30,7 @@ from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
 from .geometry import pose_is_distinct, se2, se2_params
 from .matching import sq_distances
-from .refine import BevCloud, bev_points, coarse_verification_loop, icp_params, refine_icp
+from .refine import BevCloud, bev_points, coarse_verification_loop, covisible_share, icp_params, refine_icp
 from .result import AlignResult
 from .verdict import FailureReason
 
@@ -416,12 +416,8 @@ def covisible_fraction(mask: np.ndarray, cloud: BevCloud, pts: np.ndarray, T: np
     """Fraction of peer points that land, under T, where the ego car saw structure (its dilated lit pixels)."""
     if len(pts) == 0:
         return 0.0
-    p = pts @ T[:2, :2].T + T[:2, 2]
-    r = np.floor((cloud.range_m - p[:, 0]) / cloud.resolution_m).astype(np.int64)
-    c = np.floor((cloud.range_m - p[:, 1]) / cloud.resolution_m).astype(np.int64)
-    h, w = mask.shape
-    ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-    return float(mask[r[ok], c[ok]].sum() / len(pts))
+    p = np.ascontiguousarray(pts @ T[:2, :2].T + T[:2, 2])
+    return float(covisible_share(mask, p, cloud.range_m, cloud.resolution_m))
 
 
 def coarse_verification(

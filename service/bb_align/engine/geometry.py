@@ -24,13 +24,6 @@ def ground_se2(T: np.ndarray) -> np.ndarray:
     return se2(*se2_params(T))
 
 
-def poses_near(params: np.ndarray, pose: tuple[float, float, float], dist_m: float, deg: float) -> np.ndarray:
-    """(N,) bool: which rows of (N, 3) (yaw_rad, tx, ty) lie closer than ``dist_m`` and ``deg`` to ``pose``."""
-    p = np.asarray(params, dtype=float).reshape(-1, 3)
-    dyaw = np.abs((p[:, 0] - pose[0] + np.pi) % (2 * np.pi) - np.pi)
-    return (np.hypot(p[:, 1] - pose[1], p[:, 2] - pose[2]) < dist_m) & (np.degrees(dyaw) < deg)
-
-
 def distinct_pose(T: np.ndarray, others: list[np.ndarray], dist_m: float, deg: float) -> bool:
     """True when the 3x3 pose T is at least ``dist_m`` or ``deg`` away from every pose in ``others``."""
     if not others:
@@ -39,8 +32,8 @@ def distinct_pose(T: np.ndarray, others: list[np.ndarray], dist_m: float, deg: f
 
 
 def pose_is_distinct(params: np.ndarray, pose: tuple[float, float, float], dist_m: float, deg: float) -> bool:
-    """``not poses_near(params, pose, dist_m, deg).any()``, compiled: the same arithmetic (bit for bit), without
-    numpy's per-call overhead (the acquisition asks this thousands of times per alignment)."""
+    """True when ``pose`` (yaw_rad, tx, ty) is at least ``dist_m`` or ``deg`` away from every row of (N, 3) ``params``.
+    Compiled: the acquisition asks this thousands of times per alignment (tested against numpy arithmetic)."""
     p = np.ascontiguousarray(params, dtype=np.float64).reshape(-1, 3)
     return not _any_near(p, float(pose[0]), float(pose[1]), float(pose[2]), float(dist_m), float(deg))
 

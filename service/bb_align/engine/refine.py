@@ -208,7 +208,6 @@ def coarse_verification_loop(
     out = np.empty_like(Ts)
     fitness, rmse, covisible = np.zeros(n_h), np.full(n_h, np.inf), np.zeros(n_h)
     p = np.empty_like(pts)
-    h_img, w_img = covis.shape
     for h in range(n_h):
         T0 = Ts[h]
         T = T0.copy()
@@ -238,14 +237,21 @@ def coarse_verification_loop(
             fitness[h] = m / n
             if m > 0:
                 rmse[h] = np.sqrt(ss / m)
-        seen = 0
-        for i in range(n):
-            r = int(np.floor((range_m - p[i, 0]) / resolution_m))
-            c = int(np.floor((range_m - p[i, 1]) / resolution_m))
-            if 0 <= r < h_img and 0 <= c < w_img:
-                seen += covis[r, c]
-        covisible[h] = seen / n
+        covisible[h] = covisible_share(covis, p, range_m, resolution_m)
     return out, fitness, rmse, covisible
+
+
+@njit(cache=True, nogil=True)
+def covisible_share(covis, p, range_m, resolution_m):
+    """Fraction of the (N, 2) ego-frame points ``p`` on a pixel of the uint8 mask ``covis`` (acquire.covisible_map)."""
+    h_img, w_img = covis.shape
+    seen = 0
+    for i in range(len(p)):
+        r = int(np.floor((range_m - p[i, 0]) / resolution_m))
+        c = int(np.floor((range_m - p[i, 1]) / resolution_m))
+        if 0 <= r < h_img and 0 <= c < w_img:
+            seen += covis[r, c]
+    return seen / len(p)
 
 
 def overlap_fitness(ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: float) -> tuple[float, float]:
