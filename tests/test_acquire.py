@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bb_align import AlignConfig, Aligner
-from bb_align.engine.acquire import pose_hypotheses, topk_candidates
+from bb_align.engine.acquire import PriorWindow, pose_hypotheses, topk_candidates
 from bb_align.engine.config import AcquireConfig
 from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2
 from synthetic import synthetic_world, view_from
@@ -53,6 +53,33 @@ def test_pose_hypotheses_find_a_pose_supported_by_few_candidates_among_many():
             assert np.hypot(xa - xb, za - zb) >= cfg.distinct_m or abs(np.degrees(ya - yb)) >= cfg.distinct_deg
 
 
+def test_a_prior_window_finds_the_weaker_true_pose_a_stronger_wrong_one_would_crowd_out():
+    """A wrong pose backed by 40 keypoints and the true one by 15: searched everywhere with room for one hypothesis,
+    the wrong one wins; searched inside a prior's window around the truth (10 m, 10 deg; the prior 3 m and 4 deg
+    off), the true pose is found and no hypothesis lies outside the window."""
+    rng = np.random.default_rng(2)
+    T_true, T_wrong = se2(np.radians(30.0), 70.0, 10.0), se2(np.radians(-100.0), -40.0, 55.0)
+    kp_peer = rng.uniform(-80, 80, (300, 2))
+    kp_ego = rng.uniform(-80, 80, (400, 2))
+    cand = rng.integers(0, 400, (300, 4))
+    rows = rng.choice(300, 55, replace=False)
+    partners = rng.choice(400, 55, replace=False)
+    for rows_, partners_, T in ((rows[:15], partners[:15], T_true), (rows[15:], partners[15:], T_wrong)):
+        kp_ego[partners_] = kp_peer[rows_] @ T[:2, :2].T + T[:2, 2] + rng.normal(0, 0.3, (len(rows_), 2))
+        cand[rows_, rng.integers(0, 4, len(rows_))] = partners_
+    cfg = AcquireConfig(max_hypotheses=1)
+    everywhere = pose_hypotheses(kp_peer, kp_ego, cand, cfg, threshold=2.0, t_half=120.0)
+    assert pose_error(se3_from_se2(everywhere[0].T), se3_from_se2(T_wrong))[0] < 1.0
+    window = PriorWindow(se2(np.radians(34.0), 72.0, 7.8), max_m=10.0, max_deg=10.0)
+    assert window.holds(T_true) and not window.holds(T_wrong)
+    inside = pose_hypotheses(
+        kp_peer, kp_ego, cand, cfg.model_copy(update={"max_hypotheses": 8}), 2.0, 120.0, None, window
+    )
+    t_err, r_err = pose_error(se3_from_se2(inside[0].T), se3_from_se2(T_true))
+    assert t_err < 1.0 and r_err < 1.0 and inside[0].inliers >= 12
+    assert all(window.holds(h.T) for h in inside)
+
+
 @pytest.fixture(scope="module")
 def world():
     return synthetic_world(seed=0, extent=110.0)
@@ -74,6 +101,43 @@ def test_multi_path_recovers_known_pose_with_covariance(world, yaw_deg, t_xy):
     assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
     d = res.to_dict()
     assert len(d["covariance"]) == 3 and d["acquisition"]["margin"] == res.acquisition["margin"]
+
+
+def test_a_prior_must_hold_the_pose_found_everywhere(world):
+    """A GNSS-grade prior (2.5 m, 3 deg off) around the pose the search everywhere finds: that pose stands. A prior
+    30 m off (a lying or broken report) does not hold it: refused as disagreeing, not answered."""
+    pts_w, _ = world
+    T_true = se3_from_se2(se2(np.radians(-35.0), 48.0, -12.0))
+    aligner = Aligner(AlignConfig(acquire=AcquireConfig(mode="multi")))
+    ego = aligner.warm(aligner.prepare(view_from(pts_w, np.eye(4), seed=0)))
+    peer = aligner.prepare(view_from(pts_w, T_true, seed=1, sensor_height=1.5))
+    res = aligner.align(ego, peer, T_prior=se3_from_se2(se2(np.radians(-32.0), 50.0, -13.5)))
+    assert res.success, (res.reason, res.acquisition)
+    t_err, r_err = pose_error(res.T_ego_peer, T_true)
+    assert t_err < 0.5 and r_err < 0.5
+    assert "the pose lies inside the prior's window" in res.notes
+    lying = aligner.align(ego, peer, T_prior=se3_from_se2(se2(np.radians(-35.0), 48.0 - 21.0, -12.0 + 21.0)))
+    assert not lying.success and lying.reason == "disagrees_with_prior"
+
+
+def test_a_prior_resolves_an_alias_the_images_cannot():
+    """The same block of streets twice, 64 m apart; the peer sees one copy. Searched everywhere the two copies are
+    equally good: refused as ambiguous. With a prior near the true copy the window is searched alone and the true
+    pose found."""
+    block, _ = synthetic_world(seed=3, extent=18.0)
+    pts_w = np.concatenate([block + [-32.0, 0.0, 0.0], block + [32.0, 0.0, 0.0]])
+    T_true = se3_from_se2(se2(np.radians(25.0), 36.0, 3.0))
+    aligner = Aligner(AlignConfig(acquire=AcquireConfig(mode="multi")))
+    ego = aligner.warm(aligner.prepare(view_from(pts_w, np.eye(4), seed=0)))
+    peer = aligner.prepare(view_from(pts_w, T_true, seed=1, max_range=30.0, sensor_height=1.5))
+    everywhere = aligner.align(ego, peer)
+    assert not everywhere.success and everywhere.reason == "ambiguous_bv"
+    res = aligner.align(ego, peer, T_prior=se3_from_se2(se2(np.radians(22.0), 38.0, 1.5)))
+    assert res.success, (res.reason, res.notes)
+    t_err, r_err = pose_error(res.T_ego_peer, T_true)
+    assert t_err < 0.5 and r_err < 0.5
+    assert res.notes[0].startswith("searched everywhere first: ambiguous_bv")
+    assert np.linalg.eigvalsh(res.covariance[1:, 1:]).max() <= aligner.config.prior.max_sigma_m**2
 
 
 def test_multi_path_fails_without_overlap(world):

@@ -295,6 +295,34 @@ def _distinct(T: np.ndarray, chosen: list[Hypothesis], dist_m: float, deg: float
     return not chosen or pose_is_distinct(np.array([h.params for h in chosen]), se2_params(T), dist_m, deg)
 
 
+@dataclass(frozen=True)
+class PriorWindow:
+    """Where a prior pose (e.g. from both cars' reported GNSS poses) says the true pose lies: within ``max_m`` of
+    its translation and ``max_deg`` of its yaw (config.prior). Hypotheses outside it are not formed, not verified
+    and are no rivals."""
+
+    T: np.ndarray  # 3x3 ego <- peer
+    max_m: float
+    max_deg: float
+
+    @property
+    def params(self) -> tuple[float, float, float]:
+        return se2_params(self.T)
+
+    def holds(self, T: np.ndarray) -> bool:
+        return not pose_is_distinct(np.array([self.params]), se2_params(T), self.max_m, self.max_deg)
+
+    def mask_accumulator(self, acc: np.ndarray, yaw_bin: float, t_bin: float, t_half: float) -> None:
+        """Zero (in place) every (yaw, tx, ty) cell whose centre lies more than one cell beyond the window."""
+        yaw0, tx0, ty0 = self.params
+        yaw_c = (np.arange(acc.shape[0]) + 0.5) * yaw_bin - np.pi
+        t_c = (np.arange(acc.shape[1]) + 0.5) * t_bin - t_half
+        off_yaw = np.abs((yaw_c - yaw0 + np.pi) % (2 * np.pi) - np.pi) > np.radians(self.max_deg) + yaw_bin
+        acc[off_yaw] = 0.0
+        acc[:, np.abs(t_c - tx0) > self.max_m + t_bin] = 0.0
+        acc[:, :, np.abs(t_c - ty0) > self.max_m + t_bin] = 0.0
+
+
 def pose_hypotheses(
     kp_peer: np.ndarray,
     kp_ego: np.ndarray,
@@ -303,9 +331,12 @@ def pose_hypotheses(
     threshold: float,
     t_half: float,
     pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    window: PriorWindow | None = None,
 ) -> list[Hypothesis]:
     """Up to cfg.max_hypotheses distinct poses (most inliers first) from the candidates ``cand`` (Q, k): row q
-    lists the ego keypoints that may be peer keypoint q's partner. ``pairs``: ``ego_pairs(kp_ego)`` when cached."""
+    lists the ego keypoints that may be peer keypoint q's partner. ``pairs``: ``ego_pairs(kp_ego)`` when cached.
+    ``window``: only poses inside it (the accumulator is searched there alone, so weaker in-window peaks are not
+    crowded out by strong poses elsewhere)."""
     q, k = cand.shape
     if q < 2:
         return []
@@ -328,6 +359,8 @@ def pose_hypotheses(
         n_yaw,
         n_t,
     )
+    if window is not None:
+        window.mask_accumulator(acc, yaw_bin, cfg.vote_t_m, t_half)
     flat = acc.ravel()
     idx = _cells_above(flat, cfg.min_votes)
     if len(idx) == 0:
@@ -364,6 +397,8 @@ def pose_hypotheses(
         )
         T = se2(y, x, z)
         params = se2_params(T)
+        if window is not None and not window.holds(T):
+            continue
         if n < cfg.min_hypothesis_inliers or not pose_is_distinct(
             found[: len(out)], params, cfg.distinct_m, cfg.distinct_deg
         ):
@@ -502,9 +537,11 @@ def verify(
     config: AlignConfig,
     coarse: RefineConfig,
     boxes: tuple[BoxSet, BoxSet] | None = None,
+    window: PriorWindow | None = None,
 ) -> None:
     """Coarse dense refinement (``coarse``, on ``coarse_pts``) + score for every hypothesis, then a full refinement
-    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) boxes, paired per pose."""
+    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) boxes, paired per pose. ``window``: a
+    hypothesis the refinement carries out of the prior's window is dropped (the list may end empty)."""
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
@@ -515,14 +552,20 @@ def verify(
     for n, h in enumerate(hyps):
         h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
         h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
+    if window is not None:
+        hyps[:] = [h for h in hyps if window.holds(h.T)]
     hyps.sort(key=lambda x: -score(x, a))
     for h in hyps[: a.finalists]:
         ref = refine_icp(ego_cloud, full_pts, h.T, rf)
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
         h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
-    finals = sorted(hyps[: a.finalists], key=lambda x: -score(x, a))
-    hyps[: a.finalists] = finals
+    if window is not None:
+        hyps[:] = [h for h in hyps if not h.refined or window.holds(h.T)]
+    finals = sorted([h for h in hyps if h.refined], key=lambda x: -score(x, a))
+    hyps[: len(finals)] = finals
+    if not hyps:
+        return
     _merge_neighbours(hyps, ego_cloud, full_pts, config)
 
 
@@ -599,7 +642,11 @@ class Acquirer:
         a, rf = config.acquire, config.refine
         self.coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
 
-    def __call__(self, ego, peer, result: AlignResult, timed) -> tuple[FailureReason | None, np.ndarray | None]:
+    def __call__(
+        self, ego, peer, result: AlignResult, timed, window: PriorWindow | None = None
+    ) -> tuple[FailureReason | None, np.ndarray | None]:
+        """``window``: only hypotheses inside it are formed, verified and counted as rivals, and its prior pose is
+        verified as one more hypothesis (config.prior.verify_prior_pose)."""
         cfg = self.config
         a, rf = cfg.acquire, cfg.refine
         with timed("matching"):
@@ -626,18 +673,22 @@ class Acquirer:
 
         with timed("hypotheses"):
             from_boxes = box_hypotheses(ego.boxes, peer.boxes, a)
+            if window is not None:
+                from_boxes = [h for h in from_boxes if window.holds(h.T)]
+                if cfg.prior.verify_prior_pose:
+                    from_boxes.append(Hypothesis(T=window.T.copy(), inliers=0, source="prior"))
         boxes = (BoxSet.of(ego.boxes), BoxSet.of(peer.boxes))
 
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
                 pairs = ego.cached("ego_pairs", lambda: ego_pairs(np.ascontiguousarray(ego.keypoints_xy, np.float64)))
-                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs)
+                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs, window)
                 hs += _with_keypoint_inliers(from_boxes, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0
             with timed("verify"):
-                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, boxes)
-            return hs, _margin(hs, a)
+                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, boxes, window)
+            return hs, (_margin(hs, a) if hs else 0.0)
 
         hyps: list[Hypothesis] = []
         used = cand

@@ -125,12 +125,23 @@ class RansacConfig(_Frozen):
 
 
 class PriorConfig(_Frozen):
-    """Optional prior pose (e.g. from the cars' reported GPS poses) used to gate descriptor matches. Without a
-    prior the engine searches every yaw and shift (the paper's setting)."""
+    """Optional prior pose (e.g. from the cars' reported GPS poses). In multi mode the pose must lie inside its
+    window; when the search everywhere fails, the window is searched alone (only poses inside it hypothesised,
+    verified and counted as rivals; the prior pose itself verified as one more), and a pose found there must be
+    precise (max_sigma_m). In paper mode it gates the descriptor matches. Without a prior the engine searches every
+    yaw and shift (the paper's setting)."""
 
     max_translation_m: float = Field(10.0, gt=0, description="how far the true pose may be from the prior")
     max_yaw_deg: float = Field(10.0, gt=0, le=180)
-    top_k: int = Field(4, ge=1, le=32, description="descriptor candidates per peer keypoint kept for gating")
+    top_k: int = Field(4, ge=1, le=32, description="paper mode: descriptor candidates per peer keypoint gated")
+    verify_prior_pose: bool = Field(True, description="multi mode: the prior pose is also verified as a hypothesis")
+    max_sigma_m: float = Field(
+        0.4,
+        gt=0,
+        description="multi mode: a pose found inside the window alone is refused when its 1-sigma along its worst "
+        "translation direction exceeds this (fewer rivals there, so the pose must be precise; measured on five "
+        "seeds: docs/acquisition.md, Session 10)",
+    )
 
 
 class RefineConfig(_Frozen):

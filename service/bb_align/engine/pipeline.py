@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .acquire import Acquirer, pose_uncertainty
+from .acquire import Acquirer, PriorWindow, pose_uncertainty
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
@@ -67,6 +67,7 @@ class _Pair:
     peer_pts: np.ndarray | None = None  # the peer's lit pixels sampled for the dense refinement
     refined: bool = False  # the refinement ran and its correction was accepted
     multi: bool = False  # stage 1 ran the multi-hypothesis acquisition
+    window: PriorWindow | None = None  # the multi path searched inside a prior's window only
 
 
 class Aligner:
@@ -191,19 +192,64 @@ class Aligner:
     ) -> AlignResult:
         """T_ego_peer from prepared frames. tz, roll, pitch (metres, radians) are Eq. 1's constants.
 
-        ``T_prior`` (3x3 or 4x4 ego <- peer, e.g. from both cars' reported poses) is optional: when given,
-        descriptor matches are gated by it (config.prior); without it every yaw and shift is searched."""
+        ``T_prior`` (3x3 or 4x4 ego <- peer, e.g. from both cars' reported poses) is optional. Multi mode: the pose
+        must lie inside its window (config.prior), which is searched alone when the search everywhere fails
+        (``_within_prior``); paper mode: the descriptor matches are gated by it. Without it every yaw and shift is
+        searched."""
         with _single_threaded_blas():
             ego.ensure_features(), peer.ensure_features()
-            pair = _Pair(ego, peer, AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3)))
-            reason = (
-                self.verdict.inputs(ego, peer)
-                or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
-                or self._covariance(pair)  # not in the paper: the refined pose's covariance (never fails)
-                or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box; fused
-                or self._uncertain(pair)  # not in the paper: a degenerate final pose is refused
-            )
+            if self.acquirer is None or T_prior is None:
+                pair, reason = self._solve(ego, peer, T_prior)  # paper mode gates its matches by the prior
+            else:
+                pair, reason = self._within_prior(ego, peer, self._window(T_prior))
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
+
+    def _solve(
+        self,
+        ego: PreparedFrame,
+        peer: PreparedFrame,
+        T_prior: np.ndarray | None = None,
+        window: PriorWindow | None = None,
+    ) -> tuple[_Pair, FailureReason | None]:
+        pair = _Pair(ego, peer, AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3)))
+        pair.window = window
+        reason = (
+            self.verdict.inputs(ego, peer)
+            or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
+            or self._covariance(pair)  # not in the paper: the refined pose's covariance (never fails)
+            or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box; fused
+            or self._uncertain(pair)  # not in the paper: a degenerate final pose is refused
+        )
+        return pair, reason
+
+    def _window(self, T_prior: np.ndarray) -> PriorWindow:
+        p = self.config.prior
+        return PriorWindow(ground_se2(np.asarray(T_prior, dtype=float)), p.max_translation_m, p.max_yaw_deg)
+
+    def _within_prior(
+        self, ego: PreparedFrame, peer: PreparedFrame, window: PriorWindow
+    ) -> tuple[_Pair, FailureReason | None]:
+        """Multi mode with a prior pose (not in the paper). First the search everywhere, as without a prior: its pose
+        stands when it lies inside the prior's window, and is refused when it lies outside (the images and the
+        report disagree: an alias, or a wrong or lying report). If it failed, the search again inside the window
+        alone. There fewer rivals stand against the best pose, so the margin says less; the pose must then also be
+        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md, "Session 10")."""
+        pair, reason = self._solve(ego, peer)
+        r = pair.result
+        if reason is None:
+            if window.holds(r.T_box @ r.T_bv):
+                r.notes.append("the pose lies inside the prior's window")
+                return pair, None
+            r.notes.append("the pose found everywhere lies outside the prior's window: refused")
+            return pair, FailureReason.disagrees_with_prior
+        if r.acquisition is None:  # the inputs were refused, or no hypothesis formed at all: nothing to bound
+            return pair, reason
+        bounded, bounded_reason = self._solve(ego, peer, window=window)
+        b = bounded.result
+        b.notes.insert(0, f"searched everywhere first: {reason.value}; then inside the prior's window")
+        for name, ms in r.timings_ms.items():
+            b.timings_ms[name] = b.timings_ms.get(name, 0.0) + ms
+        return bounded, bounded_reason
 
     # ---- tracking (not in the paper): one measurement from a predicted pose ------------------------------
     def measure(self, ego: PreparedFrame, peer: PreparedFrame, T_pred: np.ndarray) -> AlignResult:
@@ -231,12 +277,14 @@ class Aligner:
             return self.verdict.finish(r, reason, tz=0.0, roll=0.0, pitch=0.0)
 
     def _stage1(self, pair: _Pair, T_prior: np.ndarray | None) -> FailureReason | None:
-        """Lines 9-11 and the dense refinement. Without a prior, in multi mode: many pose hypotheses from the top-k
-        descriptor candidates, each verified densely (engine.acquire, not in the paper); else the paper's
-        nearest-neighbour matches and one RANSAC fit, then refined."""
-        if self.acquirer is not None and T_prior is None:
+        """Lines 9-11 and the dense refinement. In multi mode: many pose hypotheses from the top-k descriptor
+        candidates (inside ``pair.window`` when set), each verified densely (engine.acquire, not in the paper); in
+        paper mode the nearest-neighbour (or prior-gated) matches and one RANSAC fit, then refined."""
+        if self.acquirer is not None:
             r = pair.result
-            reason, pair.peer_pts = self.acquirer(pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name))
+            reason, pair.peer_pts = self.acquirer(
+                pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name), window=pair.window
+            )
             pair.multi = pair.refined = True
             return reason
         return self._match_and_fit(pair, T_prior) or self._refine(pair)
@@ -272,7 +320,10 @@ class Aligner:
         return None
 
     def _uncertain(self, pair: _Pair) -> FailureReason | None:
-        return None if pair.result.covariance is None else self.verdict.uncertain(pair.result)
+        if pair.result.covariance is None:
+            return None
+        bound = self.config.prior.max_sigma_m if pair.window is not None else None
+        return self.verdict.uncertain(pair.result, max_sigma_m=bound)
 
     def _refine(self, pair: _Pair) -> FailureReason | None:
         """Dense point-to-line ICP of T_bv on the lit pixels; bounded (a correction that wanders is discarded)."""

@@ -101,14 +101,13 @@ class Verdict:
         """After the dense refinement, enough of the peer's lit pixels must land on ego pixels."""
         return FailureReason.inconsistent_overlap if r.refine_fitness < self.rule.min_refine_fitness else None
 
-    def uncertain(self, r: AlignResult) -> FailureReason | None:
+    def uncertain(self, r: AlignResult, max_sigma_m: float | None = None) -> FailureReason | None:
         """A pose whose 1-sigma along its worst translation direction (or in yaw) exceeds the bounds is not a pose
-        to act on: a long straight street pins it across, not along."""
+        to act on: a long straight street pins it across, not along. ``max_sigma_m``: a tighter translation bound
+        than covariance.max_sigma_m (a pose found inside a prior's window)."""
         cov = np.asarray(r.covariance)
-        if (
-            worst_sigma_m(cov) > self.cov.max_sigma_m
-            or np.degrees(np.sqrt(max(0.0, cov[0, 0]))) > self.cov.max_sigma_deg
-        ):
+        bound = self.cov.max_sigma_m if max_sigma_m is None else min(max_sigma_m, self.cov.max_sigma_m)
+        if worst_sigma_m(cov) > bound or np.degrees(np.sqrt(max(0.0, cov[0, 0]))) > self.cov.max_sigma_deg:
             return FailureReason.degenerate_pose
         return None
 
