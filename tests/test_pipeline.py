@@ -101,11 +101,13 @@ def test_paper_mode_applies_the_box_correction(world):
     assert pose_error(res.T_ego_peer, T_true)[0] < 0.3
 
 
-def test_prior_pose_gates_matches(world):
+def test_prior_pose_gates_matches_in_paper_mode(world):
+    """Paper mode: the prior gates the descriptor matches (multi mode's window: tests/test_acquire.py)."""
+    from bb_align.engine.config import AcquireConfig
     from bb_align.engine.geometry import se2_params
 
     pts_ego, _, pts_peer, _, T_true = _pair(world, 120.0, (30.0, -12.0))
-    aligner = Aligner()
+    aligner = Aligner(AlignConfig(acquire=AcquireConfig(mode="paper")))
     ego, peer = aligner.prepare(pts_ego), aligner.prepare(pts_peer)
     yaw, tx, ty = se2_params(T_true)
     noisy = se2(yaw + np.radians(3.0), tx + 2.5, ty - 2.0)  # GPS-grade prior: metres and degrees off

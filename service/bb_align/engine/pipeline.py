@@ -242,7 +242,7 @@ class Aligner:
                 return pair, None
             r.notes.append("the pose found everywhere lies outside the prior's window: refused")
             return pair, FailureReason.disagrees_with_prior
-        if r.acquisition is None:  # the inputs were refused, or no hypothesis formed at all: nothing to bound
+        if self.verdict.inputs(ego, peer) is not None:  # the inputs were refused: a window does not change that
             return pair, reason
         bounded, bounded_reason = self._solve(ego, peer, window=window)
         b = bounded.result

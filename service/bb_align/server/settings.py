@@ -148,8 +148,10 @@ class Settings(BaseSettings):
     align: AlignConfig = Field(default_factory=AlignConfig)
     use_pose_prior: bool = Field(
         True,
-        description="when both frames carry a reported pose, gate descriptor matches by it (align.prior "
-        "tolerances, 10 m / 10 deg by default); a wrong report then fails the alignment instead of biasing it",
+        description="when both frames carry a reported pose, the pose must lie within align.prior's window of it "
+        "(10 m / 10 deg by default), which is searched alone when the search everywhere fails (multi mode; paper "
+        "mode gates the descriptor matches by it); a report the images contradict fails the alignment "
+        "(disagrees_with_prior) instead of biasing it",
     )
     limits: Limits = Field(default_factory=Limits)
     ego_cache_size: int = Field(10, ge=1, le=1000, description="K: last ego frames kept with their features")
