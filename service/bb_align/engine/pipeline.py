@@ -211,8 +211,8 @@ class Aligner:
         T_prior: np.ndarray | None = None,
         window: PriorWindow | None = None,
     ) -> tuple[_Pair, FailureReason | None]:
-        pair = _Pair(ego, peer, AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3)))
-        pair.window = window
+        result = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
+        pair = _Pair(ego, peer, result, window=window)
         reason = (
             self.verdict.inputs(ego, peer)
             or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
