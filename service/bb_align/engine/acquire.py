@@ -28,7 +28,7 @@ from numba import njit
 from .box_poses import BoxSet, box_agreement, box_poses, same_size
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
-from .geometry import pose_is_distinct, se2, se2_params
+from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from .matching import sq_distances
 from .refine import BevCloud, bev_points, coarse_verification_loop, covisible_share, icp_params, refine_icp
 from .result import AlignResult
@@ -265,7 +265,7 @@ class Hypothesis:
     rmse_m: float = float("inf")
     refined: bool = False
     inlier_mask: np.ndarray | None = field(default=None, repr=False)
-    source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes) or "boxes"
+    source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes), "boxes" or "prior"
     box_pairs: int = 0  # peer boxes paired with an agreeing ego box under T (box_poses.box_agreement)
     box_score: float = 0.0  # the boxes' soft score under T (box_poses.box_agreement)
     _params: tuple = field(default=(None, None), init=False, repr=False, compare=False)
@@ -310,7 +310,7 @@ class PriorWindow:
         return se2_params(self.T)
 
     def holds(self, T: np.ndarray) -> bool:
-        return not pose_is_distinct(np.array([self.params]), se2_params(T), self.max_m, self.max_deg)
+        return not distinct_pose(T, [self.T], self.max_m, self.max_deg)
 
     def mask_accumulator(self, acc: np.ndarray, yaw_bin: float, t_bin: float, t_half: float) -> None:
         """Zero (in place) every (yaw, tx, ty) cell whose centre lies more than one cell beyond the window."""
@@ -672,18 +672,18 @@ class Acquirer:
         full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
 
         with timed("hypotheses"):
-            from_boxes = box_hypotheses(ego.boxes, peer.boxes, a)
+            proposed = box_hypotheses(ego.boxes, peer.boxes, a)  # poses not from the keypoint vote
             if window is not None:
-                from_boxes = [h for h in from_boxes if window.holds(h.T)]
+                proposed = [h for h in proposed if window.holds(h.T)]
                 if cfg.prior.verify_prior_pose:
-                    from_boxes.append(Hypothesis(T=window.T.copy(), inliers=0, source="prior"))
+                    proposed.append(Hypothesis(T=window.T.copy(), inliers=0, source="prior"))
         boxes = (BoxSet.of(ego.boxes), BoxSet.of(peer.boxes))
 
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
                 pairs = ego.cached("ego_pairs", lambda: ego_pairs(np.ascontiguousarray(ego.keypoints_xy, np.float64)))
                 hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs, window)
-                hs += _with_keypoint_inliers(from_boxes, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
+                hs += _with_keypoint_inliers(proposed, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0
             with timed("verify"):
