@@ -12,12 +12,11 @@ from scipy.ndimage import distance_transform_edt
 
 from bb_align import AlignConfig
 from bb_align.engine.acquire import (
-    _VOTE_BUFFER,
-    _vote,
     coarse_verification,
     covisible_fraction,
     covisible_map,
     ego_pairs,
+    vote,
 )
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
@@ -82,8 +81,10 @@ def _vote_reference(kp_src, kp_dst, cand, min_d, len_tol, yaw_bin, t_bin, t_half
     return acc
 
 
-def test_vote_equals_the_reference_vote():
-    """A true pose hidden among random candidates, enough votes to fill the vote buffer several times."""
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_vote_equals_the_reference_vote(threads):
+    """A true pose hidden among random candidates; small vote buffers, so casting resumes many times. Any number
+    of threads gives the same accumulator, bit for bit (each cell's votes are added in the order they were cast)."""
     rng = np.random.default_rng(3)
     T = se2(np.radians(-71.0), 14.0, 9.0)
     kp_src = rng.uniform(-40, 40, (70, 2))
@@ -94,10 +95,12 @@ def test_vote_equals_the_reference_vote():
     cand[::7, 0] = rng.integers(0, 120, 10)  # some keypoints without their true partner
     yaw_bin, n_yaw = 2 * np.pi / 120, 120
     args = (3.0, 4.0, yaw_bin, 3.0, 75.0, n_yaw, 50)
-    acc = _vote(kp_src, kp_dst, cand, *ego_pairs(kp_dst), *args)
+    acc = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=threads, chunk=500)
     ref = _vote_reference(kp_src, kp_dst, cand, *args)
-    assert ref.sum() > 2 * _VOTE_BUFFER
+    assert ref.sum() > 8 * 500
     np.testing.assert_allclose(acc, ref, rtol=1e-6, atol=1e-5)
+    one_thread_one_buffer = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=1, chunk=10**6)
+    assert np.array_equal(acc, one_thread_one_buffer)
     peak = np.unravel_index(np.argmax(acc), acc.shape)
     assert peak == np.unravel_index(np.argmax(ref), ref.shape)
     assert abs((peak[0] + 0.5) * yaw_bin - np.pi - np.radians(-71.0)) < 2 * yaw_bin
@@ -198,16 +201,19 @@ def sim_pair():
     return cfg, cloud, covis, peer_bev, starts
 
 
-@pytest.mark.parametrize("min_points", [None, 100])
-def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points):
-    """min_points 100: some far starts match fewer pixels at some step (the start pose kept)."""
+@pytest.mark.parametrize(("min_points", "threads"), [(None, 1), (100, 1), (None, 3)])
+def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points, threads):
+    """min_points 100: some far starts match fewer pixels at some step (the start pose kept). threads 3: the poses
+    verified in three groups at once, the same answers in the same order."""
     cfg, cloud, covis, peer_bev, starts = sim_pair
     a = cfg.acquire
     coarse = cfg.refine.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
     if min_points is not None:
         coarse = coarse.model_copy(update={"min_points": min_points})
     pts = bev_points(peer_bev, cfg.refine.min_pixel_value, a.coarse_points, seed=cfg.seed)
-    Ts, fitness, rmse, covisible = coarse_verification(cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1])
+    Ts, fitness, rmse, covisible = coarse_verification(
+        cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1], threads
+    )
     accepted = 0
     for n, T0 in enumerate(starts):
         ref = _refine_icp_reference(cloud, pts, T0, coarse)

@@ -30,6 +30,7 @@ from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
 from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from .matching import sq_distances
+from .parallel import contiguous, run_parts
 from .refine import BevCloud, bev_points, coarse_verification_loop, covisible_share, icp_params, refine_icp
 from .result import AlignResult
 from .verdict import FailureReason
@@ -58,18 +59,23 @@ def topk_candidates(
 # ---- 2. hypotheses -------------------------------------------------------------------------------------------
 
 
-_VOTE_BUFFER = 2048  # votes computed before they are added to the accumulator (see _vote)
+_VOTE_CHUNK = 65536  # votes per buffer: a peer pair is cast whole into one buffer (see vote)
 
 
 @njit(cache=True, nogil=True)
-def _scatter(acc, cell, frac, n, n_yaw, n_t):
+def _scatter(acc, cell, frac, n, n_t, y_lo, y_hi):
     """Adds the first ``n`` buffered votes to the accumulator, in order, each split over its 2x2x2 nearest cells:
-    ``cell`` (n, 3) the lower corner (yaw, tx, ty), ``frac`` (n, 3) the vote's offsets from it (the weights)."""
+    ``cell`` (n, 3) the lower corner (yaw, tx, ty), ``frac`` (n, 3) the vote's offsets from it (the weights). Only
+    the yaw cells y_lo <= yaw < y_hi are written: threads owning disjoint slabs add every cell's votes in the order
+    they were cast, so the sums are the same as one thread's."""
+    n_yaw = acc.shape[0]
     for m in range(n):
         y0, x0, z0 = cell[m, 0], cell[m, 1], cell[m, 2]
         ay, ax, az = frac[m, 0], frac[m, 1], frac[m, 2]
         for e1 in range(2):
             yy = (y0 + e1) % n_yaw
+            if yy < y_lo or yy >= y_hi:
+                continue
             wy = ay if e1 else 1.0 - ay
             for e2 in range(2):
                 xx = x0 + e2
@@ -99,57 +105,97 @@ def ego_pairs(kp_dst):
 
 
 @njit(cache=True, nogil=True)
-def _vote(kp_src, kp_dst, cand, d_e, phi, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t):
-    """Every pair of peer keypoints (a, b) at least ``min_d`` apart, with candidates (i, j) among their ego
-    candidates ``cand`` (Q, k) whose distance agrees within ``len_tol``, votes for the rigid pose it implies into
-    a (n_yaw, n_t, n_t) accumulator, split over the 2x2x2 nearest cells. ``d_e``, ``phi``: ``ego_pairs(kp_dst)``;
-    the pose's yaw is the ego pair's direction minus the peer pair's (one arctan2 per peer pair, not per vote).
-    The votes are buffered and added in batches, in the order they were cast: the accumulator (several MB) is then
-    written in a tight loop whose cache misses overlap."""
-    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
-    cell = np.empty((_VOTE_BUFFER, 3), np.int64)
-    frac = np.empty((_VOTE_BUFFER, 3))
-    nb = 0
+def _cast(kp_src, kp_dst, cand, d_e, phi, min_d, len_tol, yaw_bin, t_bin, t_half, a, b, a_end, cell, frac):
+    """The votes of the peer pairs (a, b), a < b, from the given (a, b) on, in order, while a < ``a_end`` and the
+    buffers (``cell``, ``frac``: see _scatter) have room for a whole pair's votes. Every pair of peer keypoints at
+    least ``min_d`` apart, with candidates (i, j) among their ego candidates ``cand`` (Q, k) whose distance agrees
+    within ``len_tol``, votes for the rigid pose it implies. ``d_e``, ``phi``: ``ego_pairs(kp_dst)``; the pose's
+    yaw is the ego pair's direction minus the peer pair's (one arctan2 per peer pair, not per vote).
+    Returns (votes written, the (a, b) to resume from)."""
     q, k = cand.shape
-    for a in range(q):
-        for b in range(a + 1, q):
+    nb = 0
+    while a < a_end:
+        while b < q:
+            if nb + k * k > len(cell):
+                return nb, a, b
             sx, sy = kp_src[b, 0] - kp_src[a, 0], kp_src[b, 1] - kp_src[a, 1]
             ds = np.sqrt(sx * sx + sy * sy)
-            if ds < min_d:
-                continue
-            msx, msy = 0.5 * (kp_src[a, 0] + kp_src[b, 0]), 0.5 * (kp_src[a, 1] + kp_src[b, 1])
-            psi = np.nan  # the peer pair's direction, computed at its first vote
-            for u in range(k):
-                i = cand[a, u]
-                for v in range(k):
-                    j = cand[b, v]
-                    if i == j or abs(ds - d_e[i, j]) > len_tol:
-                        continue
-                    if psi != psi:
-                        psi = np.arctan2(sy, sx)
-                    th = phi[i, j] - psi
-                    if th > np.pi:
-                        th -= 2 * np.pi
-                    elif th <= -np.pi:
-                        th += 2 * np.pi
-                    dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
-                    cr, dt = sx * dy - sy * dx, sx * dx + sy * dy
-                    nrm = np.sqrt(cr * cr + dt * dt)
-                    c, s = dt / nrm, cr / nrm
-                    mdx, mdy = 0.5 * (kp_dst[i, 0] + kp_dst[j, 0]), 0.5 * (kp_dst[i, 1] + kp_dst[j, 1])
-                    tx = mdx - (c * msx - s * msy)
-                    ty = mdy - (s * msx + c * msy)
-                    fy = (th + np.pi) / yaw_bin - 0.5
-                    fx = (tx + t_half) / t_bin - 0.5
-                    fz = (ty + t_half) / t_bin - 0.5
-                    y0, x0, z0 = int(np.floor(fy)), int(np.floor(fx)), int(np.floor(fz))
-                    cell[nb, 0], cell[nb, 1], cell[nb, 2] = y0, x0, z0
-                    frac[nb, 0], frac[nb, 1], frac[nb, 2] = fy - y0, fx - x0, fz - z0
-                    nb += 1
-                    if nb == _VOTE_BUFFER:
-                        _scatter(acc, cell, frac, nb, n_yaw, n_t)
-                        nb = 0
-    _scatter(acc, cell, frac, nb, n_yaw, n_t)
+            if ds >= min_d:
+                msx, msy = 0.5 * (kp_src[a, 0] + kp_src[b, 0]), 0.5 * (kp_src[a, 1] + kp_src[b, 1])
+                psi = np.nan  # the peer pair's direction, computed at its first vote
+                for u in range(k):
+                    i = cand[a, u]
+                    for v in range(k):
+                        j = cand[b, v]
+                        if i == j or abs(ds - d_e[i, j]) > len_tol:
+                            continue
+                        if psi != psi:
+                            psi = np.arctan2(sy, sx)
+                        th = phi[i, j] - psi
+                        if th > np.pi:
+                            th -= 2 * np.pi
+                        elif th <= -np.pi:
+                            th += 2 * np.pi
+                        dx, dy = kp_dst[j, 0] - kp_dst[i, 0], kp_dst[j, 1] - kp_dst[i, 1]
+                        cr, dt = sx * dy - sy * dx, sx * dx + sy * dy
+                        nrm = np.sqrt(cr * cr + dt * dt)
+                        c, s = dt / nrm, cr / nrm
+                        mdx, mdy = 0.5 * (kp_dst[i, 0] + kp_dst[j, 0]), 0.5 * (kp_dst[i, 1] + kp_dst[j, 1])
+                        tx = mdx - (c * msx - s * msy)
+                        ty = mdy - (s * msx + c * msy)
+                        fy = (th + np.pi) / yaw_bin - 0.5
+                        fx = (tx + t_half) / t_bin - 0.5
+                        fz = (ty + t_half) / t_bin - 0.5
+                        y0, x0, z0 = int(np.floor(fy)), int(np.floor(fx)), int(np.floor(fz))
+                        cell[nb, 0], cell[nb, 1], cell[nb, 2] = y0, x0, z0
+                        frac[nb, 0], frac[nb, 1], frac[nb, 2] = fy - y0, fx - x0, fz - z0
+                        nb += 1
+            b += 1
+        a += 1
+        b = a + 1
+    return nb, a, b
+
+
+def _even_rows(q: int, parts: int) -> list[tuple[int, int]]:
+    """Row ranges [a0, a1) of the peer pairs (a, b > a) holding about equal numbers of pairs, in order."""
+    after = np.cumsum(np.arange(q - 1, -1, -1))  # pairs with first index <= a
+    cuts = np.searchsorted(after, after[-1] * np.arange(1, parts) / parts) if q else np.zeros(parts - 1, int)
+    bounds = [0, *(int(c) + 1 for c in cuts), q]
+    return [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True) if hi > lo]
+
+
+def vote(
+    kp_src, kp_dst, cand, pairs, min_d, len_tol, yaw_bin, t_bin, t_half, n_yaw, n_t, threads=1, chunk=_VOTE_CHUNK
+) -> np.ndarray:
+    """The (n_yaw, n_t, n_t) float32 accumulator of every candidate pair's pose vote (``_cast``), each vote split
+    over the 2x2x2 nearest cells. In two parallel phases with the same result for any ``threads``: the votes are
+    cast into buffers by ranges of peer rows, then added by yaw slabs, each slab reading every buffer in the order
+    the votes were cast. Buffering also lets the accumulator (several MB) be written in a tight loop whose cache
+    misses overlap. Transient memory: 36 bytes per vote (1.5 MB on a close pair's first pass, ~16 MB on a far
+    pair's 12-candidate search); ``chunk``: votes per buffer."""
+    d_e, phi = pairs
+    k = cand.shape[1]
+    args = (kp_src, kp_dst, cand, d_e, phi, min_d, len_tol, yaw_bin, t_bin, t_half)
+    chunk = max(chunk, k * k)
+
+    def cast(rows: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray, int]]:
+        a, a_end = rows
+        b, out = a + 1, []
+        while a < a_end:
+            cell, frac = np.empty((chunk, 3), np.int32), np.empty((chunk, 3))
+            n, a, b = _cast(*args, a, b, a_end, cell, frac)
+            out.append((cell, frac, n))
+        return out
+
+    buffers = [buf for part in run_parts(cast, _even_rows(len(cand), threads)) for buf in part]
+    acc = np.zeros((n_yaw, n_t, n_t), np.float32)
+
+    def add(slab: tuple[int, int]) -> None:
+        for cell, frac, n in buffers:
+            _scatter(acc, cell, frac, n, n_t, slab[0], slab[1])
+
+    edges = np.linspace(0, n_yaw, max(1, threads) + 1).round().astype(int)
+    run_parts(add, [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:], strict=True) if hi > lo])
     return acc
 
 
@@ -323,6 +369,16 @@ class PriorWindow:
         acc[:, :, np.abs(t_c - ty0) > self.max_m + t_bin] = 0.0
 
 
+@dataclass
+class SearchMemo:
+    """What one alignment's searches of the same two frames share: the first search fills it, a second (inside a
+    prior's window, pipeline.Aligner._within_prior) reads it. Lives for one alignment: nothing here outlives it."""
+
+    candidates: tuple[np.ndarray, np.ndarray] | None = None  # topk_candidates' (rows, cand)
+    proposed: list[Hypothesis] | None = None  # the boxes' poses, before any window
+    votes: dict[int, np.ndarray] = field(default_factory=dict)  # candidates per keypoint -> unmasked accumulator
+
+
 def pose_hypotheses(
     kp_peer: np.ndarray,
     kp_ego: np.ndarray,
@@ -332,11 +388,13 @@ def pose_hypotheses(
     t_half: float,
     pairs: tuple[np.ndarray, np.ndarray] | None = None,
     window: PriorWindow | None = None,
+    votes: dict[int, np.ndarray] | None = None,
 ) -> list[Hypothesis]:
     """Up to cfg.max_hypotheses distinct poses (most inliers first) from the candidates ``cand`` (Q, k): row q
     lists the ego keypoints that may be peer keypoint q's partner. ``pairs``: ``ego_pairs(kp_ego)`` when cached.
     ``window``: only poses inside it (the accumulator is searched there alone, so weaker in-window peaks are not
-    crowded out by strong poses elsewhere)."""
+    crowded out by strong poses elsewhere). ``votes``: accumulators by candidates per keypoint, read when there
+    and filled when not (SearchMemo.votes; never masked in place)."""
     q, k = cand.shape
     if q < 2:
         return []
@@ -345,21 +403,26 @@ def pose_hypotheses(
     n_yaw = int(np.ceil(2 * np.pi / yaw_bin))
     yaw_bin = 2 * np.pi / n_yaw
     n_t = int(np.ceil(2 * t_half / cfg.vote_t_m))
-    acc = _vote(
-        np.ascontiguousarray(kp_peer, np.float64),
-        np.ascontiguousarray(kp_ego, np.float64),
-        np.ascontiguousarray(cand, np.int64),
-        d_e,
-        phi,
-        cfg.min_sample_dist_m,
-        cfg.length_tolerance_m,
-        yaw_bin,
-        cfg.vote_t_m,
-        t_half,
-        n_yaw,
-        n_t,
-    )
+    acc = None if votes is None else votes.get(k)
+    if acc is None:
+        acc = vote(
+            np.ascontiguousarray(kp_peer, np.float64),
+            np.ascontiguousarray(kp_ego, np.float64),
+            np.ascontiguousarray(cand, np.int64),
+            (d_e, phi),
+            cfg.min_sample_dist_m,
+            cfg.length_tolerance_m,
+            yaw_bin,
+            cfg.vote_t_m,
+            t_half,
+            n_yaw,
+            n_t,
+            cfg.threads,
+        )
+        if votes is not None:
+            votes[k] = acc
     if window is not None:
+        acc = acc.copy() if votes is not None else acc
         window.mask_accumulator(acc, yaw_bin, cfg.vote_t_m, t_half)
     flat = acc.ravel()
     idx = _cells_above(flat, cfg.min_votes)
@@ -456,26 +519,27 @@ def covisible_fraction(mask: np.ndarray, cloud: BevCloud, pts: np.ndarray, T: np
 
 
 def coarse_verification(
-    cloud: BevCloud, covis: np.ndarray, pts: np.ndarray, Ts: list[np.ndarray], coarse: RefineConfig, final_gate: float
+    cloud: BevCloud,
+    covis: np.ndarray,
+    pts: np.ndarray,
+    Ts: list[np.ndarray],
+    coarse: RefineConfig,
+    final_gate: float,
+    threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each pose of ``Ts`` refined (refine_icp with ``coarse``) and scored at it (overlap_fitness within
-    ``final_gate``, covisible_fraction), in one compiled call: (poses (H, 3, 3), fitness, rmse_m, covisible)."""
+    ``final_gate``, covisible_fraction), in one compiled call per group of poses (``threads`` groups in parallel;
+    the poses are independent): (poses (H, 3, 3), fitness, rmse_m, covisible)."""
     T = np.ascontiguousarray(np.array(Ts, dtype=np.float64).reshape(-1, 3, 3))
-    return coarse_verification_loop(
-        cloud.index,
-        cloud.clearance,
-        cloud.xy,
-        cloud.normals,
-        cloud.range_m,
-        cloud.resolution_m,
-        covis,
-        np.ascontiguousarray(pts, dtype=np.float64),
-        T,
-        *icp_params(coarse),
-        coarse.max_correction_m,
-        coarse.max_correction_deg,
-        final_gate,
-    )
+    p = np.ascontiguousarray(pts, dtype=np.float64)
+    fixed = (cloud.index, cloud.clearance, cloud.xy, cloud.normals, cloud.range_m, cloud.resolution_m, covis, p)
+    tail = (*icp_params(coarse), coarse.max_correction_m, coarse.max_correction_deg, final_gate)
+
+    def run(group: np.ndarray):
+        return coarse_verification_loop(*fixed, np.ascontiguousarray(group), *tail)
+
+    parts = run_parts(run, contiguous(T, threads) or [T])
+    return tuple(np.concatenate([part[m] for part in parts]) for m in range(4))  # type: ignore[return-value]
 
 
 @dataclass
@@ -547,7 +611,7 @@ def verify(
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
     size_ok = same_size(peer_boxes, ego_boxes, a)  # the boxes' footprint agreement, the same under every pose
     Ts, fitness, rmse, covisible = coarse_verification(
-        ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate
+        ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate, a.threads
     )
     for n, h in enumerate(hyps):
         h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
@@ -555,8 +619,11 @@ def verify(
     if window is not None:
         hyps[:] = [h for h in hyps if window.holds(h.T)]
     hyps.sort(key=lambda x: -score(x, a))
-    for h in hyps[: a.finalists]:
-        ref = refine_icp(ego_cloud, full_pts, h.T, rf)
+    finalists = hyps[: a.finalists]
+    refined = run_parts(
+        lambda hs: [refine_icp(ego_cloud, full_pts, h.T, rf) for h in hs], contiguous(finalists, a.threads)
+    )
+    for h, ref in zip(finalists, [r for part in refined for r in part], strict=True):
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
         h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
         h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
@@ -643,17 +710,28 @@ class Acquirer:
         self.coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
 
     def __call__(
-        self, ego, peer, result: AlignResult, timed, window: PriorWindow | None = None
+        self,
+        ego,
+        peer,
+        result: AlignResult,
+        timed,
+        window: PriorWindow | None = None,
+        memo: SearchMemo | None = None,
     ) -> tuple[FailureReason | None, np.ndarray | None]:
         """``window``: only hypotheses inside it are formed, verified and counted as rivals, and its prior pose is
-        verified as one more hypothesis (config.prior.verify_prior_pose)."""
+        verified as one more hypothesis (config.prior.verify_prior_pose). ``memo``: what an earlier search of the
+        same two frames found (read) or an empty one (filled)."""
         cfg = self.config
         a, rf = cfg.acquire, cfg.refine
+        keep_votes = memo is not None  # a lone search does not hold its first pass's votes (5 MB) through the second
+        memo = memo or SearchMemo()
         with timed("matching"):
-            desc_ref = ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
-            rows, cand = topk_candidates(
-                peer.descriptors, desc_ref, len(ego.descriptors), a.top_k, threads=cfg.match.threads
-            )
+            if memo.candidates is None:
+                desc_ref = ego.reference_descriptors(cfg.features, cfg.mim.n_orient)
+                memo.candidates = topk_candidates(
+                    peer.descriptors, desc_ref, len(ego.descriptors), a.top_k, threads=cfg.match.threads
+                )
+            rows, cand = memo.candidates
         result.matches_bv = int(cand.size)
         if len(rows) < 2:
             return FailureReason.too_few_matches, None
@@ -672,7 +750,9 @@ class Acquirer:
         full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
 
         with timed("hypotheses"):
-            proposed = box_hypotheses(ego.boxes, peer.boxes, a)  # poses not from the keypoint vote
+            if memo.proposed is None:
+                memo.proposed = box_hypotheses(ego.boxes, peer.boxes, a)  # poses not from the keypoint vote
+            proposed = memo.proposed
             if window is not None:
                 proposed = [h for h in proposed if window.holds(h.T)]
                 if cfg.prior.verify_prior_pose:
@@ -682,7 +762,17 @@ class Acquirer:
         def run(c: np.ndarray) -> tuple[list[Hypothesis], float]:
             with timed("hypotheses"):
                 pairs = ego.cached("ego_pairs", lambda: ego_pairs(np.ascontiguousarray(ego.keypoints_xy, np.float64)))
-                hs = pose_hypotheses(kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m, t_half, pairs, window)
+                hs = pose_hypotheses(
+                    kp,
+                    ego.keypoints_xy,
+                    c,
+                    a,
+                    cfg.ransac.inlier_threshold_m,
+                    t_half,
+                    pairs,
+                    window,
+                    memo.votes if keep_votes else None,
+                )
                 hs += _with_keypoint_inliers(proposed, hs, kp, ego.keypoints_xy, c, a, cfg.ransac.inlier_threshold_m)
             if not hs:
                 return hs, 0.0

@@ -270,6 +270,9 @@ class AcquireConfig(_Frozen):
 
     mode: Literal["paper", "multi"] = Field("multi", description="paper: single hypothesis; multi: see above")
     top_k: int = Field(12, ge=1, le=32, description="nearest distinct ego keypoints kept per peer descriptor")
+    threads: int = Field(
+        2, ge=1, le=16, description="the pose vote and the dense verification run on this many threads (same result)"
+    )
     first_k: int = Field(3, ge=0, le=32, description="cheap first pass on the first_k nearest candidates only; 0: off")
     first_pass_evidence: float = Field(
         1.0,

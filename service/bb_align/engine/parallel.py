@@ -17,6 +17,12 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="bb-align-engine")
 
 
+def contiguous(items: Sequence[T], parts: int) -> list[Sequence[T]]:
+    """``items`` cut into at most ``parts`` contiguous, non-empty slices of near-equal length, in order."""
+    bounds = [round(i * len(items) / max(1, min(parts, len(items)))) for i in range(min(parts, len(items)) + 1)]
+    return [items[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
 def run_parts(fn: Callable[[T], R], parts: Sequence[T]) -> list[R]:
     """fn over each part, in order; on a shared pool when there is more than one part."""
     if len(parts) <= 1:

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .acquire import Acquirer, PriorWindow, pose_uncertainty
+from .acquire import Acquirer, PriorWindow, SearchMemo, pose_uncertainty
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
@@ -68,6 +68,7 @@ class _Pair:
     refined: bool = False  # the refinement ran and its correction was accepted
     multi: bool = False  # stage 1 ran the multi-hypothesis acquisition
     window: PriorWindow | None = None  # the multi path searched inside a prior's window only
+    memo: SearchMemo | None = None  # what a second search of the same two frames reuses (see _within_prior)
 
 
 class Aligner:
@@ -210,9 +211,10 @@ class Aligner:
         peer: PreparedFrame,
         T_prior: np.ndarray | None = None,
         window: PriorWindow | None = None,
+        memo: SearchMemo | None = None,
     ) -> tuple[_Pair, FailureReason | None]:
         result = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
-        pair = _Pair(ego, peer, result, window=window)
+        pair = _Pair(ego, peer, result, window=window, memo=memo)
         reason = (
             self.verdict.inputs(ego, peer)
             or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
@@ -233,8 +235,10 @@ class Aligner:
         stands when it lies inside the prior's window, and is refused when it lies outside (the images and the
         report disagree: an alias, or a wrong or lying report). If it failed, the search again inside the window
         alone. There fewer rivals stand against the best pose, so the margin says less; the pose must then also be
-        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md, "Session 10")."""
-        pair, reason = self._solve(ego, peer)
+        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md, "Session 10"). The second search reuses
+        the first's descriptor candidates, box poses and (unmasked) votes: only the window is new."""
+        memo = SearchMemo()
+        pair, reason = self._solve(ego, peer, memo=memo)
         r = pair.result
         if reason is None:
             if window.holds(r.T_box @ r.T_bv):
@@ -244,7 +248,7 @@ class Aligner:
             return pair, FailureReason.disagrees_with_prior
         if self.verdict.inputs(ego, peer) is not None:  # the inputs were refused: a window does not change that
             return pair, reason
-        bounded, bounded_reason = self._solve(ego, peer, window=window)
+        bounded, bounded_reason = self._solve(ego, peer, window=window, memo=memo)
         b = bounded.result
         b.notes.insert(0, f"searched everywhere first: {reason.value}; then inside the prior's window")
         for name, ms in r.timings_ms.items():
@@ -283,7 +287,7 @@ class Aligner:
         if self.acquirer is not None:
             r = pair.result
             reason, pair.peer_pts = self.acquirer(
-                pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name), window=pair.window
+                pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name), window=pair.window, memo=pair.memo
             )
             pair.multi = pair.refined = True
             return reason

@@ -48,7 +48,7 @@ def bench(
         min=1,
         max=16,
         help="threads inside one engine call (MIM orientations, descriptor keypoints, "
-        "matching queries) [config default, 2]; 1 times the engine on one core",
+        "matching queries, pose vote, dense verification) [config default, 2]; 1 times the engine on one core",
     ),
 ) -> None:
     """Time the engine per stage against the in-benchmark baseline (same inputs, same run), check they agree,
@@ -71,6 +71,7 @@ def bench(
                 "mim": config.mim.model_copy(update={"threads": engine_threads}),
                 "features": config.features.model_copy(update={"threads": engine_threads}),
                 "match": config.match.model_copy(update={"threads": engine_threads}),
+                "acquire": config.acquire.model_copy(update={"threads": engine_threads}),
             }
         )
     runs = runs or (3 if quick else 10)
