@@ -173,6 +173,40 @@ def test_decimated_mim_agrees_with_the_exact_one_on_a_real_scan(shared_data):
     assert np.mean(fast[lit] == exact[lit]) > 0.93
 
 
+@pytest.mark.parametrize(
+    "shape,offset,stride,resized",
+    [((20, 24), (15.5, 15.5), 2, True), ((20, 24), (16.0, 15.5), 2, False), ((9, 9), (0.5, 0.5), 2, False),
+     ((12, 10), (13.0, 13.0), 3, True)],
+)  # fmt: skip
+def test_upsampling_is_the_periodic_bilinear_interpolation(shape, offset, stride, resized, monkeypatch):
+    """acc += coarse at ((offset + i) / stride, (offset + j) / stride), bilinear on the periodic coarse map, checked
+    point by point; both of _add_upsampled's ways (the cropped enlargement when the pixels line up, the wrapping
+    warp otherwise, here also at the border) give it."""
+    from bb_align.engine.loggabor import _add_upsampled
+
+    rng = np.random.default_rng(1)
+    coarse = rng.random((20, 22)).astype(np.float32)
+    acc = rng.random(shape).astype(np.float32)
+    expected = acc.astype(np.float64)
+    for i in range(shape[0]):
+        for j in range(shape[1]):
+            r, c = (offset[0] + i) / stride, (offset[1] + j) / stride
+            r0, c0 = int(np.floor(r)), int(np.floor(c))
+            fr, fc = r - r0, c - c0
+            at = lambda a, b: float(coarse[a % coarse.shape[0], b % coarse.shape[1]])  # noqa: E731
+            expected[i, j] += (1 - fr) * ((1 - fc) * at(r0, c0) + fc * at(r0, c0 + 1)) + fr * (
+                (1 - fc) * at(r0 + 1, c0) + fc * at(r0 + 1, c0 + 1)
+            )
+    calls = []
+    monkeypatch.setattr(cv2, "resize", lambda *a, **k: calls.append(1) or _resize(*a, **k))
+    _add_upsampled(acc, coarse, offset, stride, np.empty((20 * stride, 22 * stride), np.float32))
+    assert bool(calls) == resized
+    np.testing.assert_allclose(acc, expected, atol=1e-5)
+
+
+_resize = cv2.resize
+
+
 def test_circular_span_hand_worked():
     mask = np.zeros(10, bool)
     mask[[0, 1, 8, 9]] = True  # wraps around: rows 8, 9, 0, 1
