@@ -430,7 +430,7 @@ def pose_hypotheses(
         return []
     idx = idx[np.argsort(-flat[idx], kind="stable")[: cfg.peaks]]
     iy, ix, iz = np.unravel_index(idx, acc.shape)
-    yaw = (iy + 0.5) * yaw_bin - np.pi
+    yaw = (iy + 0.5) * yaw_bin - np.pi  # cell centres, all in (-pi, pi)
     tx, ty = (ix + 0.5) * cfg.vote_t_m - t_half, (iz + 0.5) * cfg.vote_t_m - t_half
     # The cell centres are coarse: score them all with a wide threshold (compiled, no (peaks x M) arrays), refit
     # the strongest.
@@ -449,9 +449,11 @@ def pose_hypotheses(
             or attempts >= cfg.max_refit_attempts
         ):
             break
-        cell = se2_params(se2(yaw[h], tx[h], ty[h]))
         if not pose_is_distinct(
-            found[: len(out)], cell, cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg
+            found[: len(out)],
+            (yaw[h], tx[h], ty[h]),
+            cfg.distinct_m + cfg.vote_t_m,
+            cfg.distinct_deg + cfg.vote_yaw_deg,
         ):
             continue  # a neighbouring cell of a pose already found
         attempts += 1

@@ -23,7 +23,7 @@ from numba import njit
 
 from .boxes import as_boxes
 from .config import AcquireConfig
-from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
+from .geometry import pose_is_distinct, se2, se2_params
 
 
 @dataclass(frozen=True)
@@ -194,6 +194,7 @@ def box_poses(boxes_ego, boxes_peer, cfg: AcquireConfig) -> list[BoxPose]:
         peer.centres, peer.headings, ego.centres, ego.headings, size_ok, cfg.box_seed_gate_m**2, tol
     )
     found: list[BoxPose] = []
+    found_params = np.empty((cfg.max_refit_attempts, 3))  # se2_params of found's poses
     seen = _PoseSet(cfg)  # the seeds tried and the poses found
     for h in np.argsort(-sup, kind="stable"):
         if sup[h] < cfg.box_min_pairs or seen.tried >= cfg.max_refit_attempts:
@@ -215,10 +216,12 @@ def box_poses(boxes_ego, boxes_peer, cfg: AcquireConfig) -> list[BoxPose]:
             cfg.box_min_pairs,
         )
         T = se2(*params)
-        if not ok or not distinct_pose(T, [b.T for b in found], cfg.distinct_m, cfg.distinct_deg):
+        pose = se2_params(T)
+        if not ok or not pose_is_distinct(found_params[: len(found)], pose, cfg.distinct_m, cfg.distinct_deg):
             continue
+        found_params[len(found)] = pose
         found.append(BoxPose(T, *box_agreement(T, peer, ego, cfg, size_ok)))
-        seen.add(*se2_params(T))
+        seen.add(*pose)
     found = [b for b in found if b.pairs >= cfg.box_min_pairs]
     found.sort(key=lambda b: -b.score)
     return found[: cfg.box_hypotheses]
