@@ -402,6 +402,16 @@ class AcquireConfig(_Frozen):
         "stage 2 cannot verify it (no common boxes at long range); a box correction beyond "
         "box.max_correction_* still fails",
     )
+    stage2_waiver_evidence: float | None = Field(
+        1.0,
+        ge=0,
+        description="multi mode, the search everywhere (not inside a prior's window, whose fewer rivals inflate the "
+        "margin): a pose whose dense evidence (margin x relative fitness) reaches this succeeds when stage 2 "
+        "finds no box support (no_box_overlap, too_few_inliers_box), as it does when a car sends no boxes; a box "
+        "correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence: on seeds 2024, 777, 4242 "
+        "and 55555 every wrong best pose found everywhere had at most 0.82 (docs/acquisition.md, Session 11). "
+        "None: stage 2 always vetoes",
+    )
 
 
 class CovarianceConfig(_Frozen):

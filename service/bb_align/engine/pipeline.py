@@ -350,7 +350,10 @@ class Aligner:
         with _timed(r.timings_ms, "boxes"):
             boxes = self.box_stage.align(pair.ego.boxes, pair.peer.boxes, r.T_bv)
         r.box_pairs, r.inliers_box = boxes.pairs, boxes.inliers
-        reason = self.verdict.stage2(r, boxes.T_box, densely_verified=pair.multi)
+        evidence = None  # the multi path's dense evidence, when found by the search everywhere
+        if pair.multi and pair.window is None and r.acquisition and r.acquisition.get("best"):
+            evidence = r.acquisition["margin"] * r.acquisition["best"]["relative_fitness"]
+        reason = self.verdict.stage2(r, boxes.T_box, densely_verified=pair.multi, evidence=evidence)
         if reason is None and self.verdict.boxes_verified(r):
             self._apply_box_correction(pair, boxes.T_box)
             if r.stage2_applied:  # the pose moved: its uncertainty is the final pose's

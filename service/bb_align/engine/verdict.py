@@ -117,9 +117,12 @@ class Verdict:
         r.notes.append("stage 2 skipped: no boxes from " + " and ".join(missing))
         return None
 
-    def stage2(self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False) -> FailureReason | None:
+    def stage2(
+        self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False, evidence: float | None = None
+    ) -> FailureReason | None:
         """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone, or a densely
-        verified multi-hypothesis pose when acquire.stage2_required is off), and a correction within bounds."""
+        verified multi-hypothesis pose when acquire.stage2_required is off or its ``evidence`` reaches
+        acquire.stage2_waiver_evidence), and a correction within bounds."""
         failure = (
             FailureReason.no_box_overlap
             if r.box_pairs == 0
@@ -127,6 +130,14 @@ class Verdict:
             if r.inliers_box <= self.rule.min_inliers_box
             else None
         )
+        waiver = self.acquire.stage2_waiver_evidence
+        if failure is not None and densely_verified and evidence is not None and waiver is not None:
+            if evidence >= waiver:
+                r.notes.append(
+                    f"stage 2 could not verify ({failure.value}); accepted on strong dense evidence "
+                    f"({evidence:.2f} >= {waiver:g})"
+                )
+                return None
         if failure is not None and densely_verified and not self.acquire.stage2_required:
             r.notes.append(
                 f"stage 2 could not verify ({failure.value}); accepted on the dense multi-hypothesis verification"
