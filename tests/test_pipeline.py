@@ -52,9 +52,11 @@ def test_prepared_ego_is_reusable_and_results_are_deterministic(world):
     assert pose_error(a.T_ego_peer, T_true)[0] < 0.3
 
 
-def test_stage2_failure_keeps_stage1_pose(world):
+@pytest.mark.parametrize("waiver", [None, 1e6])
+def test_stage2_failure_keeps_stage1_pose(world, waiver):
+    """Boxes that pair nowhere: stage 2 vetoes the pose (no waiver, or one above any evidence) and keeps it."""
     pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
-    aligner = Aligner()
+    aligner = Aligner(AlignConfig.model_validate({"acquire": {"stage2_waiver_evidence": waiver}}))
     far_boxes = boxes_peer.copy()
     far_boxes[:, :2] += 500.0  # nothing overlaps
     res = aligner.align(aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, far_boxes))
@@ -62,6 +64,24 @@ def test_stage2_failure_keeps_stage1_pose(world):
     assert not res.stage2_applied and res.inliers_bv > 25
     assert pose_error(res.T_ego_peer, T_true)[0] < 0.5, "stage-1 pose is kept when only stage 2 fails"
     assert res.confidence <= 0.5
+
+
+def test_strong_dense_evidence_stands_without_box_support(world):
+    """The same boxes with the default waiver: the search everywhere found the pose with evidence far above the
+    waiver, so it stands as it would for a car that sends no boxes. With a prior the search everywhere still runs
+    first, and its waiver stands too (only a pose found inside the prior's window alone gets no waiver)."""
+    pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
+    aligner = Aligner()
+    far_boxes = boxes_peer.copy()
+    far_boxes[:, :2] += 500.0
+    ego, peer = aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, far_boxes)
+    res = aligner.align(ego, peer)
+    evidence = res.acquisition["margin"] * res.acquisition["best"]["relative_fitness"]
+    assert evidence >= AlignConfig().acquire.stage2_waiver_evidence
+    assert res.success and any(n.startswith("stage 2 could not verify (no_box_overlap); accepted") for n in res.notes)
+    assert pose_error(res.T_ego_peer, T_true)[0] < 0.3 and not res.stage2_applied
+    with_prior = aligner.align(ego, peer, T_prior=T_true)
+    assert with_prior.success, "the search everywhere runs first with a prior too: its waiver stands"
 
 
 def test_requiring_boxes_fails_without_them(world):
