@@ -69,3 +69,46 @@ def test_a_decoy_of_trucks_where_the_peer_saw_cars_loses():
     # the contrast: sizes ignored, the decoy wins by place (7 pairs)
     blind = _first_pose(ego, peer, AcquireConfig(box_size_tol_m=100.0))
     assert np.abs(blind.T - T_wrong).max() < 0.2 and blind.pairs == 7
+
+
+def _seed_support_reference(c_peer, h_peer, c_ego, h_ego, size_ok, gate, tol):
+    """Every seed's support by brute force, in numpy: each peer box under the seed's pose against every ego box."""
+    sup = []
+    for i in range(len(c_peer)):
+        for k in range(len(c_ego)):
+            for f in range(2):
+                if not size_ok[i, k]:
+                    sup.append(0)
+                    continue
+                th = h_ego[k] - h_peer[i] + f * np.pi
+                T = se2(th, *(c_ego[k] - se2(th, 0.0, 0.0)[:2, :2] @ c_peer[i]))
+                p = c_peer @ T[:2, :2].T + T[:2, 2]
+                near = np.hypot(p[:, None, 0] - c_ego[None, :, 0], p[:, None, 1] - c_ego[None, :, 1]) < gate
+                g = np.mod((h_peer + th)[:, None] - h_ego[None, :], np.pi)
+                sup.append(int((near & (np.minimum(g, np.pi - g) < tol) & size_ok).any(axis=1).sum()))
+    return np.array(sup)
+
+
+def test_seed_support_on_the_grid_equals_brute_force():
+    """A parking lot: 30 ego cars on a 5 m lattice (many within one grid cell's reach), the peer's 25 of them seen
+    from another pose with noise, some flipped, two trucks; the compiled, grid-looked-up support equals the count
+    over every ego box, seed by seed."""
+    from bb_align.engine.box_poses import _seeds, same_size
+
+    rng = np.random.default_rng(4)
+    world = [_box(5.0 * (n % 6), 5.0 * (n // 6), rng.uniform(-np.pi, np.pi)) for n in range(30)]
+    world[3][3:5] = world[17][3:5] = [9.0, 2.5]  # trucks
+    boxes_ego = np.array(world)
+    T_peer_ego = se2(np.radians(35.0), -12.0, 7.0)
+    seen = boxes_ego[rng.choice(30, 25, replace=False)]
+    boxes_peer = transform_boxes(T_peer_ego, seen)
+    boxes_peer[:, :2] += rng.normal(0, 0.8, (25, 2))
+    boxes_peer[::4, 6] += np.pi
+    cfg = AcquireConfig()
+    ego, peer = BoxSet.of(boxes_ego), BoxSet.of(boxes_peer)
+    size_ok, tol = same_size(peer, ego, cfg), np.radians(cfg.box_heading_tol_deg)
+    gate = cfg.box_seed_gate_m
+    *_, sup = _seeds(peer.centres, peer.headings, ego.centres, ego.headings, size_ok, gate**2, tol)
+    ref = _seed_support_reference(peer.centres, peer.headings, ego.centres, ego.headings, size_ok, gate, tol)
+    assert sup.max() >= 20 and (sup > 0).sum() > 100  # the true seeds and many partial ones
+    np.testing.assert_array_equal(sup, ref)

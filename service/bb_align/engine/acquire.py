@@ -31,7 +31,7 @@ from .covariance import params_covariance, pose_covariance
 from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from .matching import sq_distances
 from .parallel import contiguous, run_parts
-from .refine import BevCloud, bev_points, coarse_verification_loop, covisible_share, icp_params, refine_icp
+from .refine import BevCloud, bev_samples, coarse_verification_loop, covisible_share, icp_params, refine_icp
 from .result import AlignResult
 from .verdict import FailureReason
 
@@ -752,8 +752,9 @@ class Acquirer:
         )
 
         # The peer's pixels, sampled once (seeded) for every verification of this frame.
-        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=cfg.seed)
-        full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=cfg.seed)
+        coarse_pts, full_pts = bev_samples(
+            peer.bev, rf.min_pixel_value, [a.coarse_points, rf.max_peer_points], cfg.seed
+        )
 
         with timed("hypotheses"):
             if memo.proposed is None:

@@ -105,13 +105,62 @@ def box_agreement(
 
 
 @njit(cache=True, nogil=True)
+def _cells(c_ego, cell):
+    """The ego boxes bucketed on a square grid of side ``cell`` (metres): (x0, y0, nx, ny, start, order), where
+    order[start[k]:start[k + 1]] lists the boxes of cell k = ix * ny + iy in increasing index."""
+    x0, y0 = c_ego[:, 0].min(), c_ego[:, 1].min()
+    nx = int((c_ego[:, 0].max() - x0) / cell) + 1
+    ny = int((c_ego[:, 1].max() - y0) / cell) + 1
+    key = np.empty(len(c_ego), np.int64)
+    for b in range(len(c_ego)):
+        key[b] = int((c_ego[b, 0] - x0) / cell) * ny + int((c_ego[b, 1] - y0) / cell)
+    order = np.argsort(key, kind="mergesort")  # stable: increasing index within a cell
+    start = np.zeros(nx * ny + 1, np.int64)
+    for b in range(len(c_ego)):
+        start[key[b] + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    return x0, y0, nx, ny, start, order
+
+
+@njit(cache=True, nogil=True)
+def _nearest_agreeing_in_cells(px, py, heading, size_ok_row, c_ego, h_ego, gate2, heading_tol, grid, cell):
+    """_nearest_agreeing over the ego boxes of the 3 x 3 cells around (px, py) only (``grid``: _cells with a side
+    ``cell`` >= sqrt(gate2), so they hold every box within the gate): the same box, the nearest agreeing one with
+    ties to the lowest index. Returns 1 when there is one, else 0."""
+    x0, y0, nx, ny, start, order = grid
+    fx, fy = (px - x0) / cell, (py - y0) / cell
+    if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
+        return 0
+    ix, iy = int(np.floor(fx)), int(np.floor(fy))
+    for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
+        for cy in range(max(iy - 1, 0), min(iy + 2, ny)):
+            k = cx * ny + cy
+            for m in range(start[k], start[k + 1]):
+                b = order[m]
+                if not size_ok_row[b]:
+                    continue
+                if (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2 >= gate2:
+                    continue
+                g = (heading - h_ego[b]) % np.pi
+                if min(g, np.pi - g) < heading_tol:
+                    return 1  # an agreeing box within the gate: the support counts it, whichever is nearest
+    return 0
+
+
+@njit(cache=True, nogil=True)
 def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
     """(yaw, tx, ty, support) of every (peer box i, ego box k, flip f) seed whose two boxes agree in size (others:
-    support 0). Support: the peer boxes within sqrt(gate2) of an agreeing ego box under the seed's pose."""
+    support 0). Support: the peer boxes within sqrt(gate2) of an agreeing ego box under the seed's pose (looked up
+    on a grid of the ego boxes: every seed asks it for every peer box)."""
     p, e = len(c_peer), len(c_ego)
     n = p * e * 2
     yaw, tx, ty = np.zeros(n), np.zeros(n), np.zeros(n)
     sup = np.zeros(n, np.int64)
+    if p == 0 or e == 0:
+        return yaw, tx, ty, sup
+    cell = np.sqrt(gate2)
+    grid = _cells(c_ego, cell)
     h = -1
     for i in range(p):
         for k in range(e):
@@ -127,7 +176,9 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
                 for a in range(p):
                     px = c * c_peer[a, 0] - s * c_peer[a, 1] + x
                     py = s * c_peer[a, 0] + c * c_peer[a, 1] + y
-                    m += _nearest_agreeing(px, py, h_peer[a] + th, size_ok[a], c_ego, h_ego, gate2, heading_tol)[0] >= 0
+                    m += _nearest_agreeing_in_cells(
+                        px, py, h_peer[a] + th, size_ok[a], c_ego, h_ego, gate2, heading_tol, grid, cell
+                    )
                 yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
     return yaw, tx, ty, sup
 

@@ -44,10 +44,18 @@ class BevCloud:
 
 def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None, seed: int = 0) -> np.ndarray:
     """(N, 2) metres of the pixels with value >= min_value (optionally a seeded random subset)."""
+    return bev_samples(bev, min_value, [max_points], seed)[0]
+
+
+def bev_samples(bev: BevImage, min_value: int, sizes: list[int | None], seed: int = 0) -> list[np.ndarray]:
+    """``bev_points(bev, min_value, n, seed)`` for each n of ``sizes`` (the same subsets), from one scan of the
+    image."""
     rc = np.argwhere(bev.image >= min_value)
-    if max_points is not None and len(rc) > max_points:
-        rc = rc[np.random.default_rng(seed).choice(len(rc), max_points, replace=False)]
-    return bev.pixel_to_metre(rc)
+    rng = np.random.default_rng
+    return [
+        bev.pixel_to_metre(rc if n is None or len(rc) <= n else rc[rng(seed).choice(len(rc), n, replace=False)])
+        for n in sizes
+    ]
 
 
 def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
