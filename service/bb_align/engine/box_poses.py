@@ -124,31 +124,6 @@ def _cells(c_ego, cell):
 
 
 @njit(cache=True, nogil=True)
-def _nearest_agreeing_in_cells(px, py, heading, size_ok_row, c_ego, h_ego, gate2, heading_tol, grid, cell):
-    """_nearest_agreeing over the ego boxes of the 3 x 3 cells around (px, py) only (``grid``: _cells with a side
-    ``cell`` >= sqrt(gate2), so they hold every box within the gate): the same box, the nearest agreeing one with
-    ties to the lowest index. Returns 1 when there is one, else 0."""
-    x0, y0, nx, ny, start, order = grid
-    fx, fy = (px - x0) / cell, (py - y0) / cell
-    if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
-        return 0
-    ix, iy = int(np.floor(fx)), int(np.floor(fy))
-    for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
-        for cy in range(max(iy - 1, 0), min(iy + 2, ny)):
-            k = cx * ny + cy
-            for m in range(start[k], start[k + 1]):
-                b = order[m]
-                if not size_ok_row[b]:
-                    continue
-                if (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2 >= gate2:
-                    continue
-                g = (heading - h_ego[b]) % np.pi
-                if min(g, np.pi - g) < heading_tol:
-                    return 1  # an agreeing box within the gate: the support counts it, whichever is nearest
-    return 0
-
-
-@njit(cache=True, nogil=True)
 def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
     """(yaw, tx, ty, support) of every (peer box i, ego box k, flip f) seed whose two boxes agree in size (others:
     support 0). Support: the peer boxes within sqrt(gate2) of an agreeing ego box under the seed's pose (looked up
@@ -160,7 +135,7 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
     if p == 0 or e == 0:
         return yaw, tx, ty, sup
     cell = np.sqrt(gate2)
-    grid = _cells(c_ego, cell)
+    x0, y0, nx, ny, start, order = _cells(c_ego, cell)
     h = -1
     for i in range(p):
         for k in range(e):
@@ -176,9 +151,25 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
                 for a in range(p):
                     px = c * c_peer[a, 0] - s * c_peer[a, 1] + x
                     py = s * c_peer[a, 0] + c * c_peer[a, 1] + y
-                    m += _nearest_agreeing_in_cells(
-                        px, py, h_peer[a] + th, size_ok[a], c_ego, h_ego, gate2, heading_tol, grid, cell
-                    )
+                    fx, fy = (px - x0) / cell, (py - y0) / cell
+                    if fx < -1.0 or fy < -1.0 or fx >= nx + 1.0 or fy >= ny + 1.0:
+                        continue
+                    # Any agreeing ego box within the gate in the 3 x 3 cells around (px, py) (a side >= the gate:
+                    # they hold every box that near) counts this peer box.
+                    ix, iy = int(np.floor(fx)), int(np.floor(fy))
+                    hit = False
+                    for cx in range(max(ix - 1, 0), min(ix + 2, nx)):
+                        for cy in range(max(iy - 1, 0), min(iy + 2, ny)):
+                            q = cx * ny + cy
+                            for n_ in range(start[q], start[q + 1]):
+                                b = order[n_]
+                                if hit or not size_ok[a, b]:
+                                    continue
+                                if (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2 >= gate2:
+                                    continue
+                                g = (h_peer[a] + th - h_ego[b]) % np.pi
+                                hit = min(g, np.pi - g) < heading_tol
+                    m += hit
                 yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
     return yaw, tx, ty, sup
 
