@@ -666,13 +666,9 @@ def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:
 def _box_confirmed(hyps: list[Hypothesis], cfg: AcquireConfig) -> bool:
     """The boxes single out the best pose (``hyps[0]``): at least ``box_confirm_pairs`` peer boxes on ego boxes,
     and at least ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many as under any distinct
-    hypothesis (a row of parked cars seen from its two ends pairs many boxes at a wrong pose too); and the images
-    explain at least ``box_confirm_min_relative_fitness`` of what they can share under it (the boxes choose the
-    pose, they do not make it fit)."""
+    hypothesis (a row of parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
     best = hyps[0]
     if cfg.box_confirm_pairs == 0 or best.box_pairs < cfg.box_confirm_pairs:
-        return False
-    if best.relative_fitness < cfg.box_confirm_min_relative_fitness:
         return False
     others = max((h.box_pairs for h in _rivals(hyps, cfg)), default=0)
     return best.box_pairs - others >= cfg.box_confirm_margin and best.box_pairs >= cfg.box_confirm_ratio * others

@@ -344,15 +344,6 @@ class AcquireConfig(_Frozen):
         description="... and this many times as many (calibrated on the simulated seeds 2024 and 777: no "
         "wrong success; benchmarks/acquisition_range.py, docs/acquisition.md)",
     )
-    box_confirm_min_relative_fitness: float = Field(
-        0.3,
-        ge=0,
-        le=1,
-        description="... and the images explain at least this share of the structure they can share under the pose "
-        "(relative fitness): the boxes choose between poses, they do not make one fit. Measured with "
-        "benchmarks/acquisition_range.py on seeds 2024 (calibration) and 55555: every right success has >= 0.335 "
-        "(box evidence or dense rule); the one box-evidence success below, 0.28, was 1.12 m off at 84 m",
-    )
     merge_within_m: float = Field(
         4.0,
         gt=0,
