@@ -52,9 +52,9 @@ def test_prepared_ego_is_reusable_and_results_are_deterministic(world):
     assert pose_error(a.T_ego_peer, T_true)[0] < 0.3
 
 
-@pytest.mark.parametrize("waiver", [None, 1e6])
+@pytest.mark.parametrize("waiver", [None, 1.0, 1e6])
 def test_stage2_failure_keeps_stage1_pose(world, waiver):
-    """Boxes that pair nowhere: stage 2 vetoes the pose (no waiver, or one above any evidence) and keeps it."""
+    """Boxes that pair nowhere: stage 2 vetoes the pose (whatever the waiver: no box supports it) and keeps it."""
     pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
     aligner = Aligner(AlignConfig.model_validate({"acquire": {"stage2_waiver_evidence": waiver}}))
     far_boxes = boxes_peer.copy()
@@ -66,22 +66,29 @@ def test_stage2_failure_keeps_stage1_pose(world, waiver):
     assert res.confidence <= 0.5
 
 
-def test_strong_dense_evidence_stands_without_box_support(world):
-    """The same boxes with the default waiver: the search everywhere found the pose with evidence far above the
-    waiver, so it stands as it would for a car that sends no boxes. With a prior the search everywhere still runs
+def test_strong_dense_evidence_stands_with_too_few_box_corners(world):
+    """One box of the peer's pairs where it should, the rest were moved away: too few corners for stage 2's bar,
+    but the search everywhere found the pose with evidence far above the default waiver, so it stands. Without a
+    waiver, or with one above its evidence, stage 2 vetoes it. With a prior the search everywhere still runs
     first, and its waiver stands too (only a pose found inside the prior's window alone gets no waiver)."""
     pts_ego, boxes_ego, pts_peer, boxes_peer, T_true = _pair(world, 10.0, (12.0, 0.0))
     aligner = Aligner()
-    far_boxes = boxes_peer.copy()
-    far_boxes[:, :2] += 500.0
-    ego, peer = aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, far_boxes)
+    one_box = boxes_peer.copy()  # row i is the same car as the ego's row i
+    one_box[1:, :2] += 500.0  # only the first pairs: its four corners are below min_inliers_box (6)
+    ego, peer = aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, one_box)
     res = aligner.align(ego, peer)
     evidence = res.acquisition["margin"] * res.acquisition["best"]["relative_fitness"]
     assert evidence >= AlignConfig().acquire.stage2_waiver_evidence
-    assert res.success and any(n.startswith("stage 2 could not verify (no_box_overlap); accepted") for n in res.notes)
+    assert res.success and any(
+        n.startswith("stage 2 could not verify (too_few_inliers_box); accepted") for n in res.notes
+    )
     assert pose_error(res.T_ego_peer, T_true)[0] < 0.3 and not res.stage2_applied
     with_prior = aligner.align(ego, peer, T_prior=T_true)
     assert with_prior.success, "the search everywhere runs first with a prior too: its waiver stands"
+    for waiver in (None, 2.0 * evidence):
+        strict = Aligner(AlignConfig.model_validate({"acquire": {"stage2_waiver_evidence": waiver}}))
+        vetoed = strict.align(strict.prepare(pts_ego, boxes_ego), strict.prepare(pts_peer, one_box))
+        assert not vetoed.success and vetoed.reason == "too_few_inliers_box"
 
 
 def test_requiring_boxes_fails_without_them(world):

@@ -397,10 +397,10 @@ class AcquireConfig(_Frozen):
         1.0,
         ge=0,
         description="multi mode, the search everywhere (not inside a prior's window, whose fewer rivals inflate the "
-        "margin): a pose whose dense evidence (margin x relative fitness) reaches this succeeds when stage 2 "
-        "finds no box support (no_box_overlap, too_few_inliers_box), as it does when a car sends no boxes; a box "
-        "correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence: on seeds 2024, 777, 4242 "
-        "and 55555 every wrong best pose found everywhere had at most 0.82 (docs/acquisition.md, Session 11). "
+        "margin): a pose whose dense evidence (margin x relative fitness) reaches this succeeds when some boxes "
+        "pair under it but too few of their corners agree for stage 2 (too_few_inliers_box); no_box_overlap is "
+        "never waived (two wrong successes, one 42 m off, on seeds 9001 and 55555: docs/acquisition.md, Session "
+        "12); a box correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence. "
         "None: stage 2 always vetoes",
     )
 

@@ -121,8 +121,9 @@ class Verdict:
         self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False, evidence: float | None = None
     ) -> FailureReason | None:
         """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone, or a densely
-        verified multi-hypothesis pose when acquire.stage2_required is off or its ``evidence`` reaches
-        acquire.stage2_waiver_evidence), and a correction within bounds."""
+        verified multi-hypothesis pose when acquire.stage2_required is off, or when some boxes pair under it but
+        too few corners agree and its ``evidence`` reaches acquire.stage2_waiver_evidence), and a correction within
+        bounds."""
         failure = (
             FailureReason.no_box_overlap
             if r.box_pairs == 0
@@ -131,7 +132,10 @@ class Verdict:
             else None
         )
         waiver = self.acquire.stage2_waiver_evidence
-        if failure is not None and densely_verified and evidence is not None and waiver is not None:
+        # Only the count is waived: a pose under which no box of one car pairs with any of the other's has no
+        # support beside the images (a street alias 42 m off passed a waiver of no_box_overlap, docs/acquisition.md)
+        partly_supported = failure is FailureReason.too_few_inliers_box
+        if partly_supported and densely_verified and evidence is not None and waiver is not None:
             if evidence >= waiver:
                 r.notes.append(
                     f"stage 2 could not verify ({failure.value}); accepted on strong dense evidence "
