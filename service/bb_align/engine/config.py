@@ -399,8 +399,8 @@ class AcquireConfig(_Frozen):
         description="multi mode, the search everywhere (not inside a prior's window, whose fewer rivals inflate the "
         "margin): a pose whose dense evidence (margin x relative fitness) reaches this succeeds when some boxes "
         "pair under it but too few of their corners agree for stage 2 (too_few_inliers_box); no_box_overlap is "
-        "never waived (two wrong successes, one 42 m off, on seeds 9001 and 55555: docs/acquisition.md, Session "
-        "12); a box correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence. "
+        "never waived (two wrong successes, one 42 m off, on seeds 9001 and 55555: docs/acquisition.md, Sessions "
+        "11-12); a box correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence. "
         "None: stage 2 always vetoes",
     )
 
