@@ -54,6 +54,13 @@ def same_size(peer: BoxSet, ego: BoxSet, cfg: AcquireConfig) -> np.ndarray:
     return (d**2).sum(-1) < cfg.box_size_tol_m**2
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _same_heading(heading_a, heading_b, heading_tol):
+    """Headings within heading_tol modulo 180 degrees (a detector may report a car backwards)."""
+    g = (heading_a - heading_b) % np.pi
+    return min(g, np.pi - g) < heading_tol
+
+
 @njit(cache=True, nogil=True)
 def _nearest_agreeing(px, py, heading, size_ok_row, c_ego, h_ego, gate2, heading_tol):
     """The ego box nearest (px, py) closer than sqrt(gate2) that agrees with a peer box seen there with ``heading``
@@ -66,8 +73,7 @@ def _nearest_agreeing(px, py, heading, size_ok_row, c_ego, h_ego, gate2, heading
         d2 = (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2
         if d2 >= best_d2:
             continue
-        g = (heading - h_ego[b]) % np.pi  # the costlier test last
-        if min(g, np.pi - g) < heading_tol:
+        if _same_heading(heading, h_ego[b], heading_tol):  # the costlier test last
             best, best_d2 = b, d2
     return best, best_d2
 
@@ -167,8 +173,7 @@ def _seeds(c_peer, h_peer, c_ego, h_ego, size_ok, gate2, heading_tol):
                                     continue
                                 if (px - c_ego[b, 0]) ** 2 + (py - c_ego[b, 1]) ** 2 >= gate2:
                                     continue
-                                g = (h_peer[a] + th - h_ego[b]) % np.pi
-                                hit = min(g, np.pi - g) < heading_tol
+                                hit = _same_heading(h_peer[a] + th, h_ego[b], heading_tol)
                     m += hit
                 yaw[h], tx[h], ty[h], sup[h] = th, x, y, m
     return yaw, tx, ty, sup
