@@ -194,8 +194,7 @@ def vote(
         for cell, frac, n in buffers:
             _scatter(acc, cell, frac, n, n_t, slab[0], slab[1])
 
-    edges = np.linspace(0, n_yaw, max(1, threads) + 1).round().astype(int)
-    run_parts(add, [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:], strict=True) if hi > lo])
+    run_parts(add, [(r.start, r.stop) for r in contiguous(range(n_yaw), threads)])
     return acc
 
 
