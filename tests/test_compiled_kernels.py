@@ -23,10 +23,10 @@ from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from bb_align.engine.refine import (
     Refinement,
-    _clearance,
     _normal_equations,
     bev_cloud,
     bev_points,
+    clearance_map,
     overlap_fitness,
     refine_icp,
 )
@@ -149,8 +149,8 @@ def test_grid_nearest_equals_brute_force_index_and_distance(gate):
 
 def test_clearance_is_the_exact_distance_to_the_nearest_lit_pixel():
     lit = np.random.default_rng(4).random((300, 240)) < 0.003
-    np.testing.assert_allclose(_clearance(lit), distance_transform_edt(~lit), atol=1e-4)
-    assert np.all(np.isinf(_clearance(np.zeros((5, 5), bool))))
+    np.testing.assert_allclose(clearance_map(lit), distance_transform_edt(~lit), atol=1e-4)
+    assert np.all(np.isinf(clearance_map(np.zeros((5, 5), bool))))
 
 
 def _refine_icp_reference(ego, pts_peer, T_init, cfg):

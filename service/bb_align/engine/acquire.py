@@ -28,6 +28,7 @@ from numba import njit
 from .box_poses import BoxSet, box_agreement, box_poses, same_size
 from .config import AcquireConfig, AlignConfig, CovarianceConfig, RefineConfig
 from .covariance import params_covariance, pose_covariance
+from .freespace import conflict, free_space_map, tall_points
 from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from .matching import sq_distances
 from .parallel import contiguous, run_parts
@@ -313,6 +314,7 @@ class Hypothesis:
     source: str = "keypoints"  # what proposed it: "keypoints" (descriptor votes), "boxes" or "prior"
     box_pairs: int = 0  # peer boxes paired with an agreeing ego box under T (box_poses.box_agreement)
     box_score: float = 0.0  # the boxes' soft score under T (box_poses.box_agreement)
+    conflict: float = 0.0  # free-space conflict under T, the larger of the two directions (engine.freespace)
     _params: tuple = field(default=(None, None), init=False, repr=False, compare=False)
 
     @property
@@ -569,6 +571,7 @@ class Acquisition:
                 "source": x.source,
                 "box_pairs": x.box_pairs,
                 "box_score": x.box_score,
+                "conflict": x.conflict,
             }
 
         return {
@@ -798,6 +801,9 @@ class Acquirer:
             hyps, margin = run(cand)
         if not hyps:
             return FailureReason.too_few_inliers_bv, None
+        if cfg.free_space.enabled:
+            with timed("free_space"):
+                self._conflicts(ego, peer, hyps, covis)
         best = hyps[0]
         result.acquisition = Acquisition(best, runner_up_of(hyps, a), hyps, int(cand.size), margin).diagnostics()
         result.T_bv, result.inliers_bv, result.refine_fitness = best.T, best.inliers, best.fitness
@@ -812,4 +818,34 @@ class Acquirer:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_pts
+        if cfg.free_space.enabled and best.conflict > cfg.free_space.max_conflict:
+            result.notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
+            return FailureReason.free_space_conflict, full_pts
         return None, full_pts
+
+    def _conflicts(self, ego, peer, hyps: list[Hypothesis], ego_covis: np.ndarray) -> None:
+        """The free-space conflict of the best hypothesis and its runner-up: the peer's tall structure in the ego
+        car's free space under T, and the ego's in the peer's under T^-1; the larger (engine.freespace). Each frame's
+        maps are built once; "near structure" is the co-visibility mask (acquire.covisible_m)."""
+        fs, a, mv, seed = (
+            self.config.free_space,
+            self.config.acquire,
+            self.config.refine.min_pixel_value,
+            self.config.seed,
+        )
+        radius = max(1, int(round(a.covisible_m / ego.bev.resolution_m)))
+
+        def maps(frame, covis=None):
+            def build():
+                near = covis if covis is not None else covisible_map(frame.bev.image, mv, radius)
+                return free_space_map(frame.bev, mv, near, fs), near, tall_points(frame.bev, fs, seed)
+
+            return frame.cached(("free_space", fs, mv, radius), build)
+
+        (ego_free, ego_near, ego_tall), (peer_free, peer_near, peer_tall) = maps(ego, ego_covis), maps(peer)
+        for h in [hyps[0], runner_up_of(hyps, a)]:
+            if h is not None:
+                h.conflict = max(
+                    conflict(ego_free, ego_near, ego.bev, peer_tall, h.T),
+                    conflict(peer_free, peer_near, peer.bev, ego_tall, np.linalg.inv(h.T)),
+                )

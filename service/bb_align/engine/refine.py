@@ -67,7 +67,7 @@ def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
     xy = bev.pixel_to_metre(rc)
     index = np.full(bev.shape, -1, dtype=np.int32)
     index[rc[:, 0], rc[:, 1]] = np.arange(len(rc), dtype=np.int32)
-    clearance = _clearance(index >= 0)
+    clearance = clearance_map(index >= 0)
     if len(xy) < 3:
         return BevCloud(xy, np.zeros_like(xy), index, bev.range_m, bev.resolution_m, clearance)
     _, nn = cKDTree(xy).query(xy, k=min(k, len(xy)))
@@ -79,7 +79,7 @@ def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
     return BevCloud(xy, normals, index, bev.range_m, bev.resolution_m, clearance)
 
 
-def _clearance(lit: np.ndarray) -> np.ndarray:
+def clearance_map(lit: np.ndarray) -> np.ndarray:
     """(H, W) float32: the Euclidean distance (pixels) from each pixel centre to the nearest lit one (OpenCV's
     exact transform, within 1e-5 of scipy's distance_transform_edt); inf everywhere without a lit pixel."""
     if not lit.any():

@@ -26,6 +26,7 @@ class FailureReason(str, Enum):
     too_few_inliers_bv = "too_few_inliers_bv"  # stage 1 below the success rule
     ambiguous_bv = "ambiguous_bv"  # a distinct pose explains almost as many matches
     inconsistent_overlap = "inconsistent_overlap"  # after refinement too few BV pixels coincide (alias)
+    free_space_conflict = "free_space_conflict"  # one car's structure lands where the other saw through (alias)
     degenerate_pose = "degenerate_pose"  # the pose's 1-sigma along its worst direction is too large (corridor)
     no_boxes = "no_boxes"  # boxes were required but one side sent none
     no_box_overlap = "no_box_overlap"  # no peer box lands on an ego box after stage 1
