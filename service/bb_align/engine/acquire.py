@@ -742,12 +742,7 @@ class Acquirer:
         t_half = 1.5 * max(ego.bev.range_m, peer.bev.range_m)
         kp = peer.keypoints_xy[rows]
         ego_cloud = ego.cloud(rf)
-        covis = ego.cached(
-            ("covisible", a.covisible_m, rf.min_pixel_value),
-            lambda: covisible_map(
-                ego.bev.image, rf.min_pixel_value, max(1, int(round(a.covisible_m / ego.bev.resolution_m)))
-            ),
-        )
+        covis = self._covisible(ego)
 
         # The peer's pixels, sampled once (seeded) for every verification of this frame.
         coarse_pts, full_pts = bev_samples(
@@ -803,7 +798,7 @@ class Acquirer:
             return FailureReason.too_few_inliers_bv, None
         if cfg.free_space.enabled:
             with timed("free_space"):
-                self._conflicts(ego, peer, hyps, covis)
+                self._conflicts(ego, peer, hyps)
         best = hyps[0]
         result.acquisition = Acquisition(best, runner_up_of(hyps, a), hyps, int(cand.size), margin).diagnostics()
         result.T_bv, result.inliers_bv, result.refine_fitness = best.T, best.inliers, best.fitness
@@ -823,27 +818,29 @@ class Acquirer:
             return FailureReason.free_space_conflict, full_pts
         return None, full_pts
 
-    def _conflicts(self, ego, peer, hyps: list[Hypothesis], ego_covis: np.ndarray) -> None:
+    def _covisible(self, frame) -> np.ndarray:
+        """The frame's co-visibility mask (covisible_map within acquire.covisible_m), built once per frame."""
+        a, mv = self.config.acquire, self.config.refine.min_pixel_value
+        return frame.cached(
+            ("covisible", a.covisible_m, mv),
+            lambda: covisible_map(frame.bev.image, mv, max(1, int(round(a.covisible_m / frame.bev.resolution_m)))),
+        )
+
+    def _conflicts(self, ego, peer, hyps: list[Hypothesis]) -> None:
         """The free-space conflict of the best hypothesis and its runner-up: the peer's tall structure in the ego
         car's free space under T, and the ego's in the peer's under T^-1; the larger (engine.freespace). Each frame's
         maps are built once; "near structure" is the co-visibility mask (acquire.covisible_m)."""
-        fs, a, mv, seed = (
-            self.config.free_space,
-            self.config.acquire,
-            self.config.refine.min_pixel_value,
-            self.config.seed,
-        )
-        radius = max(1, int(round(a.covisible_m / ego.bev.resolution_m)))
+        fs, mv, seed = self.config.free_space, self.config.refine.min_pixel_value, self.config.seed
 
-        def maps(frame, covis=None):
+        def maps(frame):
             def build():
-                near = covis if covis is not None else covisible_map(frame.bev.image, mv, radius)
+                near = self._covisible(frame)
                 return free_space_map(frame.bev, mv, near, fs), near, tall_points(frame.bev, fs, seed)
 
-            return frame.cached(("free_space", fs, mv, radius), build)
+            return frame.cached(("free_space", fs, mv, self.config.acquire.covisible_m), build)
 
-        (ego_free, ego_near, ego_tall), (peer_free, peer_near, peer_tall) = maps(ego, ego_covis), maps(peer)
-        for h in [hyps[0], runner_up_of(hyps, a)]:
+        (ego_free, ego_near, ego_tall), (peer_free, peer_near, peer_tall) = maps(ego), maps(peer)
+        for h in [hyps[0], runner_up_of(hyps, self.config.acquire)]:
             if h is not None:
                 h.conflict = max(
                     conflict(ego_free, ego_near, ego.bev, peer_tall, h.T),

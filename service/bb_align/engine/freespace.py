@@ -18,6 +18,7 @@ from numba import njit
 
 from .bev import BevImage
 from .config import FreeSpaceConfig
+from .refine import covisible_share
 
 
 @lru_cache(maxsize=4)
@@ -88,20 +89,6 @@ def tall_points(bev: BevImage, cfg: FreeSpaceConfig, seed: int = 0) -> np.ndarra
     return bev.pixel_to_metre(rc)
 
 
-@njit(cache=True, nogil=True)
-def _shares(free, covis, p, range_m, res):
-    h, w = free.shape
-    n_free = 0
-    n_seen = 0
-    for i in range(len(p)):
-        r = int(np.floor((range_m - p[i, 0]) / res))
-        c = int(np.floor((range_m - p[i, 1]) / res))
-        if 0 <= r < h and 0 <= c < w:
-            n_free += free[r, c]
-            n_seen += covis[r, c]
-    return n_free, n_seen
-
-
 def conflict(free: np.ndarray, covis: np.ndarray, bev: BevImage, pts: np.ndarray, T: np.ndarray) -> float:
     """Of the points ``pts`` (another car's tall structure, its own frame) moved by ``T`` into this car's frame and
     landing where this car saw something (free space, or within reach of its structure: ``covis``), the share in its
@@ -109,5 +96,6 @@ def conflict(free: np.ndarray, covis: np.ndarray, bev: BevImage, pts: np.ndarray
     if len(pts) == 0:
         return 0.0
     p = np.ascontiguousarray(pts @ T[:2, :2].T + T[:2, 2])
-    n_free, n_seen = _shares(free, covis, p, bev.range_m, bev.resolution_m)
-    return float(n_free / (n_free + n_seen)) if n_free + n_seen else 0.0
+    in_free = covisible_share(free, p, bev.range_m, bev.resolution_m)  # shares of all the points: their ratio is
+    near = covisible_share(covis, p, bev.range_m, bev.resolution_m)  # the ratio of the counts
+    return float(in_free / (in_free + near)) if in_free + near else 0.0
