@@ -285,7 +285,7 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
         hyps = [Hypothesis(T=T.copy(), inliers=10) for T in (T_true, T_true, neighbour, wrong)]
         # A coarse stage too short-sighted to converge the neighbour (one step at a 0.3 m gate).
         coarse = rf.model_copy(update={"gates_m": (0.3,), "iters_per_gate": 1})
-        verify(hyps, cloud, covis, coarse_pts, full_pts, cfg, coarse)
+        verify(hyps, cloud, covis, (coarse_pts, None), (full_pts, None), cfg, coarse)
         assert pose_error(se3_from_se2(hyps[0].T), se3_from_se2(T_true))[0] < 0.1
         near_wrong = [pose_error(se3_from_se2(h.T), se3_from_se2(wrong))[0] < 20 for h in _rivals(hyps, a)]
         if checks:

@@ -28,6 +28,7 @@ from bb_align.engine.refine import (
     bev_points,
     clearance_map,
     overlap_fitness,
+    peer_normals,
     refine_icp,
 )
 from synthetic import synthetic_world, view_from
@@ -153,19 +154,26 @@ def test_clearance_is_the_exact_distance_to_the_nearest_lit_pixel():
     assert np.all(np.isinf(clearance_map(np.zeros((5, 5), bool))))
 
 
-def _refine_icp_reference(ego, pts_peer, T_init, cfg):
-    """refine_icp as first written, its iterations in numpy (each step's look-up and normal equations compiled)."""
+def _refine_icp_reference(ego, pts_peer, T_init, cfg, normals=None):
+    """refine_icp as first written, its iterations in numpy (each step's look-up and normal equations compiled);
+    the facing test in numpy: a pair whose ego normal and rotated peer normal disagree is no pair."""
     gates = cfg.gates_m
     T = np.array(T_init, dtype=float)
     prev = None
+    none = np.zeros((len(pts_peer), 2))
     for gate in gates:
         for _ in range(cfg.iters_per_gate):
             p = pts_peer @ T[:2, :2].T + T[:2, 2]
             d, j = ego.nearest(p, gate)
-            if np.isfinite(d).sum() < cfg.min_points:
+            if normals is not None:
+                alike = (ego.normals[j] * (normals @ T[:2, :2].T)).sum(axis=1) >= cfg.facing_min_cos
+                j = np.where(alike, j, -1)
+            if (j >= 0).sum() < cfg.min_points:
                 T0 = np.array(T_init, dtype=float)
                 return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
-            H, g = _normal_equations(p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight)
+            H, g, _ = _normal_equations(
+                p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight, none, 1.0, 0.0, -1.0
+            )
             delta = np.linalg.solve(H, -g)
             if prev is not None and float(delta @ prev) > 0:
                 delta = delta * cfg.step_relaxation
@@ -201,22 +209,23 @@ def sim_pair():
     return cfg, cloud, covis, peer_bev, starts
 
 
-@pytest.mark.parametrize(("min_points", "threads"), [(None, 1), (100, 1), (None, 3)])
-def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points, threads):
+@pytest.mark.parametrize(("min_points", "threads", "facing"), [(None, 1, True), (100, 1, False), (None, 3, True)])
+def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points, threads, facing):
     """min_points 100: some far starts match fewer pixels at some step (the start pose kept). threads 3: the poses
-    verified in three groups at once, the same answers in the same order."""
+    verified in three groups at once, the same answers in the same order. facing: with the peer normals' test."""
     cfg, cloud, covis, peer_bev, starts = sim_pair
     a = cfg.acquire
     coarse = cfg.refine.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
     if min_points is not None:
         coarse = coarse.model_copy(update={"min_points": min_points})
     pts = bev_points(peer_bev, cfg.refine.min_pixel_value, a.coarse_points, seed=cfg.seed)
+    normals = peer_normals(peer_bev, pts, cfg.refine) if facing else None
     Ts, fitness, rmse, covisible = coarse_verification(
-        cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1], threads
+        cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1], threads, normals
     )
     accepted = 0
     for n, T0 in enumerate(starts):
-        ref = _refine_icp_reference(cloud, pts, T0, coarse)
+        ref = _refine_icp_reference(cloud, pts, T0, coarse, normals)
         accepted += ref.accepted and not np.array_equal(ref.T, T0)
         np.testing.assert_allclose(Ts[n], ref.T, rtol=0, atol=1e-9)
         fit_ref, rmse_ref = overlap_fitness(cloud, pts, ref.T, cfg.refine.gates_m[-1])
@@ -232,9 +241,11 @@ def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points,
 def test_refine_icp_equals_the_numpy_iterations(sim_pair):
     cfg, cloud, _, peer_bev, starts = sim_pair
     pts = bev_points(peer_bev, cfg.refine.min_pixel_value, cfg.refine.max_peer_points, seed=cfg.seed)
+    normals = peer_normals(peer_bev, pts, cfg.refine)
     outcomes = set()
-    for T0 in starts[::2]:
-        ref, new = _refine_icp_reference(cloud, pts, T0, cfg.refine), refine_icp(cloud, pts, T0, cfg.refine)
+    for n, T0 in enumerate(starts[::2]):
+        pn = normals if n % 2 else None  # with and without the facing test
+        ref, new = _refine_icp_reference(cloud, pts, T0, cfg.refine, pn), refine_icp(cloud, pts, T0, cfg.refine, pn)
         outcomes.add(ref.accepted)
         assert new.accepted == ref.accepted and new.fitness == ref.fitness
         np.testing.assert_allclose(new.T, ref.T, rtol=0, atol=1e-9)

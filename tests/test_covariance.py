@@ -51,7 +51,7 @@ def test_corridor_has_large_variance_along_it_and_is_refused():
     prepared = aligner.prepare(ego)
     result = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=T, T_box=np.eye(3))
     result.covariance = pose_uncertainty(
-        prepared.cloud(aligner.config.refine), peer_pts, T, 0.4, aligner.config.covariance
+        prepared.cloud(aligner.config.refine), (peer_pts, None), T, 0.4, aligner.config.covariance
     )
     reason = aligner.verdict.uncertain(result)
     assert reason is not None and reason.value == "degenerate_pose"

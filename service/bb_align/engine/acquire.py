@@ -32,7 +32,16 @@ from .freespace import conflict, free_space_map, tall_points
 from .geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from .matching import sq_distances
 from .parallel import contiguous, run_parts
-from .refine import BevCloud, bev_samples, coarse_verification_loop, covisible_share, icp_params, refine_icp
+from .refine import (
+    BevCloud,
+    bev_samples,
+    coarse_verification_loop,
+    covisible_share,
+    facing_args,
+    icp_params,
+    peer_normals,
+    refine_icp,
+)
 from .result import AlignResult
 from .verdict import FailureReason
 
@@ -529,14 +538,17 @@ def coarse_verification(
     coarse: RefineConfig,
     final_gate: float,
     threads: int = 1,
+    normals: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each pose of ``Ts`` refined (refine_icp with ``coarse``) and scored at it (overlap_fitness within
-    ``final_gate``, covisible_fraction), in one compiled call per group of poses (``threads`` groups in parallel;
-    the poses are independent): (poses (H, 3, 3), fitness, rmse_m, covisible)."""
+    """Each pose of ``Ts`` refined (refine_icp with ``coarse``; ``normals``: the peer points' normals, see
+    refine_icp) and scored at it (overlap_fitness within ``final_gate``, covisible_fraction), in one compiled call
+    per group of poses (``threads`` groups in parallel; the poses are independent): (poses (H, 3, 3), fitness,
+    rmse_m, covisible)."""
     T = np.ascontiguousarray(np.array(Ts, dtype=np.float64).reshape(-1, 3, 3))
     p = np.ascontiguousarray(pts, dtype=np.float64)
-    fixed = (cloud.index, cloud.clearance, cloud.xy, cloud.normals, cloud.range_m, cloud.resolution_m, covis, p)
-    tail = (*icp_params(coarse), coarse.max_correction_m, coarse.max_correction_deg, final_gate)
+    pn, min_cos = facing_args(p, normals, coarse)
+    fixed = (cloud.index, cloud.clearance, cloud.xy, cloud.normals, cloud.range_m, cloud.resolution_m, covis, p, pn)
+    tail = (*icp_params(coarse), min_cos, coarse.max_correction_m, coarse.max_correction_deg, final_gate)
 
     def run(group: np.ndarray):
         return coarse_verification_loop(*fixed, np.ascontiguousarray(group), *tail)
@@ -600,22 +612,24 @@ def verify(
     hyps: list[Hypothesis],
     ego_cloud: BevCloud,
     covis: np.ndarray,
-    coarse_pts: np.ndarray,
-    full_pts: np.ndarray,
+    coarse_sample: tuple[np.ndarray, np.ndarray | None],
+    full_sample: tuple[np.ndarray, np.ndarray | None],
     config: AlignConfig,
     coarse: RefineConfig,
     boxes: tuple[BoxSet, BoxSet] | None = None,
     window: PriorWindow | None = None,
 ) -> None:
-    """Coarse dense refinement (``coarse``, on ``coarse_pts``) + score for every hypothesis, then a full refinement
-    of the finalists on ``full_pts`` (in place). ``boxes``: the (ego, peer) boxes, paired per pose. ``window``: a
-    hypothesis the refinement carries out of the prior's window is dropped (the list may end empty)."""
+    """Coarse dense refinement (``coarse``, on ``coarse_sample``: peer points and their normals, or None) + score
+    for every hypothesis, then a full refinement of the finalists on ``full_sample`` (in place). ``boxes``: the
+    (ego, peer) boxes, paired per pose. ``window``: a hypothesis the refinement carries out of the prior's window is
+    dropped (the list may end empty)."""
     a, rf = config.acquire, config.refine
     final_gate = rf.gates_m[-1]
     ego_boxes, peer_boxes = boxes if boxes is not None else (BoxSet.of(np.zeros((0, 7))),) * 2
     size_ok = same_size(peer_boxes, ego_boxes, a)  # the boxes' footprint agreement, the same under every pose
+    full_pts, full_normals = full_sample
     Ts, fitness, rmse, covisible = coarse_verification(
-        ego_cloud, covis, coarse_pts, [h.T for h in hyps], coarse, final_gate, a.threads
+        ego_cloud, covis, coarse_sample[0], [h.T for h in hyps], coarse, final_gate, a.threads, coarse_sample[1]
     )
     for n, h in enumerate(hyps):
         h.T, h.fitness, h.rmse_m, h.covisible = Ts[n], float(fitness[n]), float(rmse[n]), float(covisible[n])
@@ -625,7 +639,8 @@ def verify(
     hyps.sort(key=lambda x: -score(x, a))
     finalists = hyps[: a.finalists]
     refined = run_parts(
-        lambda hs: [refine_icp(ego_cloud, full_pts, h.T, rf) for h in hs], contiguous(finalists, a.threads)
+        lambda hs: [refine_icp(ego_cloud, full_pts, h.T, rf, full_normals) for h in hs],
+        contiguous(finalists, a.threads),
     )
     for h, ref in zip(finalists, [r for part in refined for r in part], strict=True):
         h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
@@ -637,10 +652,12 @@ def verify(
     hyps[: len(finals)] = finals
     if not hyps:
         return
-    _merge_neighbours(hyps, ego_cloud, full_pts, config)
+    _merge_neighbours(hyps, ego_cloud, full_sample, config)
 
 
-def _merge_neighbours(hyps: list[Hypothesis], ego_cloud: BevCloud, full_pts: np.ndarray, config: AlignConfig) -> None:
+def _merge_neighbours(
+    hyps: list[Hypothesis], ego_cloud: BevCloud, full_sample: tuple[np.ndarray, np.ndarray | None], config: AlignConfig
+) -> None:
     """A rival close to the best (within merge_within_m and merge_within_deg) may be the same basin, only not yet
     converged by the coarse stage. Refine it fully: if it meets the best it is the same pose and no longer a rival;
     if not, it keeps its coarse values (the margin's calibration). Rivals only ever go away, so margins only grow
@@ -651,58 +668,80 @@ def _merge_neighbours(hyps: list[Hypothesis], ego_cloud: BevCloud, full_pts: np.
         rival = max(rivals, key=lambda h: dense_score(h, a), default=None)  # the one the margin is taken over
         if rival is None or rival.refined or _distinct(rival.T, [best], a.merge_within_m, a.merge_within_deg):
             return
-        T = refine_icp(ego_cloud, full_pts, rival.T, config.refine).T
+        T = refine_icp(ego_cloud, full_sample[0], rival.T, config.refine, full_sample[1]).T
         if _distinct(T, [best], a.distinct_m, a.distinct_deg):
             return
         rival.T = T  # the same pose as the best: _rivals skips it from now on
 
 
-def _margin(hyps: list[Hypothesis], cfg: AcquireConfig) -> float:
+def _margin(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> float:
     """The images' margin: the first hypothesis's dense score over the best dense score of any distinct one
     (floored at cfg.runner_up_floor; the floor alone without one). The boxes, which helped rank, are left out: they
-    are judged on their own (``_box_confirmed``), not counted twice."""
-    best_rival = max((dense_score(h, cfg) for h in _rivals(hyps, cfg)), default=0.0)
+    are judged on their own (``_box_confirmed``), not counted twice. ``max_conflict``: see ``_rivals``."""
+    best_rival = max((dense_score(h, cfg) for h in _rivals(hyps, cfg, max_conflict)), default=0.0)
     return float(dense_score(hyps[0], cfg) / max(best_rival, cfg.runner_up_floor))
 
 
-def _box_confirmed(hyps: list[Hypothesis], cfg: AcquireConfig) -> bool:
-    """The boxes single out the best pose (``hyps[0]``): at least ``box_confirm_pairs`` peer boxes on ego boxes,
-    and at least ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many as under any distinct
-    hypothesis (a row of parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
-    best = hyps[0]
-    if cfg.box_confirm_pairs == 0 or best.box_pairs < cfg.box_confirm_pairs:
+def _box_confirmed(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> bool:
+    """The boxes single out the best pose (``hyps[0]``) among its rivals (``_rivals``, ``max_conflict``)."""
+    others = max((h.box_pairs for h in _rivals(hyps, cfg, max_conflict)), default=0)
+    return _boxes_single_out(hyps[0].box_pairs, others, cfg)
+
+
+def _box_contradicted(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> Hypothesis | None:
+    """The rival (``_rivals``) the boxes single out over the best pose, if any: the images and the boxes then vouch
+    for two different poses, and neither is trusted."""
+    rival = max(_rivals(hyps, cfg, max_conflict), key=lambda h: h.box_pairs, default=None)
+    return rival if rival is not None and _boxes_single_out(rival.box_pairs, hyps[0].box_pairs, cfg) else None
+
+
+def _boxes_single_out(pairs: int, others: int, cfg: AcquireConfig) -> bool:
+    """``pairs`` peer boxes on ego boxes under one pose single it out over ``others`` under any other: at least
+    ``box_confirm_pairs``, and at least ``box_confirm_margin`` more and ``box_confirm_ratio`` times as many (a row of
+    parked cars seen from its two ends pairs many boxes at a wrong pose too)."""
+    if cfg.box_confirm_pairs == 0 or pairs < cfg.box_confirm_pairs:
         return False
-    others = max((h.box_pairs for h in _rivals(hyps, cfg)), default=0)
-    return best.box_pairs - others >= cfg.box_confirm_margin and best.box_pairs >= cfg.box_confirm_ratio * others
+    return pairs - others >= cfg.box_confirm_margin and pairs >= cfg.box_confirm_ratio * others
 
 
-def _rivals(hyps: list[Hypothesis], cfg: AcquireConfig) -> list[Hypothesis]:
-    """The hypotheses distinct from the first, in order (after refinement two may have met)."""
-    return [h for h in hyps[1:] if _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg)]
+def _rivals(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> list[Hypothesis]:
+    """The hypotheses distinct from the first, in order (after refinement two may have met); those whose free-space
+    conflict exceeds ``max_conflict`` are no rivals (a pose the two LiDARs' free space rules out)."""
+    return [
+        h
+        for h in hyps[1:]
+        if h.conflict <= max_conflict and _distinct(h.T, [hyps[0]], cfg.distinct_m, cfg.distinct_deg)
+    ]
 
 
-def runner_up_of(hyps: list[Hypothesis], cfg: AcquireConfig) -> Hypothesis | None:
-    """The best-scoring hypothesis distinct from the first."""
-    return next(iter(_rivals(hyps, cfg)), None)
+def runner_up_of(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> Hypothesis | None:
+    """The best-scoring hypothesis distinct from the first (and within ``max_conflict``, see ``_rivals``)."""
+    return next(iter(_rivals(hyps, cfg, max_conflict)), None)
 
 
 # ---- pipeline steps ------------------------------------------------------------------------------------------
 
 
 def pose_uncertainty(
-    ego_cloud: BevCloud, peer_pts: np.ndarray, T: np.ndarray, gate: float, cfg: CovarianceConfig
+    ego_cloud: BevCloud,
+    peer_sample: tuple[np.ndarray, np.ndarray | None],
+    T: np.ndarray,
+    gate: float,
+    cfg: CovarianceConfig,
+    min_cos: float = -1.0,
 ) -> np.ndarray:
-    """3x3 covariance of (yaw, tx, ty) of the pose T (3x3 ego <- peer), from the refinement's normal equations."""
-    cov_left = pose_covariance(
-        ego_cloud, peer_pts, T, gate, inflation=cfg.inflation, min_sigma_m=cfg.min_residual_sigma_m
-    )
+    """3x3 covariance of (yaw, tx, ty) of the pose T (3x3 ego <- peer), from the refinement's normal equations
+    (``peer_sample``: the peer points and their normals; ``min_cos``: the refinement's facing test)."""
+    pts, normals = peer_sample
+    cov_left = pose_covariance(ego_cloud, pts, T, gate, cfg.inflation, cfg.min_residual_sigma_m, normals, min_cos)
     return params_covariance(cov_left, T)
 
 
 class Acquirer:
     """Stage 1 in multi mode as a pipeline step, built once from the config: candidates, hypotheses by voting,
     dense verification, decision by margin and relative fitness. ``__call__`` fills the result (T_bv, inliers,
-    fitness, acquisition diagnostics) and returns (FailureReason or None, the refinement's peer points)."""
+    fitness, acquisition diagnostics) and returns (FailureReason or None, the refinement's peer points and their
+    normals)."""
 
     def __init__(self, config: AlignConfig):
         if not config.refine.enabled:
@@ -721,7 +760,7 @@ class Acquirer:
         timed,
         window: PriorWindow | None = None,
         memo: SearchMemo | None = None,
-    ) -> tuple[FailureReason | None, np.ndarray | None]:
+    ) -> tuple[FailureReason | None, tuple[np.ndarray, np.ndarray] | None]:
         """``window``: only hypotheses inside it are formed, verified and counted as rivals, and its prior pose is
         verified as one more hypothesis (config.prior.verify_prior_pose). ``memo``: what an earlier search of the
         same two frames found (read) or an empty one (filled)."""
@@ -748,6 +787,7 @@ class Acquirer:
         coarse_pts, full_pts = bev_samples(
             peer.bev, rf.min_pixel_value, [a.coarse_points, rf.max_peer_points], cfg.seed
         )
+        coarse_sample, full_sample = ((p, peer_normals(peer.bev, p, rf)) for p in (coarse_pts, full_pts))
 
         with timed("hypotheses"):
             if memo.proposed is None:
@@ -777,7 +817,7 @@ class Acquirer:
             if not hs:
                 return hs, 0.0
             with timed("verify"):
-                verify(hs, ego_cloud, covis, coarse_pts, full_pts, cfg, self.coarse, boxes, window)
+                verify(hs, ego_cloud, covis, coarse_sample, full_sample, cfg, self.coarse, boxes, window)
             return hs, (_margin(hs, a) if hs else 0.0)
 
         hyps: list[Hypothesis] = []
@@ -796,27 +836,35 @@ class Acquirer:
             hyps, margin = run(cand)
         if not hyps:
             return FailureReason.too_few_inliers_bv, None
-        if cfg.free_space.enabled:
+        fs = cfg.free_space
+        bound = fs.rival_conflict if fs.enabled else 1.0  # rivals the free space rules out do not count
+        if fs.enabled:
             with timed("free_space"):
                 self._conflicts(ego, peer, hyps)
+            margin = _margin(hyps, a, bound)
         best = hyps[0]
-        result.acquisition = Acquisition(best, runner_up_of(hyps, a), hyps, int(cand.size), margin).diagnostics()
+        result.acquisition = Acquisition(best, runner_up_of(hyps, a, bound), hyps, int(cand.size), margin).diagnostics()
         result.T_bv, result.inliers_bv, result.refine_fitness = best.T, best.inliers, best.fitness
         result.ambiguity_bv = 1.0 / max(1.0, margin)
         mask = best.inlier_mask
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
-        if not dense_ok and not _box_confirmed(hyps, a):
-            return FailureReason.ambiguous_bv, full_pts
+        if not dense_ok and not _box_confirmed(hyps, a, bound):
+            return FailureReason.ambiguous_bv, full_sample
+        if (rival := _box_contradicted(hyps, a, bound)) is not None:
+            result.notes.append(
+                f"the boxes vouch for another pose: {rival.box_pairs} cars on cars, {best.box_pairs} here"
+            )
+            return FailureReason.ambiguous_bv, full_sample
         if not dense_ok:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
-            return FailureReason.inconsistent_overlap, full_pts
+            return FailureReason.inconsistent_overlap, full_sample
         if cfg.free_space.enabled and best.conflict > cfg.free_space.max_conflict:
             result.notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
-            return FailureReason.free_space_conflict, full_pts
-        return None, full_pts
+            return FailureReason.free_space_conflict, full_sample
+        return None, full_sample
 
     def _covisible(self, frame) -> np.ndarray:
         """The frame's co-visibility mask (covisible_map within acquire.covisible_m), built once per frame."""
@@ -827,7 +875,7 @@ class Acquirer:
         )
 
     def _conflicts(self, ego, peer, hyps: list[Hypothesis]) -> None:
-        """The free-space conflict of the best hypothesis and its runner-up: the peer's tall structure in the ego
+        """The free-space conflict of every hypothesis: the peer's tall structure in the ego
         car's free space under T, and the ego's in the peer's under T^-1; the larger (engine.freespace). Each frame's
         maps are built once; "near structure" is the co-visibility mask (acquire.covisible_m)."""
         fs, mv, seed = self.config.free_space, self.config.refine.min_pixel_value, self.config.seed
@@ -840,9 +888,8 @@ class Acquirer:
             return frame.cached(("free_space", fs, mv, self.config.acquire.covisible_m), build)
 
         (ego_free, ego_near, ego_tall), (peer_free, peer_near, peer_tall) = maps(ego), maps(peer)
-        for h in [hyps[0], runner_up_of(hyps, self.config.acquire)]:
-            if h is not None:
-                h.conflict = max(
-                    conflict(ego_free, ego_near, ego.bev, peer_tall, h.T),
-                    conflict(peer_free, peer_near, peer.bev, ego_tall, np.linalg.inv(h.T)),
-                )
+        for h in hyps:
+            h.conflict = max(
+                conflict(ego_free, ego_near, ego.bev, peer_tall, h.T),
+                conflict(peer_free, peer_near, peer.bev, ego_tall, np.linalg.inv(h.T)),
+            )

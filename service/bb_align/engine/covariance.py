@@ -22,20 +22,20 @@ import numpy as np
 from numba import njit
 
 from .geometry import log_left, se2
-from .refine import BevCloud
+from .refine import BevCloud, facing
 
 _HUGE = 1e6  # variance reported along a direction with no information at all (m^2 or rad^2)
 
 
 @njit(cache=True, nogil=True)
-def _line_information(p, xy, normals, nearest, gate):
+def _line_information(p, xy, normals, nearest, gate, pn, c, s, min_cos):
     H = np.zeros((3, 3))
     wrr = 0.0
     wsum = 0.0
     huber = 0.25 * gate
     for i in range(len(p)):
         j = nearest[i]
-        if j < 0:
+        if j < 0 or not facing(normals, j, pn, i, c, s, min_cos):  # the refinement's correspondences only
             continue
         px, py = p[i, 0], p[i, 1]
         nx, ny = normals[j, 0], normals[j, 1]
@@ -51,13 +51,23 @@ def _line_information(p, xy, normals, nearest, gate):
 
 
 def pose_covariance(
-    ego: BevCloud, pts_peer: np.ndarray, T: np.ndarray, gate: float, inflation: float = 1.0, min_sigma_m: float = 0.1
+    ego: BevCloud,
+    pts_peer: np.ndarray,
+    T: np.ndarray,
+    gate: float,
+    inflation: float = 1.0,
+    min_sigma_m: float = 0.1,
+    normals_peer: np.ndarray | None = None,
+    min_cos: float = -1.0,
 ) -> np.ndarray:
     """3x3 covariance of (yaw, tx, ty) at pose T (3x3 ego <- peer). ``min_sigma_m`` floors the residual sigma
-    (the pixel quantisation: residuals are not smaller than the cell allows)."""
+    (the pixel quantisation: residuals are not smaller than the cell allows). ``normals_peer``, ``min_cos``: the
+    refinement's facing test (bb_align.engine.refine); None: every pair counts."""
     p = np.ascontiguousarray(pts_peer @ T[:2, :2].T + T[:2, 2], dtype=np.float64)
     _, j = ego.nearest(p, gate)
-    H, wrr, wsum = _line_information(p, ego.xy, ego.normals, j, float(gate))
+    pn = np.zeros((len(p), 2)) if normals_peer is None else np.ascontiguousarray(normals_peer, dtype=np.float64)
+    min_cos = -1.0 if normals_peer is None else float(min_cos)
+    H, wrr, wsum = _line_information(p, ego.xy, ego.normals, j, float(gate), pn, T[0, 0], T[1, 0], min_cos)
     if wsum <= 3:
         return np.diag([_HUGE, _HUGE, _HUGE])
     sigma2 = max(wrr / (wsum - 3.0), min_sigma_m**2, 1e-12)

@@ -64,7 +64,8 @@ class _Pair:
     ego: PreparedFrame
     peer: PreparedFrame
     result: AlignResult
-    peer_pts: np.ndarray | None = None  # the peer's lit pixels sampled for the dense refinement
+    peer_sample: tuple[np.ndarray, np.ndarray] | None = None  # the peer's lit pixels sampled for the refinement,
+    # with their normals facing the peer's sensor (Refiner.sample)
     refined: bool = False  # the refinement ran and its correction was accepted
     multi: bool = False  # stage 1 ran the multi-hypothesis acquisition
     window: PriorWindow | None = None  # the multi path searched inside a prior's window only
@@ -269,14 +270,16 @@ class Aligner:
             reason = self.verdict.images(ego, peer)
             if reason is None:
                 with _timed(r.timings_ms, "refine"):
-                    pts = peer.cached(("refine_sample", self.config.seed), lambda: self.refiner.sample(peer.bev))
+                    sample = peer.cached(("refine_sample", self.config.seed), lambda: self.refiner.sample(peer.bev))
                     ego_cloud = ego.cloud(cfg.refine)
-                    ref = self.refiner.refine(ego_cloud, pts, T_pred)
+                    ref = self.refiner.refine(ego_cloud, sample, T_pred)
                 r.T_bv, r.refine_fitness = ref.T, ref.fitness
                 reason = self.verdict.measured(ref.accepted, ref.fitness, cfg.track.min_fitness)
             if reason is None and cfg.covariance.enabled:
                 with _timed(r.timings_ms, "covariance"):
-                    r.covariance = pose_uncertainty(ego_cloud, pts, r.T_bv, cfg.refine.gates_m[-1], cfg.covariance)
+                    r.covariance = pose_uncertainty(
+                        ego_cloud, sample, r.T_bv, cfg.refine.gates_m[-1], cfg.covariance, cfg.refine.facing_min_cos
+                    )
             r.notes.append("tracking measurement: refined from the predicted pose")
             return self.verdict.finish(r, reason, tz=0.0, roll=0.0, pitch=0.0)
 
@@ -286,7 +289,7 @@ class Aligner:
         paper mode the nearest-neighbour (or prior-gated) matches and one RANSAC fit, then refined."""
         if self.acquirer is not None:
             r = pair.result
-            reason, pair.peer_pts = self.acquirer(
+            reason, pair.peer_sample = self.acquirer(
                 pair.ego, pair.peer, r, lambda name: _timed(r.timings_ms, name), window=pair.window, memo=pair.memo
             )
             pair.multi = pair.refined = True
@@ -310,16 +313,17 @@ class Aligner:
 
     def _covariance(self, pair: _Pair) -> None:
         """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""
-        if not self.config.covariance.enabled or pair.peer_pts is None:
+        if not self.config.covariance.enabled or pair.peer_sample is None:
             return None
         r = pair.result
         with _timed(r.timings_ms, "covariance"):
             r.covariance = pose_uncertainty(
                 pair.ego.cloud(self.config.refine),
-                pair.peer_pts,
+                pair.peer_sample,
                 r.T_box @ r.T_bv,
                 self.config.refine.gates_m[-1],
                 self.config.covariance,
+                self.config.refine.facing_min_cos,
             )
         return None
 
@@ -335,8 +339,8 @@ class Aligner:
             return None
         r = pair.result
         with _timed(r.timings_ms, "refine"):
-            pair.peer_pts = self.refiner.sample(pair.peer.bev)
-            ref = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_pts, r.T_bv)
+            pair.peer_sample = self.refiner.sample(pair.peer.bev)
+            ref = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_sample, r.T_bv)
         r.T_bv, r.refine_fitness, pair.refined = ref.T, ref.fitness, ref.accepted
         if not ref.accepted:
             r.notes.append("BV refinement rejected (correction beyond bounds); stage-1 pose kept")
@@ -411,7 +415,7 @@ class Aligner:
         # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
         # Refine again from the box-corrected pose and keep whichever pose the BV images agree with more.
         with _timed(r.timings_ms, "refine"):
-            alt = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_pts, T_box @ r.T_bv)
+            alt = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_sample, T_box @ r.T_bv)
         if alt.accepted and alt.fitness > r.refine_fitness + box.recheck_min_gain:
             r.notes.append(
                 f"stage 2 moved the pose to a better BV overlap ({r.refine_fitness:.2f} -> "
