@@ -293,3 +293,26 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
             assert _margin(hyps, a) == pytest.approx(hyps[0].fitness / max(hyps[-1].fitness, a.runner_up_floor))
         else:
             assert near_wrong == [False, True]  # the unconverged neighbour is the runner-up
+
+
+def test_boxes_that_single_out_a_far_rival_refuse_the_images_pose():
+    """Hand-worked against the rule: the images chose a pose with one car on a car; a rival 45 m away pairs four
+    (>= box_confirm_pairs 3, two more and 1.5 times as many). The boxes then vouch for another pose: refused.
+    Not so for a rival within stage 2's reach (stage 2 judges it), one where the images share nothing (fitness under
+    runner_up_floor), one the free space rules out, or a lead the boxes do not make clear."""
+    from bb_align.engine.acquire import Hypothesis, _box_contradicted
+
+    cfg, reach = AcquireConfig(), (4.0, 6.0)
+
+    def hyp(x, yaw_deg=0.0, fitness=0.1, box_pairs=0, conflict=0.0):
+        return Hypothesis(se2(np.radians(yaw_deg), x, 0.0), 10, fitness=fitness, box_pairs=box_pairs, conflict=conflict)
+
+    best = hyp(50.0, fitness=0.3, box_pairs=1)
+    far = hyp(5.0, fitness=0.08, box_pairs=4)
+    assert _box_contradicted([best, far], cfg, 1.0, reach) is far
+    assert _box_contradicted([best, hyp(47.0, box_pairs=9)], cfg, 1.0, reach) is None  # 3 m: stage 2's to judge
+    assert _box_contradicted([best, hyp(50.0, yaw_deg=8.0, box_pairs=9)], cfg, 1.0, reach) is not None  # 8 deg
+    assert _box_contradicted([best, hyp(5.0, fitness=0.01, box_pairs=9)], cfg, 1.0, reach) is None
+    assert _box_contradicted([best, hyp(5.0, box_pairs=9, conflict=0.3)], cfg, 0.15, reach) is None
+    assert _box_contradicted([hyp(50.0, fitness=0.3, box_pairs=3), far], cfg, 1.0, reach) is None  # 4 vs 3
+    assert _box_contradicted([best, hyp(5.0, box_pairs=2)], cfg, 1.0, reach) is None  # 2: under box_confirm_pairs

@@ -688,10 +688,19 @@ def _box_confirmed(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: flo
     return _boxes_single_out(hyps[0].box_pairs, others, cfg)
 
 
-def _box_contradicted(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> Hypothesis | None:
+def _box_contradicted(
+    hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float, reach: tuple[float, float]
+) -> Hypothesis | None:
     """The rival (``_rivals``) the boxes single out over the best pose, if any: the images and the boxes then vouch
-    for two different poses, and neither is trusted."""
-    rival = max(_rivals(hyps, cfg, max_conflict), key=lambda h: h.box_pairs, default=None)
+    for two different poses, and neither is trusted. Only a rival beyond stage 2's ``reach`` (m, deg: a nearer one is
+    stage 2's to judge, box against image) whose dense overlap reaches ``runner_up_floor`` counts: where the two
+    images share nothing, boxes that pair say nothing about the scene."""
+    seen = [
+        h
+        for h in _rivals(hyps, cfg, max_conflict)
+        if h.fitness >= cfg.runner_up_floor and _distinct(h.T, [hyps[0]], *reach)
+    ]
+    rival = max(seen, key=lambda h: h.box_pairs, default=None)
     return rival if rival is not None and _boxes_single_out(rival.box_pairs, hyps[0].box_pairs, cfg) else None
 
 
@@ -852,7 +861,8 @@ class Acquirer:
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
         if not dense_ok and not _box_confirmed(hyps, a, bound):
             return FailureReason.ambiguous_bv, full_sample
-        if (rival := _box_contradicted(hyps, a, bound)) is not None:
+        reach = (cfg.box.max_correction_m, cfg.box.max_correction_deg)
+        if (rival := _box_contradicted(hyps, a, bound, reach)) is not None:
             result.notes.append(
                 f"the boxes vouch for another pose: {rival.box_pairs} cars on cars, {best.box_pairs} here"
             )
