@@ -173,7 +173,7 @@ class RefineConfig(_Frozen):
         le=1,
         description="a peer pixel pairs with an ego pixel only if their normals, each turned towards its own "
         "sensor, agree this well (cosine): two faces of one object between the cars are not one surface; -1: off "
-        "(refined from the truth at 85-100 m, within 1 m & 1 deg: 48-56 % off, 83-88 % at 0.5; docs/acquisition.md)",
+        "(refined from the truth at 85-100 m, within 1 m & 1 deg: 54 % off, 83 % at 0.5; benchmarks/facing_study.py)",
     )
     peer_normal_px: int = Field(2, ge=1, le=6, description="half window (pixels) of the peer pixels' PCA normals")
     min_points: int = Field(10, ge=3, description="fewer ego pixels, peer points or matches: no refinement")
