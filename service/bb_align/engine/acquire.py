@@ -546,7 +546,7 @@ def coarse_verification(
     rmse_m, covisible)."""
     T = np.ascontiguousarray(np.array(Ts, dtype=np.float64).reshape(-1, 3, 3))
     p = np.ascontiguousarray(pts, dtype=np.float64)
-    pn, min_cos = facing_args(p, normals, coarse)
+    pn, min_cos = facing_args(p, normals, coarse.facing_min_cos)
     fixed = (cloud.index, cloud.clearance, cloud.xy, cloud.normals, cloud.range_m, cloud.resolution_m, covis, p, pn)
     tail = (*icp_params(coarse), min_cos, coarse.max_correction_m, coarse.max_correction_deg, final_gate)
 
@@ -871,7 +871,7 @@ class Acquirer:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_sample
-        if cfg.free_space.enabled and best.conflict > cfg.free_space.max_conflict:
+        if fs.enabled and best.conflict > fs.max_conflict:
             result.notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
             return FailureReason.free_space_conflict, full_sample
         return None, full_sample
@@ -885,9 +885,9 @@ class Acquirer:
         )
 
     def _conflicts(self, ego, peer, hyps: list[Hypothesis]) -> None:
-        """The free-space conflict of every hypothesis: the peer's tall structure in the ego
-        car's free space under T, and the ego's in the peer's under T^-1; the larger (engine.freespace). Each frame's
-        maps are built once; "near structure" is the co-visibility mask (acquire.covisible_m)."""
+        """The free-space conflict of every hypothesis: the peer's tall structure in the ego car's free space under T,
+        and the ego's in the peer's under T^-1; the larger (engine.freespace). Each frame's maps are built once;
+        "near structure" is the co-visibility mask (acquire.covisible_m)."""
         fs, mv, seed = self.config.free_space, self.config.refine.min_pixel_value, self.config.seed
 
         def maps(frame):

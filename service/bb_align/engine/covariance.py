@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import log_left, se2
-from .refine import BevCloud, facing
+from .refine import BevCloud, facing, facing_args
 
 _HUGE = 1e6  # variance reported along a direction with no information at all (m^2 or rad^2)
 
@@ -65,8 +65,7 @@ def pose_covariance(
     refinement's facing test (bb_align.engine.refine); None: every pair counts."""
     p = np.ascontiguousarray(pts_peer @ T[:2, :2].T + T[:2, 2], dtype=np.float64)
     _, j = ego.nearest(p, gate)
-    pn = np.zeros((len(p), 2)) if normals_peer is None else np.ascontiguousarray(normals_peer, dtype=np.float64)
-    min_cos = -1.0 if normals_peer is None else float(min_cos)
+    pn, min_cos = facing_args(p, normals_peer, min_cos)
     H, wrr, wsum = _line_information(p, ego.xy, ego.normals, j, float(gate), pn, T[0, 0], T[1, 0], min_cos)
     if wsum <= 3:
         return np.diag([_HUGE, _HUGE, _HUGE])

@@ -10,7 +10,7 @@ at the few pixels around it (a compiled loop over an index image) instead of a K
 
 A LiDAR sees the face of an object turned towards it. Between two cars the ego car sees the near face of a parked
 car, a pole or a trunk and the peer its far face: pairing the two faces pulls the cars together by the object's
-thickness (measured: the refinement started at the true pose drifted a median 0.9 m towards the ego car at 85-100 m
+thickness (measured: the refinement started at the true pose drifted a median 0.83 m towards the ego car at 85-100 m
 apart). So every normal faces its own sensor, and a pair whose two normals disagree (``RefineConfig.facing_min_cos``)
 is not a correspondence: it is two sides of one thing (docs/acquisition.md, session 14).
 """
@@ -120,18 +120,17 @@ def _window_normals(lit, pts, range_m, resolution_m, half):
                     sxx += x * x
                     syy += y * y
                     sxy += x * y
-        d = np.hypot(pts[i, 0], pts[i, 1])
-        if m < 3:
-            out[i, 0], out[i, 1] = -pts[i, 0] / max(d, 1e-9), -pts[i, 1] / max(d, 1e-9)
-            continue
-        cxx, cyy, cxy = sxx / m - (sx / m) ** 2, syy / m - (sy / m) ** 2, sxy / m - (sx / m) * (sy / m)
-        spread = np.hypot(cxx - cyy, 2 * cxy)  # eigenvalue gap: ~0 for a round blob
-        if spread < 0.5 * (cxx + cyy):
-            out[i, 0], out[i, 1] = -pts[i, 0] / max(d, 1e-9), -pts[i, 1] / max(d, 1e-9)
-            continue
-        angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # the line's direction in (row, col) offsets
-        # rows grow towards -x, columns towards -y: the line's direction in metres is (-cos, -sin); its normal:
-        out[i, 0], out[i, 1] = np.sin(angle), -np.cos(angle)
+        cxx, cyy, cxy = 0.0, 0.0, 0.0
+        if m >= 3:
+            cxx, cyy, cxy = sxx / m - (sx / m) ** 2, syy / m - (sy / m) ** 2, sxy / m - (sx / m) * (sy / m)
+        # A line: the eigenvalue gap at least half their sum (~0 for a round blob; 0 for fewer than 3 pixels).
+        if m >= 3 and np.hypot(cxx - cyy, 2 * cxy) >= 0.5 * (cxx + cyy):
+            angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # the line's direction in (row, col) offsets
+            # rows grow towards -x, columns towards -y: the line's direction in metres is (-cos, -sin); its normal:
+            out[i, 0], out[i, 1] = np.sin(angle), -np.cos(angle)
+        else:
+            d = max(np.hypot(pts[i, 0], pts[i, 1]), 1e-9)
+            out[i, 0], out[i, 1] = -pts[i, 0] / d, -pts[i, 1] / d
     return out
 
 
@@ -205,18 +204,18 @@ def _icp(
 ) -> tuple[np.ndarray, bool]:
     """The ICP iterations of refine_icp (compiled): (the pose they end at, False when a step matched fewer than
     cfg.min_points points)."""
-    pn, min_cos = facing_args(pts, normals_peer, cfg)
+    pn, min_cos = facing_args(pts, normals_peer, cfg.facing_min_cos)
     return _icp_loop(
         ego.index, ego.clearance, ego.xy, ego.normals, ego.range_m, ego.resolution_m, pts, pn, T, *icp_params(cfg),
         min_cos,
     )  # fmt: skip
 
 
-def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, cfg: RefineConfig) -> tuple[np.ndarray, float]:
-    """The compiled loops' (peer normals, min_cos): without normals every pair faces alike (min_cos -1)."""
+def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, min_cos: float) -> tuple[np.ndarray, float]:
+    """The compiled loops' (peer normals, min_cos) for ``facing``: without normals every pair faces alike (-1)."""
     if normals_peer is None:
         return np.zeros((len(pts), 2)), -1.0
-    return np.ascontiguousarray(normals_peer, dtype=np.float64).reshape(-1, 2), float(cfg.facing_min_cos)
+    return np.ascontiguousarray(normals_peer, dtype=np.float64).reshape(-1, 2), float(min_cos)
 
 
 def icp_params(cfg: RefineConfig) -> tuple:
