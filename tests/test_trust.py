@@ -283,6 +283,15 @@ def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
             ZenohPeer("car1", connect=ep, key=car1_cred, trust=fleet / "ca.pub", block_when_congested=True) as car1,
         ):
             assert ego_car.wait_for_subscriber(10) and car1.wait_for_subscriber(10)
+            # A car's link to the service closed by Zenoh (a stalled link is closed after 5 s) would lose its
+            # queued frames: watched, so a failure says whether the frames were lost on the air or in the service.
+            link_events: list[tuple[str, str, str]] = []
+            watchers = [
+                car.session.info.declare_link_events_listener(
+                    lambda e, name=name: link_events.append((name, str(e.kind), str(e.link.dst)))
+                )
+                for name, car in (("ego", ego_car), ("car1", car1))
+            ]
             flooder = FloodProcess(ep[0], settings.zenoh.prefix, {"ego": None, "car1": None}, config)
             try:
                 flooder.start()
@@ -308,14 +317,24 @@ def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
                 refusals = [
                     ln
                     for ln in httpx.get(f"{url}/metrics").text.splitlines()
-                    if ln.startswith(("bbalign_door_refused_total", "bbalign_frames_rejected_total"))
+                    if ln.startswith(
+                        (
+                            "bbalign_door_refused_total",
+                            "bbalign_frames_rejected_total",
+                            "bbalign_door_throttled",
+                            "bbalign_intake_dropped",
+                        )
+                    )
                 ]
                 car1_status = httpx.get(f"{url}/v1/peers").json().get("car1")
                 raise AssertionError(
-                    f"{e}: (ego, car1) accepted {accepted()}, flood {flooded}, car1 {car1_status}, refusals {refusals}"
+                    f"{e}: (ego, car1) accepted {accepted()}, flood {flooded}, car1 {car1_status}, "
+                    f"metrics {refusals}, car links opened/closed {link_events}"
                 ) from None
             text = httpx.get(f"{url}/metrics").text
             status = httpx.get(f"{url}/v1/peers").json()["car1"]
+            for w in watchers:
+                w.undeclare()
     assert _metric_value(text, "bbalign_door_refused_total", error="undecodable") > 10 * n  # the 1-byte junk
     assert _metric_value(text, "bbalign_door_refused_total", error="unauthenticated") > 0  # the zero-MAC envelopes
     assert flooded["messages"]["byte"] > 10 * n and flooded["messages"]["zero_mac_hmac"] > 0, flooded
