@@ -7,9 +7,9 @@ import numpy as np
 from bb_align.engine import acquire
 from bb_align.engine.acquire import covisible_map
 from bb_align.engine.bev import BevImage
-from bb_align.engine.config import FreeSpaceConfig
+from bb_align.engine.config import FreeSpaceConfig, with_overrides
 from bb_align.engine.freespace import conflict, free_space_map, tall_points
-from bb_align.engine.geometry import se2, se3_from_se2
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
 from bb_align.engine.pipeline import Aligner
 from synthetic import synthetic_world, view_from
 
@@ -125,3 +125,64 @@ def test_a_pose_whose_conflict_exceeds_the_bound_is_refused_and_says_why(monkeyp
     assert any("free-space conflict 0.50" in n for n in refused.notes)
     lenient = Aligner(aligner.config.model_copy(update={"free_space": FreeSpaceConfig(max_conflict=1.0)}))
     assert lenient.align(ego, peer).success
+
+
+def test_a_best_pose_the_free_space_rules_out_gives_way_to_the_next():
+    """Hypotheses, best first: a half turn of the truth (a street's alias, refined; the free space rules it out) and
+    the truth 1.5 m / 2 deg off, unrefined (what the coarse stage leaves of a hypothesis it ranked lower). The alias
+    is dropped, the next is refined fully, onto the truth, and its conflict measured again there; with the alias
+    alone nothing is left."""
+    from bb_align.engine.acquire import Acquirer, Hypothesis, bev_samples, peer_normals
+    from bb_align.engine.box_poses import BoxSet
+
+    T_true = se2(np.radians(8.0), 45.0, 2.0)
+    aligner, ego, peer = _street_pair(T_true)
+    cfg = aligner.config
+    rf, fs = cfg.refine, cfg.free_space
+    acquirer = Acquirer(cfg)
+    (pts,) = bev_samples(peer.bev, rf.min_pixel_value, [rf.max_peer_points], cfg.seed)
+    sample = (pts, peer_normals(peer.bev, pts, rf))
+    boxes = (BoxSet.of(ego.boxes), BoxSet.of(peer.boxes))
+    args = (ego.cloud(rf), acquirer._covisible(ego), sample, boxes, fs.rival_conflict)
+
+    alias = Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10, fitness=0.3, refined=True)
+    off = Hypothesis(se2(np.radians(2.0), 1.5, 0.0) @ T_true, 8, fitness=0.1)
+    hyps = [alias, off]
+    acquirer._conflicts(ego, peer, hyps)
+    assert alias.conflict > fs.rival_conflict  # what the half turn's conflict is (measured, not set)
+    kept = acquirer._without_ruled_out(ego, peer, hyps, *args)
+    assert kept == [off] and off.refined and off.conflict <= fs.max_conflict
+    assert pose_error(se3_from_se2(off.T), se3_from_se2(T_true))[0] < 0.3
+    assert acquirer._without_ruled_out(ego, peer, [alias], *args) == []
+
+
+def test_a_pose_chosen_because_the_best_gave_way_must_be_clear_of_the_free_space(monkeypatch):
+    """The wiring, with the measurement replaced: the true pose (the best) is made to conflict (0.5) and every other
+    pose, here its half turn, to conflict a little (0.05: no rival is ruled out by that, and a best pose would pass
+    max_conflict 0.10). The truth gives way, the half turn is judged, and at 0.05 it is not clear enough for a pose
+    chosen that way (gave_way_max_conflict 0.03): refused, saying so. With the rule off the truth itself is refused."""
+    T_true = se2(np.radians(8.0), 45.0, 2.0)
+    aligner, ego, peer = _street_pair(T_true)
+
+    def fake_conflict(free, near, bev, pts, T):
+        errors = [pose_error(se3_from_se2(X), se3_from_se2(T_true)) for X in (T, np.linalg.inv(T))]
+        return 0.5 if any(t < 3.0 and r < 3.0 for t, r in errors) else 0.05
+
+    def with_half_turn(*args, **kwargs):  # the street offers one clear hypothesis: add its alias, turned round
+        return [*hypotheses(*args, **kwargs), acquire.Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
+
+    hypotheses = acquire.pose_hypotheses
+    monkeypatch.setattr(acquire, "pose_hypotheses", with_half_turn)
+    monkeypatch.setattr(acquire, "conflict", fake_conflict)
+    # Every other gate open (the calibration's multi_open): only the free space decides here.
+    cfg = with_overrides(aligner.config, ["acquire.min_margin=1.0", "acquire.min_evidence=0.0", "acquire.first_k=0"])
+    aligner = Aligner(cfg)
+    res = aligner.align(ego, peer)
+    assert not res.success and res.reason == "free_space_conflict"
+    assert any("the free space rules out" in n for n in res.notes) and any("conflict 0.05" in n for n in res.notes)
+    lenient = aligner.config.free_space.model_copy(update={"gave_way_max_conflict": 0.10})
+    res_lenient = Aligner(aligner.config.model_copy(update={"free_space": lenient})).align(ego, peer)
+    assert res_lenient.reason != "free_space_conflict"  # the bound, not max_conflict, refused the half turn
+    off = aligner.config.free_space.model_copy(update={"ruled_out_first": False})
+    res_off = Aligner(aligner.config.model_copy(update={"free_space": off})).align(ego, peer)
+    assert res_off.reason == "free_space_conflict" and any("conflict 0.50" in n for n in res_off.notes)

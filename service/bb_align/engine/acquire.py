@@ -674,6 +674,10 @@ def _merge_neighbours(
         rival.T = T  # the same pose as the best: _rivals skips it from now on
 
 
+def _conflict_note(value: float) -> str:
+    return f"free-space conflict {value:.2f}: structure where the other car saw through"
+
+
 def _margin(hyps: list[Hypothesis], cfg: AcquireConfig, max_conflict: float = 1.0) -> float:
     """The images' margin: the first hypothesis's dense score over the best dense score of any distinct one
     (floored at cfg.runner_up_floor; the floor alone without one). The boxes, which helped rank, are left out: they
@@ -847,9 +851,18 @@ class Acquirer:
             return FailureReason.too_few_inliers_bv, None
         fs = cfg.free_space
         bound = fs.rival_conflict if fs.enabled else 1.0  # rivals the free space rules out do not count
+        gave_way = False  # the best scorers were ruled out by the free space: the one chosen must be clear of it
         if fs.enabled:
             with timed("free_space"):
                 self._conflicts(ego, peer, hyps)
+                if fs.ruled_out_first and hyps[0].conflict > bound:
+                    kept = self._without_ruled_out(ego, peer, hyps, ego_cloud, covis, full_sample, boxes, bound)
+                    if kept:  # else the ruled-out best stands, and is refused below
+                        result.notes.append(
+                            f"the free space rules out {len(hyps) - len(kept)} hypotheses (best conflict "
+                            f"{hyps[0].conflict:.2f}); the best of the others is judged"
+                        )
+                        hyps, gave_way = kept, True
             margin = _margin(hyps, a, bound)
         best = hyps[0]
         result.acquisition = Acquisition(best, runner_up_of(hyps, a, bound), hyps, int(cand.size), margin).diagnostics()
@@ -871,8 +884,8 @@ class Acquirer:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_sample
-        if fs.enabled and best.conflict > fs.max_conflict:
-            result.notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
+        if fs.enabled and best.conflict > (fs.gave_way_max_conflict if gave_way else fs.max_conflict):
+            result.notes.append(_conflict_note(best.conflict))
             return FailureReason.free_space_conflict, full_sample
         return None, full_sample
 
@@ -883,6 +896,24 @@ class Acquirer:
             ("covisible", a.covisible_m, mv),
             lambda: covisible_map(frame.bev.image, mv, max(1, int(round(a.covisible_m / frame.bev.resolution_m)))),
         )
+
+    def _without_ruled_out(self, ego, peer, hyps, ego_cloud, covis, full_sample, boxes, bound) -> list[Hypothesis]:
+        """The hypotheses the free space does not rule out (conflict <= ``bound``), best first; the new best is
+        refined fully (as verify's finalists are) and its conflict measured again at the refined pose, until the first
+        is refined and not ruled out."""
+        cfg, a = self.config, self.config.acquire
+        size_ok = same_size(boxes[1], boxes[0], a)
+        kept = [h for h in hyps if h.conflict <= bound]
+        while kept and not kept[0].refined:
+            h = kept[0]
+            ref = refine_icp(ego_cloud, full_sample[0], h.T, cfg.refine, full_sample[1])
+            h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
+            h.covisible = covisible_fraction(covis, ego_cloud, full_sample[0], h.T)
+            h.box_pairs, h.box_score = box_agreement(h.T, boxes[1], boxes[0], a, size_ok)
+            self._conflicts(ego, peer, [h])
+            if h.conflict > bound:
+                kept.pop(0)  # refined into a pose the free space rules out
+        return kept  # refined hypotheses first, as verify orders them
 
     def _conflicts(self, ego, peer, hyps: list[Hypothesis]) -> None:
         """The free-space conflict of every hypothesis: the peer's tall structure in the ego car's free space under T,
