@@ -643,9 +643,7 @@ def verify(
         contiguous(finalists, a.threads),
     )
     for h, ref in zip(finalists, [r for part in refined for r in part], strict=True):
-        h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
-        h.covisible = covisible_fraction(covis, ego_cloud, full_pts, h.T)
-        h.box_pairs, h.box_score = box_agreement(h.T, peer_boxes, ego_boxes, a, size_ok)
+        _take_refinement(h, ref, ego_cloud, covis, full_pts, (ego_boxes, peer_boxes), a, size_ok)
     if window is not None:
         hyps[:] = [h for h in hyps if not h.refined or window.holds(h.T)]
     finals = sorted([h for h in hyps if h.refined], key=lambda x: -score(x, a))
@@ -653,6 +651,14 @@ def verify(
     if not hyps:
         return
     _merge_neighbours(hyps, ego_cloud, full_sample, config)
+
+
+def _take_refinement(h: Hypothesis, ref, ego_cloud, covis, pts, boxes, a: AcquireConfig, size_ok) -> None:
+    """A hypothesis refined fully (``ref``: refine_icp's result on ``pts``): its pose, overlap, co-visible share and
+    the (ego, peer) ``boxes`` paired under it."""
+    h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
+    h.covisible = covisible_fraction(covis, ego_cloud, pts, h.T)
+    h.box_pairs, h.box_score = box_agreement(h.T, boxes[1], boxes[0], a, size_ok)
 
 
 def _merge_neighbours(
@@ -900,20 +906,20 @@ class Acquirer:
     def _without_ruled_out(self, ego, peer, hyps, ego_cloud, covis, full_sample, boxes, bound) -> list[Hypothesis]:
         """The hypotheses the free space does not rule out (conflict <= ``bound``), best first; the new best is
         refined fully (as verify's finalists are) and its conflict measured again at the refined pose, until the first
-        is refined and not ruled out."""
+        is refined and not ruled out (at most ``acquire.finalists`` such refinements: then none is kept)."""
         cfg, a = self.config, self.config.acquire
         size_ok = same_size(boxes[1], boxes[0], a)
         kept = [h for h in hyps if h.conflict <= bound]
-        while kept and not kept[0].refined:
+        for _ in range(a.finalists):
+            if not kept or kept[0].refined:
+                return kept  # refined hypotheses first, as verify orders them
             h = kept[0]
             ref = refine_icp(ego_cloud, full_sample[0], h.T, cfg.refine, full_sample[1])
-            h.T, h.fitness, h.rmse_m, h.refined = ref.T, ref.fitness, ref.rmse_m, True
-            h.covisible = covisible_fraction(covis, ego_cloud, full_sample[0], h.T)
-            h.box_pairs, h.box_score = box_agreement(h.T, boxes[1], boxes[0], a, size_ok)
+            _take_refinement(h, ref, ego_cloud, covis, full_sample[0], boxes, a, size_ok)
             self._conflicts(ego, peer, [h])
             if h.conflict > bound:
                 kept.pop(0)  # refined into a pose the free space rules out
-        return kept  # refined hypotheses first, as verify orders them
+        return kept if kept and kept[0].refined else []
 
     def _conflicts(self, ego, peer, hyps: list[Hypothesis]) -> None:
         """The free-space conflict of every hypothesis: the peer's tall structure in the ego car's free space under T,
