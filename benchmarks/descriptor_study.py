@@ -51,11 +51,6 @@ BUCKETS = {"40-70": (40, 70), "70+": (70, 1e9)}
 _state: dict = {}
 
 
-def _flip(desc: np.ndarray, n_cells: int) -> np.ndarray:
-    k, d = desc.shape
-    return desc.reshape(k, n_cells, d // n_cells)[:, ::-1, :].reshape(k, d).copy()
-
-
 def height_descriptors(prepared, features, n_orient: int, orientation_offset: int = 0) -> np.ndarray:
     """(K, cells * 4) per-cell counts of the lit pixels' height bands over the keypoint's rotated window, unit norm."""
     heights = prepared.bev.heights_m()
@@ -81,7 +76,6 @@ def variant_blocks(prepared, cfg: AlignConfig, name: str, offsets: tuple[int, ..
     copy (the peer uses the first block only)."""
     f, n_orient = cfg.features, cfg.mim.n_orient
     mim, amp = prepared._maps
-    n_cells = f.grid**2
     out = []
     for off in offsets:
         d = bvft_descriptors(mim, amp, prepared.keypoints_rc, f, n_orient, off, prepared.orientations)
@@ -90,7 +84,7 @@ def variant_blocks(prepared, cfg: AlignConfig, name: str, offsets: tuple[int, ..
             w = float(name.split("@")[1])
             h = height_descriptors(prepared, f, n_orient, off)
             parts.append(w * h)
-            flips.append(w * _flip(h, n_cells))
+            flips.append(w * flip_180(h, f))  # cells reversed, whatever a cell holds
         elif name.startswith("mim96+"):
             f2 = f.model_copy(update={"patch_px": int(name.split("+")[1])})
             d2 = bvft_descriptors(mim, amp, prepared.keypoints_rc, f2, n_orient, off, prepared.orientations)
