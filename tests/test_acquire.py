@@ -148,7 +148,13 @@ def test_multi_path_fails_without_overlap(world):
         aligner.prepare(view_from(pts_w, np.eye(4), seed=0)), aligner.prepare(view_from(other, np.eye(4), seed=1))
     )
     assert not res.success
-    assert res.reason in {"ambiguous_bv", "inconsistent_overlap", "too_few_inliers_bv", "degenerate_pose"}
+    assert res.reason in {
+        "ambiguous_bv",
+        "inconsistent_overlap",
+        "too_few_inliers_bv",
+        "degenerate_pose",
+        "free_space_conflict",
+    }
 
 
 def test_paper_mode_is_still_available(world):

@@ -128,3 +128,23 @@ def test_plot_labels_each_image_and_draws_a_metre_scale():
     (bar,) = ax.lines
     np.testing.assert_allclose(bar.get_xdata(), [520.0, 620.0])  # inside the second image, 100 px long
     plt.close(fig)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("1 0 0\n0 1 0\n", "expected a finite 4x4 or 3x3 matrix"),
+        ("2 0 0 1\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not a rigid transform"),
+        ("a b c\n", "not a plain-text matrix"),
+    ],
+)
+def test_align_refuses_a_bad_prior_file_in_one_line(tmp_path, text, message):
+    pts = np.random.default_rng(0).uniform(-10, 10, (2000, 4)).astype(np.float32)
+    pts.tofile(tmp_path / "a.bin")
+    (tmp_path / "prior.txt").write_text(text)
+    out = CliRunner().invoke(
+        app, ["align", str(tmp_path / "a.bin"), str(tmp_path / "a.bin"), "--prior", str(tmp_path / "prior.txt")]
+    )
+    assert out.exit_code == 2
+    flat = " ".join(out.output.replace("│", " ").split())  # the error box wraps long lines
+    assert message in flat and "Traceback" not in out.output

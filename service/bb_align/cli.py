@@ -44,6 +44,13 @@ def align(
         help="an AlignConfig saved as JSON or YAML (see `bb-align config --dump`); "
         "fields it leaves out keep their defaults",
     ),
+    prior: Path | None = typer.Option(
+        None,
+        exists=True,
+        dir_okay=False,
+        help="a prior T_ego_peer: a 4x4 (or 3x3 ground-plane) matrix as plain text, e.g. composed from both cars' "
+        "reported poses; the answer must lie within config prior.max_translation_m / max_yaw_deg of it",
+    ),
 ) -> None:
     """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes). Exits 3 when the
     alignment fails (success=false; the reason is printed)."""
@@ -57,7 +64,8 @@ def align(
     aligner = Aligner(cfg)
     ego = aligner.prepare(load_cloud(ego_cloud), load_boxes(ego_boxes) if ego_boxes else None, keep_maps=True)
     peer = aligner.prepare(load_cloud(peer_cloud), load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
-    result = aligner.align(ego, peer)
+    T_prior = _load_prior(prior) if prior is not None else None
+    result = aligner.align(ego, peer, T_prior=T_prior)
     if plot is not None:
         from bb_align.io.plot import plot_alignment
 
@@ -65,7 +73,7 @@ def align(
             plot, ego.bev, peer.bev, result, ego.boxes, peer.boxes, title=f"{ego_cloud.name} <- {peer_cloud.name}"
         )
     if json_out:
-        typer.echo(json.dumps(result.to_dict()))
+        typer.echo(json.dumps({**result.to_dict(), "prior_used": T_prior is not None}))
         raise typer.Exit(0 if result.success else ALIGN_FAILED)
     status = "success" if result.success else f"FAILED ({result.reason})"
     typer.echo(
@@ -73,6 +81,16 @@ def align(
         f"inliers_bv {result.inliers_bv}/{result.matches_bv}, inliers_box {result.inliers_box}, "
         f"confidence {result.confidence:.2f}"
     )
+    if T_prior is not None:
+        typer.echo(f"prior: {prior} (used)")
+    if result.covariance is not None:
+        import numpy as np
+
+        sig = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(result.covariance)[1:, 1:]), 0, None))
+        yaw_sig = np.degrees(np.sqrt(max(float(result.covariance[0][0]), 0.0)))
+        typer.echo(
+            f"1-sigma: translation {sig[0]:.2f} m / {sig[1]:.2f} m (best / worst direction), yaw {yaw_sig:.2f} deg"
+        )
     for note in result.notes:
         typer.echo(f"note: {note}")
     typer.echo("T_ego_peer =\n" + "\n".join("  " + " ".join(f"{v: .6f}" for v in row) for row in result.T_ego_peer))
@@ -84,6 +102,27 @@ def align(
 
 
 ALIGN_FAILED = 3  # exit code of `bb-align align` when the alignment failed
+
+
+def _load_prior(path: Path):
+    """A prior T_ego_peer from a plain-text 4x4 (or 3x3 ground-plane) matrix, checked to be a rigid transform."""
+    import numpy as np
+
+    try:
+        T = np.loadtxt(path, ndmin=2)
+    except ValueError as e:
+        raise typer.BadParameter(f"{path}: not a plain-text matrix ({e})", param_hint="--prior") from None
+    if T.shape not in {(4, 4), (3, 3)} or not np.all(np.isfinite(T)):
+        raise typer.BadParameter(
+            f"{path}: expected a finite 4x4 or 3x3 matrix, got shape {T.shape}", param_hint="--prior"
+        )
+    n = T.shape[0] - 1
+    R = T[:n, :n]
+    if not np.allclose(R @ R.T, np.eye(n), atol=1e-3) or not np.allclose(T[n], np.eye(n + 1)[n], atol=1e-6):
+        raise typer.BadParameter(
+            f"{path}: the matrix is not a rigid transform (rotation and [0 .. 0 1])", param_hint="--prior"
+        )
+    return T
 
 
 def _load_config(path: Path | None):
@@ -115,10 +154,11 @@ def _register_feature_commands() -> None:
     from bb_align.lab.bench.cli import register as bench  # bench
     from bb_align.lab.commands import register as lab  # demo, soak
     from bb_align.lab.evaluation.cli import register as evaluation  # sim, eval
+    from bb_align.lab.realpairs_cli import register as real_pairs  # real-pairs
     from bb_align.lab.tracking.cli import register as tracking  # track
     from bb_align.server.commands import register as server  # serve, wire-schemas
 
-    for register in (server, lab, evaluation, tracking, bench):
+    for register in (server, lab, evaluation, tracking, bench, real_pairs):
         register(app)
     io(app, simulated_detections=_simulated_detections)
 

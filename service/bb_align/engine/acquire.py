@@ -861,6 +861,7 @@ class Acquirer:
         if fs.enabled:
             with timed("free_space"):
                 self._conflicts(ego, peer, hyps)
+                bound = self._rival_bound(hyps, bound)
                 if fs.ruled_out_first and hyps[0].conflict > bound:
                     kept = self._without_ruled_out(ego, peer, hyps, ego_cloud, covis, full_sample, boxes, bound)
                     if kept:  # else the ruled-out best stands, and is refused below
@@ -872,13 +873,20 @@ class Acquirer:
             margin = _margin(hyps, a, bound)
         best = hyps[0]
         result.acquisition = Acquisition(best, runner_up_of(hyps, a, bound), hyps, int(cand.size), margin).diagnostics()
+        result.acquisition["gave_way"] = gave_way
         result.T_bv, result.inliers_bv, result.refine_fitness = best.T, best.inliers, best.fitness
         result.ambiguity_bv = 1.0 / max(1.0, margin)
         mask = best.inlier_mask
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
-        if not dense_ok and not _box_confirmed(hyps, a, bound):
+        if not dense_ok and (window is not None or gave_way) and cfg.landscape.enabled:
+            # Inside a prior's window, or once the free space has ruled out the poses that outscored this one, the
+            # rivals left are weighed in the answer's covariance instead (pipeline._judge): a street's repeated
+            # structure then widens the uncertainty along it rather than refusing the pose.
+            where = "inside the prior's window" if window is not None else "among the poses the free space leaves"
+            result.notes.append(f"margin {margin:.2f} {where}: the rivals are weighed instead")
+        elif not dense_ok and not _box_confirmed(hyps, a, bound):
             return FailureReason.ambiguous_bv, full_sample
         reach = (cfg.box.max_correction_m, cfg.box.max_correction_deg)
         if (rival := _box_contradicted(hyps, a, bound, reach)) is not None:
@@ -886,7 +894,7 @@ class Acquirer:
                 f"the boxes vouch for another pose: {rival.box_pairs} cars on cars, {best.box_pairs} here"
             )
             return FailureReason.ambiguous_bv, full_sample
-        if not dense_ok:
+        if not dense_ok and window is None:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_sample
@@ -894,6 +902,23 @@ class Acquirer:
             result.notes.append(_conflict_note(best.conflict))
             return FailureReason.free_space_conflict, full_sample
         return None, full_sample
+
+    def _rival_bound(self, hyps: list[Hypothesis], bound: float) -> float:
+        """The conflict above which a hypothesis is ruled out: ``bound`` (free_space.rival_conflict), or the lower
+        free_space.alias_conflict when the best is above it and a distinct hypothesis with some overlap
+        (acquire.runner_up_floor) is clear of the free space (gave_way_max_conflict): the two LiDARs' free space
+        then sets the two apart (on real streets an overlay of the two cars' near fields, 0.05-0.15, against the
+        truth's at most 0.03)."""
+        fs, a = self.config.free_space, self.config.acquire
+        if fs.alias_conflict is None or hyps[0].conflict <= fs.alias_conflict:
+            return bound
+        clean = any(
+            h.conflict <= min(fs.gave_way_max_conflict, fs.alias_conflict)
+            and h.fitness >= a.runner_up_floor
+            and _distinct(h.T, [hyps[0]], a.distinct_m, a.distinct_deg)
+            for h in hyps[1:]
+        )
+        return min(bound, fs.alias_conflict) if clean else bound
 
     def _covisible(self, frame) -> np.ndarray:
         """The frame's co-visibility mask (covisible_map within acquire.covisible_m), built once per frame."""

@@ -28,8 +28,9 @@ from .config import AlignConfig
 from .covariance import fuse_poses, left_covariance, params_covariance
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
-from .geometry import ground_se2, se2_params
+from .geometry import ground_se2, se2, se2_params
 from .keypoints import detect_keypoints
+from .landscape import Fields, landscape, with_rivals
 from .loggabor import maximum_index_map
 from .matching import Matcher
 from .parallel import run_parts
@@ -219,7 +220,7 @@ class Aligner:
         reason = (
             self.verdict.inputs(ego, peer)
             or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
-            or self._covariance(pair)  # not in the paper: the refined pose's covariance (never fails)
+            or self._judge(pair)  # not in the paper: the pose landscape's peak and covariance (never fails)
             or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box; fused
             or self._uncertain(pair)  # not in the paper: a degenerate final pose is refused
         )
@@ -311,6 +312,30 @@ class Aligner:
         r.inlier_xy_peer, r.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         return self.verdict.stage1(r)
 
+    def _judge(self, pair: _Pair) -> None:
+        """The refined stage-1 pose judged on its landscape (engine.landscape): moved to the grid's peak, with the
+        covariance of the grid's distribution; inside a prior's window, or when better-scoring poses gave way to the
+        free space, the other poses the search kept count as further modes (they replace the margin there). Without
+        the landscape: the refinement's covariance."""
+        lc = self.config.landscape
+        if not (lc.enabled and pair.multi and self.config.covariance.enabled) or pair.peer_sample is None:
+            return self._covariance(pair)
+        r = pair.result
+        with _timed(r.timings_ms, "landscape"):
+            ego_cloud = pair.ego.cloud(self.config.refine)
+            fields = pair.ego.cached(("likelihood_fields", lc.sigma_m, lc.step_m), lambda: Fields.of(ego_cloud, lc))
+            pts = pair.peer_sample[0][: lc.max_points]
+            main = landscape(ego_cloud, fields, pts, r.T_bv, lc)
+            r.T_bv, r.covariance = main.T, main.covariance
+            if main.at_edge:
+                r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
+            if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
+                rivals = [se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]) for h in r.acquisition["all"][1:]]
+                r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc)
+                if weights and max(weights) > 1e-3:
+                    r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
+        return None
+
     def _covariance(self, pair: _Pair) -> None:
         """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""
         if not self.config.covariance.enabled or pair.peer_sample is None:
@@ -330,7 +355,9 @@ class Aligner:
     def _uncertain(self, pair: _Pair) -> FailureReason | None:
         if pair.result.covariance is None:
             return None
-        bound = self.config.prior.max_sigma_m if pair.window is not None else None
+        bound = None  # inside a prior's window the landscape counts the rivals; else the margin did
+        if pair.window is not None and not (self.config.landscape.enabled and pair.multi):
+            bound = self.config.prior.max_sigma_m
         return self.verdict.uncertain(pair.result, max_sigma_m=bound)
 
     def _refine(self, pair: _Pair) -> FailureReason | None:

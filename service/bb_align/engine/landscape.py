@@ -1,0 +1,275 @@
+"""The pose landscape around an answer: how well every nearby pose explains the two images, and the honest
+uncertainty that follows (not in the paper).
+
+The point-to-line refinement (engine.refine) converges to the nearest basin of its own objective. On real streets
+at 70-100 m that basin is not the best overlap: on the KITTI 00 pairs the refinement started at the reference pose
+moved 0.3-1.5 m along the street and lost a fifth of the overlap. And its covariance, from the curvature at one
+point, cannot see a second basin a few metres along the street.
+
+So the answer is judged on a grid instead (a correlative scan match, as in Olson's real-time correlative matching):
+every pose within ``half_width_m`` / ``half_yaw_deg`` of the refined one is scored by the mean likelihood-field value
+of the peer's lit pixels on the ego image, ``S(T) = mean_i exp(-d_i^2 / 2 sigma^2)`` (``d_i``: the distance of peer
+pixel i under T to the nearest ego lit pixel). The pose is the grid's peak; its distribution is
+``p(T) ~ exp(effective_points * (S(T) - S_max))``, whose covariance is the answer's (never smaller than the grid's
+own quantisation). ``effective_points`` says how many independent measurements the peer's pixels are worth:
+neighbouring pixels of one wall are one measurement seen many times (calibrated, see LandscapeConfig).
+
+A landscape whose mass reaches the edge of the window has no bounded peak there (a corridor): its covariance is
+reported as unbounded along that axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+
+from .config import LandscapeConfig
+from .geometry import se2, se2_params
+from .parallel import contiguous, run_parts
+from .refine import BevCloud
+
+_UNBOUNDED = 1e6  # variance (m^2 or rad^2) reported along an axis whose mass reaches the window's edge
+
+
+@dataclass
+class Landscape:
+    """The scored grid around a pose and what follows from it."""
+
+    T: np.ndarray  # 3x3 ego <- peer: the grid's peak (sub-cell: the distribution's mean near the peak)
+    score: float  # S at the peak (mean likelihood-field value of the peer's pixels)
+    covariance: np.ndarray  # 3x3 of (yaw rad, tx m, ty m) of T's own parameters
+    at_edge: bool  # the distribution's mass reaches the window's edge: not bounded within it
+
+
+def likelihood_field(ego: BevCloud, sigma_m: float, step_m: float) -> np.ndarray:
+    """(H', W') float32 on a grid of ``step_m`` cells over the ego image (bilinear from its pixel centres):
+    exp(-d^2 / 2 sigma^2) of the distance d to the nearest ego lit pixel. The grid's translations are whole cells
+    of it, so scoring a pose is one look-up per point."""
+    d = ego.clearance.astype(np.float64) * ego.resolution_m
+    field = np.exp(-0.5 * (d / sigma_m) ** 2).astype(np.float32)
+    n = int(round(2 * ego.range_m / step_m))
+    return cv2.resize(field, (n, n), interpolation=cv2.INTER_LINEAR)
+
+
+@njit(cache=True, nogil=True)
+def _score_grid(field, wide, pts, yaws, n_off, cx, cy, range_m, step_m, out):
+    """out[k, a, b] = the sum of ``field`` over the sum of ``wide`` at ``pts`` rotated by yaws[k] and moved to
+    (cx + (a - n_off) step_m, cy + (b - n_off) step_m); a point off the fields counts in neither."""
+    h_img, w_img = field.shape
+    n = len(pts)
+    rows = np.empty(n, np.int64)
+    cols = np.empty(n, np.int64)
+    size = 2 * n_off + 1
+    for k in range(len(yaws)):
+        c, s = np.cos(yaws[k]), np.sin(yaws[k])
+        for i in range(n):
+            x = c * pts[i, 0] - s * pts[i, 1] + cx
+            y = s * pts[i, 0] + c * pts[i, 1] + cy
+            rows[i] = int(np.floor((range_m - x) / step_m)) + n_off  # the row at offset a is rows[i] - a
+            cols[i] = int(np.floor((range_m - y) / step_m)) + n_off
+        for a in range(size):
+            for b in range(size):
+                total = 0.0
+                norm = 0.0
+                for i in range(n):
+                    r = rows[i] - a
+                    q = cols[i] - b
+                    if 0 <= r < h_img and 0 <= q < w_img:
+                        total += field[r, q]
+                        norm += wide[r, q]
+                out[k, a, b] = total / norm if norm > 0 else 0.0
+
+
+def score_grid(
+    fields: tuple[np.ndarray, np.ndarray],
+    ego: BevCloud,
+    pts_peer: np.ndarray,
+    T: np.ndarray,
+    yaws: np.ndarray,
+    n_off: int,
+    step_m: float,
+) -> np.ndarray:
+    """S over the grid of poses (yaw of T + yaws[k], translation of T + (a, b) step_m for a, b in -n_off..n_off);
+    ``fields``: (narrow, wide) likelihood fields at ``step_m`` cells. The yaws are cut into parts scored in
+    parallel. Rotation is about the peer's sensor (T's own parameters)."""
+    yaw0, tx, ty = se2_params(T)
+    pts = np.ascontiguousarray(pts_peer, dtype=np.float64)
+    size = 2 * n_off + 1
+    field, wide = fields
+
+    def part(ks: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(ks), size, size))
+        _score_grid(field, wide, pts, yaw0 + ks, n_off, tx, ty, ego.range_m, step_m, out)
+        return out
+
+    return np.concatenate(run_parts(part, contiguous(np.asarray(yaws, dtype=np.float64), 2)), axis=0)  # fmt: skip
+
+
+def landscape(ego: BevCloud, fields: Fields, pts_peer: np.ndarray, T: np.ndarray, cfg: LandscapeConfig) -> Landscape:
+    """Score the grid around T (3x3 ego <- peer) and take its peak and distribution (module doc). Coarse to fine:
+    the whole window on cells twice ``step_m`` and three times ``step_deg``, then ``fine_cells`` fine cells each way
+    around the coarse peak. The fine grid gives the peak's shape; the coarse grid's mass outside it (other modes)
+    widens the covariance about the answer."""
+    pts_peer = _inside(ego, pts_peer, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
+    coarse = _grid(
+        fields.coarse,
+        ego,
+        pts_peer,
+        T,
+        cfg.half_width_m,
+        2 * cfg.step_m,
+        cfg.half_yaw_deg,
+        3 * cfg.step_deg,
+        cfg.effective_points,
+    )
+    fine = _grid(
+        fields.fine,
+        ego,
+        pts_peer,
+        se2(*coarse.peak),
+        cfg.fine_cells * cfg.step_m,
+        cfg.step_m,
+        cfg.fine_cells * cfg.step_deg,
+        cfg.step_deg,
+        cfg.effective_points,
+    )
+    answer = np.where(np.abs(fine.mean - fine.peak) <= fine.step, fine.mean, fine.peak)
+    # The coarse mass outside the fine window: further modes, about the answer.
+    outside = ~fine.covers(coarse.poses)
+    share = float(coarse.p[outside].sum())
+    d = coarse.poses[outside] - answer
+    d[:, 0] = np.arctan2(np.sin(d[:, 0]), np.cos(d[:, 0]))
+    spread = (d * coarse.p[outside][:, None]).T @ d / max(share, 1e-300)
+    cov = (1.0 - share) * fine.covariance + share * spread
+    # Neither can the answer be finer than the images: a wall is quantised to one pixel in each image, the same
+    # for all its points (res^2 / 12 per image, two images), nor than the grid's yaw cells.
+    cov += np.diag([fine.step[0] ** 2 / 12.0, ego.resolution_m**2 / 6.0, ego.resolution_m**2 / 6.0])
+    if coarse.edge_mass() > cfg.max_edge_mass:  # no bounded peak: the pose stays where it was, unbounded
+        return Landscape(np.array(T, dtype=float), max(coarse.best, fine.best), np.diag([_UNBOUNDED] * 3), True)
+    return Landscape(se2(*answer), max(coarse.best, fine.best), 0.5 * (cov + cov.T), False)
+
+
+def _inside(ego: BevCloud, pts_peer: np.ndarray, poses: list[np.ndarray], margin_m: float) -> np.ndarray:
+    """The peer points that land on the ego image, ``margin_m`` inside its edge, under every one of ``poses``: each
+    pose of a grid is then scored on the same points (a pose that pushes points off the image would otherwise lose
+    them, one that pulls points on would gain, whatever the images say)."""
+    keep = np.ones(len(pts_peer), dtype=bool)
+    for T in poses:
+        p = pts_peer @ T[:2, :2].T + T[:2, 2]
+        keep &= np.all(np.abs(p) <= ego.range_m - margin_m, axis=1)
+    return pts_peer[keep]
+
+
+@dataclass
+class Fields:
+    """The ego image's likelihood field at the coarse and the fine grid's cells (built once per ego frame)."""
+
+    coarse: tuple[np.ndarray, np.ndarray]  # (narrow, wide)
+    fine: tuple[np.ndarray, np.ndarray]
+
+    @classmethod
+    def of(cls, ego: BevCloud, cfg: LandscapeConfig) -> Fields:
+        def pair(step: float) -> tuple[np.ndarray, np.ndarray]:
+            return likelihood_field(ego, cfg.sigma_m, step), likelihood_field(ego, cfg.wide_sigma_m, step)
+
+        return cls(pair(2 * cfg.step_m), pair(cfg.step_m))
+
+
+@dataclass
+class _Grid:
+    scores: np.ndarray  # (n_yaw, n, n)
+    poses: np.ndarray  # (n_yaw * n * n, 3) yaw, tx, ty
+    p: np.ndarray  # (n_yaw * n * n,) the normalised distribution
+    step: np.ndarray  # (3,) rad, m, m
+    half: np.ndarray  # (3,) rad, m, m
+    centre: np.ndarray  # (3,)
+
+    @property
+    def best(self) -> float:
+        return float(self.scores.max())
+
+    @property
+    def peak(self) -> np.ndarray:
+        return self.poses[int(np.argmax(self.scores))]
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.p @ self.poses
+
+    @property
+    def covariance(self) -> np.ndarray:
+        d = self.poses - self.mean
+        return (d * self.p[:, None]).T @ d
+
+    def covers(self, poses: np.ndarray) -> np.ndarray:
+        d = poses - self.centre
+        d[:, 0] = np.arctan2(np.sin(d[:, 0]), np.cos(d[:, 0]))
+        return np.all(np.abs(d) <= self.half + 0.5 * self.step, axis=1)
+
+    def edge_mass(self) -> float:
+        """The probability on the grid's outer faces (any axis)."""
+        p = self.p.reshape(self.scores.shape)
+        inner = p[1:-1, 1:-1, 1:-1].sum() if min(p.shape) > 2 else 0.0
+        return float(p.sum() - inner)
+
+
+def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective_points) -> _Grid:
+    n_t = max(1, int(round(half_m / step_m)))
+    n_r = max(1, int(round(half_deg / step_deg)))
+    yaws = np.radians(np.arange(-n_r, n_r + 1) * step_deg)
+    scores = score_grid(field, ego, pts_peer, T, yaws, n_t, step_m)
+    centre = np.array(se2_params(T))
+    offsets = np.arange(-n_t, n_t + 1) * step_m
+    g = np.meshgrid(centre[0] + yaws, centre[1] + offsets, centre[2] + offsets, indexing="ij")
+    poses = np.stack([x.ravel() for x in g], axis=1)
+    p = np.exp(effective_points * (scores.ravel() - scores.max()))
+    step = np.array([np.radians(step_deg), step_m, step_m])
+    half = np.array([yaws[-1], offsets[-1], offsets[-1]])
+    return _Grid(scores, poses, p / p.sum(), step, half, centre)
+
+
+def with_rivals(
+    main: Landscape,
+    ego: BevCloud,
+    fields: Fields,
+    pts_peer: np.ndarray,
+    rivals: list[np.ndarray],
+    cfg: LandscapeConfig,
+) -> tuple[np.ndarray, list[float]]:
+    """The covariance of ``main``'s answer once the other poses the search found (``rivals``, 3x3 each) are counted
+    as further modes of one distribution: each outside ``main``'s grid is moved to the peak of its own small grid and
+    weighted ``exp(effective_points (S_rival - S_main))``; the mixture's spread about the answer is the covariance.
+    A rival as good as the answer weighs as much as it: the covariance then spans both. Returns (covariance, the
+    rivals' weights)."""
+    small = cfg.model_copy(update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg})
+    y0, x0, t0 = se2_params(main.T)
+    total_w, second = 1.0, main.covariance.copy()
+    weights = []
+    for T_r in rivals:
+        y, x, t = se2_params(T_r)
+        d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+        if (
+            abs(d[1]) <= cfg.half_width_m
+            and abs(d[2]) <= cfg.half_width_m
+            and abs(d[0]) <= np.radians(cfg.half_yaw_deg)
+        ):
+            continue  # inside main's grid: already counted
+        # Both modes scored on the points that land on the ego image under each: the same evidence.
+        shared = _inside(
+            ego, pts_peer, [main.T, T_r], small.half_width_m + np.radians(small.half_yaw_deg) * ego.range_m
+        )
+        if len(shared) < 10:
+            continue  # the two poses see the ego image through different points: nothing to weigh them by
+        local = landscape(ego, fields, shared, T_r, small)
+        here = landscape(ego, fields, shared, main.T, small)
+        w = float(np.exp(min(50.0, cfg.effective_points * (local.score - here.score))))
+        y, x, t = se2_params(local.T)
+        d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+        second += w * (local.covariance if not local.at_edge else main.covariance) + w * np.outer(d, d)
+        total_w += w
+        weights.append(w)
+    cov = second / total_w
+    return 0.5 * (cov + cov.T), weights
