@@ -74,7 +74,5 @@ def demo(
 
 
 def register(app: typer.Typer) -> None:
-    from .soak import soak
-
+    """Add ``demo``. ``soak`` (bb_align.lab.soak) is registered lazily by bb_align.cli: its module is costly."""
     app.command()(demo)
-    app.command()(soak)
