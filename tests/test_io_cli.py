@@ -251,3 +251,18 @@ def test_sim_pair_writes_files_align_reads_and_the_truth(tmp_path):
     T = np.array(truth["T_ego_peer"])
     assert abs(np.hypot(T[0, 3], T[1, 3]) - 20.0) < 3.0  # the cars are --max-distance apart
     assert np.isclose(truth["yaw_deg"], np.degrees(np.arctan2(T[1, 0], T[0, 0])), atol=1e-3)
+
+
+def test_a_plot_without_the_lab_extra_stops_at_once_naming_the_extra(tmp_path):
+    """matplotlib is the `lab` extra: blocked here as if not installed, `align --plot` stops before aligning."""
+    np.save(tmp_path / "c.npy", np.zeros((10, 3), np.float32))
+    code = (
+        "import sys\nsys.modules['matplotlib'] = None\nfrom bb_align.cli import app\n"
+        f"app(['align', {str(tmp_path / 'c.npy')!r}, {str(tmp_path / 'c.npy')!r}, '--plot', "
+        f"{str(tmp_path / 'p.png')!r}], prog_name='bb-align')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "matplotlib" in lines[0] and "bb-align[lab]" in lines[0], out.stderr
+    assert out.stdout == "" and not (tmp_path / "p.png").exists()

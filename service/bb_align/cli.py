@@ -14,7 +14,7 @@ import click
 import typer
 from typer.core import TyperGroup
 
-from bb_align.io.errors import InputFileError
+from bb_align.io.errors import InputFileError, MissingExtraError
 
 # Commands whose modules are costly to import, loaded only when run (their help line is given here), so that
 # `bb-align --help` stays fast: name -> (module, function, one-line help).
@@ -51,7 +51,7 @@ class _LazyCommand(click.Command):
 
 
 class _Group(TyperGroup):
-    """The root command: lazy commands, and a bad input file as one line and exit code 2 (no traceback)."""
+    """The root command: lazy commands; a bad input file or a missing extra is one line and exit code 2."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -61,7 +61,7 @@ class _Group(TyperGroup):
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except InputFileError as e:
+        except (InputFileError, MissingExtraError) as e:
             typer.secho(f"bb-align: {e}", err=True, fg="red")
             raise typer.Exit(2) from None
 
@@ -109,6 +109,10 @@ def align(
     from bb_align.engine.pipeline import Aligner
     from bb_align.io.clouds import load_boxes, load_cloud
 
+    if plot is not None:  # fail now, not after the alignment
+        from bb_align.io.plot import pyplot
+
+        pyplot()
     cfg = _load_config(config)
     bev_over = {k: v for k, v in (("range_m", range_m), ("resolution_m", resolution_m)) if v is not None}
     if bev_over:

@@ -199,6 +199,10 @@ def register(app: typer.Typer) -> None:
         from .runner import EvalConfig, evaluate_dataset
         from .summary import summarize
 
+        if plots is not None:  # fail now, not after the whole evaluation
+            from bb_align.io.plot import pyplot
+
+            pyplot()
         sigma_t, sigma_deg = parse_pose_noise(pose_noise)
         if detections is not None and simulate_detections:
             raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")
