@@ -368,3 +368,13 @@ def test_zenohd_in_compose_is_the_version_of_the_python_zenoh():
 
     image = _compose()["zenohd"]["image"]
     assert image.split(":")[1].split(".")[:2] == version("eclipse-zenoh").split(".")[:2], image
+
+
+def test_demo_without_a_service_says_so_before_simulating(monkeypatch):
+    _clear_env(monkeypatch)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    out = CliRunner().invoke(app, ["demo", "--connect", endpoint, "--frames", "50"])
+    assert out.exit_code == 1, out.output
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and endpoint in lines[0] and "make run" in lines[0], out.stderr
+    assert "simulating" not in out.output and out.stdout == ""
