@@ -266,3 +266,12 @@ def test_a_plot_without_the_lab_extra_stops_at_once_naming_the_extra(tmp_path):
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and "matplotlib" in lines[0] and "bb-align[lab]" in lines[0], out.stderr
     assert out.stdout == "" and not (tmp_path / "p.png").exists()
+
+
+def test_sim_help_names_the_default_fleet_the_simulator_uses():
+    """The help is written without importing the simulator; it must still say what the default is."""
+    from bb_align.lab.sim.sensors import DEFAULT_FLEET
+
+    out = CliRunner().invoke(app, ["sim", "--help"], terminal_width=200)
+    assert out.exit_code == 0
+    assert "[default: " + ",".join(DEFAULT_FLEET) + "]" in " ".join(out.stdout.split())
