@@ -4,12 +4,12 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test run bench bench-accuracy clean
+.PHONY: venv test run bench bench-accuracy bench-real clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -e '.[lab,test]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -37,3 +37,9 @@ bench-accuracy: $(STAMP)
 		--records docs/accuracy/pairs.jsonl --plots docs/accuracy
 	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --prior \
 		--json docs/accuracy_prior/summary.json --records docs/accuracy_prior/pairs.jsonl
+
+# Real-pair benchmark: every pair of real scans in ../shared/data (KITTI, Apollo-SouthBay, DAIR-V2X-C), without
+# and with a seeded 2 m / 2 deg prior, scored against each pair's reference; tables and plot into docs/real_pairs/.
+SHARED_DATA ?= ../shared/data
+bench-real: $(STAMP)
+	$(VENV)/bin/bb-align real-pairs $(SHARED_DATA) --out docs/real_pairs

@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -148,3 +150,148 @@ def test_align_refuses_a_bad_prior_file_in_one_line(tmp_path, text, message):
     assert out.exit_code == 2
     flat = " ".join(out.output.replace("│", " ").split())  # the error box wraps long lines
     assert message in flat and "Traceback" not in out.output
+
+
+def _bad_input_files(tmp_path):
+    """(file, what the one-line error must name) for clouds and boxes a user may really hand the CLI."""
+    np.save(tmp_path / "two_columns.npy", np.zeros((10, 2), np.float32))
+    np.zeros(11, np.float32).tofile(tmp_path / "eleven.bin")
+    (tmp_path / "scan.ply").write_text("ply\nformat ascii 1.0\n")
+    (tmp_path / "text.npy").write_text("1 2 3\n")
+    (tmp_path / "empty.bin").write_bytes(b"")
+    (tmp_path / "no_z.json").write_text(json.dumps([{"x": 1, "y": 2, "l": 4, "w": 2, "h": 1.5, "yaw": 0}]))
+    (tmp_path / "short.json").write_text(json.dumps([[1, 2, 3, 4, 5, 6]]))
+    (tmp_path / "word.json").write_text(json.dumps([{"x": 1, "y": 2, "z": 0, "l": "long", "w": 2, "h": 1, "yaw": 0}]))
+    (tmp_path / "nan.csv").write_text("x,y,z,l,w,h,yaw\n1,2,0,nan,2,1,0\n")
+    (tmp_path / "no_yaw.csv").write_text("x,y,z,l,w,h\n1,2,0,4,2,1\n")
+    clouds = {
+        "two_columns.npy": "shape (10, 2)",
+        "eleven.bin": "11 float32 values",
+        "scan.ply": "'.ply'",
+        "text.npy": "not a .npy file",
+        "empty.bin": "empty file",
+    }
+    boxes = {
+        "no_z.json": "box 0 lacks z",
+        "short.json": "box 0 has 6 numbers (needs 7",
+        "word.json": "box 0 l is 'long', not a number",
+        "nan.csv": "boxes[0] l is nan",
+        "no_yaw.csv": "lacks columns ['yaw']",
+    }
+    return clouds, boxes
+
+
+def test_bad_cloud_and_box_files_raise_input_file_error_naming_file_and_field(tmp_path):
+    from bb_align.io.clouds import InputFileError
+
+    clouds, boxes = _bad_input_files(tmp_path)
+    for name, says in clouds.items():
+        with pytest.raises(InputFileError) as e:
+            load_cloud(tmp_path / name)
+        assert name in str(e.value) and says in str(e.value), str(e.value)
+    for name, says in boxes.items():
+        with pytest.raises(InputFileError) as e:
+            load_boxes(tmp_path / name)
+        assert name in str(e.value) and says in str(e.value), str(e.value)
+
+
+def test_a_cloud_drops_rows_without_a_return(tmp_path):
+    pts = np.array([[1, 2, 3, 0.5], [np.nan, np.nan, np.nan, 0], [4, 5, 6, 0.1]], np.float32)
+    np.save(tmp_path / "organised.npy", pts)
+    np.testing.assert_array_equal(load_cloud(tmp_path / "organised.npy"), pts[[0, 2]])
+
+
+def test_cli_bad_input_file_exits_2_with_one_line_and_no_traceback(tmp_path):
+    clouds, boxes = _bad_input_files(tmp_path)
+    good = tmp_path / "good.npy"
+    np.save(good, np.random.default_rng(0).uniform(-20, 20, (500, 3)).astype(np.float32))
+    runner = CliRunner()
+    cases = [["align", str(tmp_path / n), str(good)] for n in clouds]
+    cases += [["align", str(good), str(good), "--ego-boxes", str(tmp_path / n)] for n in boxes]
+    for args, says in zip(cases, [*clouds.values(), *boxes.values()]):
+        out = runner.invoke(app, args)
+        assert out.exit_code == 2, (args, out.output)
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("bb-align: ") and says in lines[0], out.stderr
+        assert "Traceback" not in out.output and out.stdout == ""
+
+
+def test_config_check_blames_check_with_the_field_and_its_limit(tmp_path):
+    (tmp_path / "bad.json").write_text(json.dumps({"bev": {"range_m": -5}}))
+    (tmp_path / "typo.yaml").write_text("bev: {rang_m: 80}\n")
+    (tmp_path / "broken.yaml").write_text("bev: [\n")
+    runner = CliRunner()
+    for name, says in (
+        ("bad.json", "bev.range_m: Input should be greater than 0 (got -5)"),
+        ("typo.yaml", "bev.rang_m: Extra inputs are not permitted"),
+        ("broken.yaml", "not valid YAML"),
+    ):
+        out = runner.invoke(app, ["config", "--check", str(tmp_path / name)])
+        assert out.exit_code == 2, out.output
+        assert "--check" in out.stderr and "--config" not in out.stderr and says in out.stderr, out.stderr
+        assert "Traceback" not in out.output
+
+
+def test_flags_read_as_flags_in_help():
+    out = CliRunner().invoke(app, ["align", "--help"])
+    assert out.exit_code == 0
+    assert "<bool>" not in out.stdout
+    json_line = next(line for line in out.stdout.splitlines() if line.strip().startswith("--json"))
+    assert json_line.split()[1] == "print"  # the help text follows the flag: no value to give
+
+
+def test_help_loads_neither_numpy_nor_the_engine_nor_the_lab():
+    """`bb-align --help` must stay fast: it builds the command list without importing the heavy packages (their
+    import is what cost seconds of CPU)."""
+    code = (
+        "import sys\nfrom typer.testing import CliRunner\nfrom bb_align.cli import app\n"
+        "r = CliRunner().invoke(app, ['--help'])\nassert r.exit_code == 0 and 'soak' in r.stdout, r.output\n"
+        "heavy = ('numpy', 'scipy', 'numba', 'cv2', 'pydantic', 'bb_align.engine.', 'bb_align.lab.soak', "
+        "'bb_align.protocol', 'zenoh', 'fastapi')\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in heavy or m.startswith(heavy)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_lazy_soak_command_runs_its_own_options():
+    out = CliRunner().invoke(app, ["soak", "--help"])
+    assert out.exit_code == 0 and "--duration" in out.stdout and "--flood-s" in out.stdout
+
+
+def test_sim_pair_writes_files_align_reads_and_the_truth(tmp_path):
+    out = CliRunner().invoke(app, ["sim", str(tmp_path / "pair"), "--pair", "--max-distance", "20", "--seed", "3"])
+    assert out.exit_code == 0, out.output
+    pair = tmp_path / "pair"
+    ego, peer = load_cloud(pair / "ego.npy"), load_cloud(pair / "peer.npy")
+    assert len(ego) > 1000 and len(peer) > 1000 and ego.shape[1] == 4
+    assert load_boxes(pair / "ego_boxes.json").shape[1] == 7
+    truth = json.loads((pair / "truth.json").read_text())
+    T = np.array(truth["T_ego_peer"])
+    assert abs(np.hypot(T[0, 3], T[1, 3]) - 20.0) < 3.0  # the cars are --max-distance apart
+    assert np.isclose(truth["yaw_deg"], np.degrees(np.arctan2(T[1, 0], T[0, 0])), atol=1e-3)
+
+
+def test_a_plot_without_the_lab_extra_stops_at_once_naming_the_extra(tmp_path):
+    """matplotlib is the `lab` extra: blocked here as if not installed, `align --plot` stops before aligning."""
+    np.save(tmp_path / "c.npy", np.zeros((10, 3), np.float32))
+    code = (
+        "import sys\nsys.modules['matplotlib'] = None\nfrom bb_align.cli import app\n"
+        f"app(['align', {str(tmp_path / 'c.npy')!r}, {str(tmp_path / 'c.npy')!r}, '--plot', "
+        f"{str(tmp_path / 'p.png')!r}], prog_name='bb-align')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "matplotlib" in lines[0] and "bb-align[lab]" in lines[0], out.stderr
+    assert out.stdout == "" and not (tmp_path / "p.png").exists()
+
+
+def test_sim_help_names_the_default_fleet_the_simulator_uses():
+    """The help is written without importing the simulator; it must still say what the default is."""
+    from bb_align.lab.sim.sensors import DEFAULT_FLEET
+
+    out = CliRunner().invoke(app, ["sim", "--help"], terminal_width=200)
+    assert out.exit_code == 0
+    assert "[default: " + ",".join(DEFAULT_FLEET) + "]" in " ".join(out.stdout.split())

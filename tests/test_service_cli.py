@@ -301,3 +301,80 @@ def test_benchmark_overrides_set_nested_fields_and_name_bad_ones():
             with_overrides(AlignConfig(), [bad])
     with pytest.raises(ValueError, match="coarse_scales"):  # pydantic names the field and its bound
         with_overrides(AlignConfig(), ["mim.coarse_scales=99"])
+
+
+def test_a_second_serve_on_a_busy_port_says_which_port_and_option_and_exits_2(monkeypatch):
+    import socket
+
+    _clear_env(monkeypatch)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("BBALIGN_")}
+    with socket.socket() as busy:  # what a first service holds
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        cases = {
+            "--port": ["--port", str(port), "--no-zenoh"],
+            "--zenoh-listen": ["--port", str(free_port()), "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
+        }
+        for option, args in cases.items():
+            out = subprocess.run(
+                [str(BIN), "serve", "--demo", *args], capture_output=True, text=True, timeout=60, env=env
+            )
+            assert out.returncode == 2, (option, out.stdout, out.stderr)
+            lines = out.stderr.strip().splitlines()
+            assert len(lines) == 1 and f"127.0.0.1:{port}" in lines[0] and option in lines[0], out.stderr
+            assert "Traceback" not in out.stderr
+
+
+def test_keys_issue_refuses_to_replace_a_credential_without_force(tmp_path):
+    runner = CliRunner()
+    assert runner.invoke(app, ["keys", "init", str(tmp_path)]).exit_code == 0
+    assert runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"]).exit_code == 0
+    first = (tmp_path / "car1.cred").read_bytes()
+    again = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
+    assert again.exit_code == 2 and "--force" in again.stderr and "car1.cred" in again.stderr
+    assert (tmp_path / "car1.cred").read_bytes() == first  # untouched
+    forced = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1", "--force"])
+    assert forced.exit_code == 0 and (tmp_path / "car1.cred").read_bytes() != first
+
+
+def test_docs_page_is_served_by_the_service_and_loads_nothing_from_outside(monkeypatch):
+    _clear_env(monkeypatch)
+    with running_service(Settings(profile="demo", port=free_port(), zenoh={"enabled": False})) as (_, url):
+        for route in ("/docs", "/redoc"):
+            r = httpx.get(f"{url}{route}")
+            assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+            assert "/v1/align" in r.text and 'href="/openapi.json"' in r.text
+            external = re.findall(r"""(?:src|href)\s*=\s*["'](?:https?:)?//""", r.text)
+            assert external == [], external  # no CDN: blank on a vehicle network otherwise
+        assert httpx.get(f"{url}/openapi.json").json()["paths"]["/v1/align"]
+
+
+def test_dockerignore_keeps_the_venv_and_outputs_from_the_daemon():
+    """The build context is the repository root; only what the Dockerfile copies may be sent."""
+    lines = [x.strip() for x in (REPO / ".dockerignore").read_text().splitlines() if x.strip() and x[0] != "#"]
+    assert lines[0] == "*"  # everything excluded, then re-included
+    allowed = {x[1:].rstrip("/") for x in lines if x.startswith("!")}
+    copied = set()
+    for line in (REPO / "docker" / "Dockerfile").read_text().splitlines():
+        if line.startswith("COPY") and "--from" not in line:
+            copied.update(p.rstrip("/").removeprefix("./") for p in line.split()[1:-1])
+    assert copied == allowed, (copied, allowed)
+    assert ".venv" not in allowed and "out" not in allowed
+
+
+def test_zenohd_in_compose_is_the_version_of_the_python_zenoh():
+    from importlib.metadata import version
+
+    image = _compose()["zenohd"]["image"]
+    assert image.split(":")[1].split(".")[:2] == version("eclipse-zenoh").split(".")[:2], image
+
+
+def test_demo_without_a_service_says_so_before_simulating(monkeypatch):
+    _clear_env(monkeypatch)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    out = CliRunner().invoke(app, ["demo", "--connect", endpoint, "--frames", "50"])
+    assert out.exit_code == 1, out.output
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and endpoint in lines[0] and "make run" in lines[0], out.stderr
+    assert "simulating" not in out.output and out.stdout == ""

@@ -7,11 +7,70 @@ but the alignment failed (the reason is printed; with --json it is in the object
 from __future__ import annotations
 
 import json
+from importlib import import_module
 from pathlib import Path
 
+import click
 import typer
+from typer.core import TyperGroup
 
+from bb_align.io.errors import InputFileError, MissingExtraError
+
+# Commands whose modules are costly to import, loaded only when run (their help line is given here), so that
+# `bb-align --help` stays fast: name -> (module, function, one-line help).
+LAZY_COMMANDS = {
+    "soak": (
+        "bb_align.lab.soak",
+        "soak",
+        "Drive a service with valid and hostile traffic over Zenoh on loopback and account for every message.",
+    ),
+}
+
+
+class _LazyCommand(click.Command):
+    """Stands in for a command in the listing; the real one is built on first use."""
+
+    def __init__(self, name: str, module: str, function: str, short_help: str):
+        super().__init__(name, short_help=short_help, help=short_help)
+        self._target = (module, function)
+        self._real: click.Command | None = None
+
+    def real(self) -> click.Command:
+        if self._real is None:
+            module, function = self._target
+            single = typer.Typer(add_completion=False, rich_markup_mode=None)
+            single.command(self.name)(getattr(import_module(module), function))
+            self._real = typer.main.get_command(single)
+        return self._real
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        return self.real().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx):
+        return self.real().invoke(ctx)
+
+
+class _Group(TyperGroup):
+    """The root command: lazy commands; a bad input file or a missing extra is one line and exit code 2."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        for name, (module, function, short_help) in LAZY_COMMANDS.items():
+            self.add_command(_LazyCommand(name, module, function, short_help))
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except (InputFileError, MissingExtraError) as e:
+            typer.secho(f"bb-align: {e}", err=True, fg="red")
+            raise typer.Exit(2) from None
+
+
+# Plain help and errors (rich_markup_mode=None): flags read as flags (`--json`, not `--json <bool>`) and a usage
+# error is one line.
 app = typer.Typer(
+    cls=_Group,
+    rich_markup_mode=None,
     no_args_is_help=True,
     add_completion=False,
     help="BB-Align: V2V relative pose recovery from LiDAR BV images and object boxes.",
@@ -57,6 +116,10 @@ def align(
     from bb_align.engine.pipeline import Aligner
     from bb_align.io.clouds import load_boxes, load_cloud
 
+    if plot is not None:  # fail now, not after the alignment
+        from bb_align.io.plot import pyplot
+
+        pyplot()
     cfg = _load_config(config)
     bev_over = {k: v for k, v in (("range_m", range_m), ("resolution_m", resolution_m)) if v is not None}
     if bev_over:
@@ -125,14 +188,15 @@ def _load_prior(path: Path):
     return T
 
 
-def _load_config(path: Path | None):
-    """An AlignConfig from a JSON or YAML file (defaults for what it leaves out); the defaults without one."""
+def _load_config(path: Path | None, option: str = "--config"):
+    """An AlignConfig from a JSON or YAML file (defaults for what it leaves out); the defaults without one.
+    A bad file is blamed on ``option``, the option that named it."""
     from bb_align.io.config_file import load_align_config
 
     try:
         return load_align_config(path)
     except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--config") from None
+        raise typer.BadParameter(str(e), param_hint=option) from None
 
 
 @app.command("config")
@@ -145,7 +209,7 @@ def config_cmd(
     """The engine's configuration: every tunable number, with its default (service: BBALIGN_ALIGN__*)."""
     if not dump and check is None:
         raise typer.BadParameter("give --dump or --check FILE")
-    typer.echo(_load_config(check).model_dump_json(indent=2))
+    typer.echo(_load_config(check, option="--check").model_dump_json(indent=2))
 
 
 def _register_feature_commands() -> None:

@@ -19,7 +19,24 @@ def load_align_config(path: str | Path | None) -> AlignConfig:
         if path.suffix.lower() in (".yaml", ".yml"):
             import yaml
 
-            return AlignConfig.model_validate(yaml.safe_load(path.read_text()) or {})
+            try:
+                data = yaml.safe_load(path.read_text()) or {}
+            except yaml.YAMLError as e:
+                raise ValueError(f"not valid YAML ({' '.join(str(e).split())})") from None
+            return AlignConfig.model_validate(data)
         return AlignConfig.model_validate_json(path.read_text())
-    except (ValidationError, ValueError) as e:
-        raise ValueError(f"{path}: {e}") from None
+    except ValidationError as e:
+        raise ValueError(f"{path}: {_one_line(e)}") from None
+    except ValueError as e:  # not JSON / YAML at all
+        raise ValueError(f"{path}: {str(e).splitlines()[0]}") from None
+
+
+def _one_line(error: ValidationError) -> str:
+    """Each wrong field with what it must be, e.g. 'bev.range_m: Input should be greater than 0 (got -5)'."""
+    parts = []
+    for err in error.errors():
+        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        quiet = err["type"] in ("missing", "extra_forbidden", "json_invalid")
+        got = "" if quiet else f" (got {err.get('input')!r})"
+        parts.append(f"{field}: {err['msg']}{got}")
+    return "; ".join(parts)

@@ -13,10 +13,16 @@ from bb_align.engine.boxes import box_corners_bev, transform_boxes
 from bb_align.engine.geometry import se2, se2_params
 from bb_align.engine.result import AlignResult
 
+from .errors import MissingExtraError
+
 
 def pyplot():
-    """matplotlib.pyplot on the file-only Agg backend (no screen here; every figure is written as a PNG)."""
-    import matplotlib
+    """matplotlib.pyplot on the file-only Agg backend (no screen here; every figure is written as a PNG).
+    Plotting is part of the ``lab`` extra: without matplotlib this raises MissingExtraError naming it."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise MissingExtraError("matplotlib", "lab", "plotting (--plot, --plots)") from None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

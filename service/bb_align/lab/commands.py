@@ -53,6 +53,14 @@ def demo(
     except (OSError, ValueError) as e:
         typer.secho(f"bb-align demo: {e}", err=True, fg="red")
         raise typer.Exit(2) from None
+    if not _service_listens(connect, prefix, ego_id):
+        typer.secho(
+            f"bb-align demo: no service takes frames on {prefix}/frames/{ego_id} via {', '.join(connect)}; start "
+            "one first (`make run`, i.e. `bb-align serve --demo`), or point --connect at it",
+            err=True,
+            fg="red",
+        )
+        raise typer.Exit(1)
 
     summary = run_demo(
         connect=connect,
@@ -73,8 +81,15 @@ def demo(
         raise typer.Exit(1)
 
 
-def register(app: typer.Typer) -> None:
-    from .soak import soak
+def _service_listens(connect: list[str], prefix: str, ego_id: str, timeout_s: float = 5.0) -> bool:
+    """Whether a service subscribes to the ego's frame key, checked before the scene is simulated (it takes a few
+    seconds a frame, wasted when nothing listens)."""
+    from bb_align_client import ZenohPeer
 
+    with ZenohPeer(ego_id, connect=connect, prefix=prefix, verify_answers=False) as probe:
+        return probe.wait_for_subscriber(timeout=timeout_s)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``demo``. ``soak`` (bb_align.lab.soak) is registered lazily by bb_align.cli: its module is costly."""
     app.command()(demo)
-    app.command()(soak)

@@ -17,7 +17,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel
 from pydantic.json_schema import models_json_schema
@@ -39,6 +39,7 @@ from bb_align.protocol import (
 
 from .bandwidth import BandwidthReport
 from .core import AlignService, Unavailable
+from .docs_page import docs_html
 from .peers import PeerStatus
 from .settings import Settings
 
@@ -172,7 +173,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     token = settings.auth.rest_token
     guard = [_bearer(None if token is None else token.get_secret_value())]
     # With a token, the schema and the interactive docs are behind it too (declared below with the guard).
-    docs = {} if token is None else {"docs_url": None, "redoc_url": None, "openapi_url": None}
+    # /docs and /redoc are this service's own page (docs_page): FastAPI's load Swagger UI from a CDN.
+    docs = {"docs_url": None, "redoc_url": None} | ({} if token is None else {"openapi_url": None})
     app = FastAPI(
         **docs,
         title="bb-align",
@@ -332,18 +334,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = openapi
     if token is not None:
-        from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 
         @app.get("/openapi.json", include_in_schema=False, dependencies=guard)
         async def openapi_json() -> JSONResponse:
             return JSONResponse(app.openapi())
 
-        @app.get("/docs", include_in_schema=False, dependencies=guard)
-        async def swagger() -> Response:
-            return get_swagger_ui_html(openapi_url="/openapi.json", title="bb-align")
-
-        @app.get("/redoc", include_in_schema=False, dependencies=guard)
-        async def redoc() -> Response:
-            return get_redoc_html(openapi_url="/openapi.json", title="bb-align")
+    @app.get("/docs", include_in_schema=False, dependencies=guard)
+    @app.get("/redoc", include_in_schema=False, dependencies=guard)
+    async def docs_page() -> HTMLResponse:
+        return HTMLResponse(docs_html(app.openapi()))
 
     return app

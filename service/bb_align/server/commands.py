@@ -57,12 +57,46 @@ def serve(
         settings = Settings(**given, **({"zenoh": zenoh} if zenoh else {}))
     except ValidationError as e:
         raise typer.BadParameter(str(e)) from None
-    problem = settings.startup_problem()
+    problem = settings.startup_problem() or busy_port(settings)
     if problem is not None:
         typer.secho(f"bb-align serve: {problem}", err=True, fg="red")
         raise typer.Exit(2)
     typer.echo(banner(settings))
     run_server(settings, log_level)
+
+
+def _listen_addresses(settings) -> list[tuple[str, int, str]]:
+    """(host, port, how to change it) of every TCP port the service will listen on."""
+    out = [(settings.host, settings.port, "--port or BBALIGN_PORT")]
+    if settings.zenoh.enabled:
+        for endpoint in settings.zenoh.listen:
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.split("#")[0].rpartition(":")
+            if proto in ("tcp", "tls") and port.isdigit():
+                out.append((host.strip("[]"), int(port), "--zenoh-listen or BBALIGN_ZENOH__LISTEN"))
+    return out
+
+
+def busy_port(settings) -> str | None:
+    """A line naming a port the service cannot listen on, and the option that moves it; None when all are free.
+    Checked before starting, so a second service on the same ports stops here with one clear line."""
+    import socket
+
+    for host, port, option in _listen_addresses(settings):
+        if port == 0:
+            continue
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn and Zenoh do: TIME_WAIT is free
+            try:
+                s.bind((host, port))
+            except OSError as e:
+                what = "REST" if option.startswith("--port") else "Zenoh"
+                return (
+                    f"cannot listen on {host}:{port} for {what} ({e.strerror}; another bb-align serve?): "
+                    f"choose another port with {option}"
+                )
+    return None
 
 
 def banner(settings) -> str:
@@ -135,7 +169,9 @@ def wire_schemas(
 
 
 keys_app = typer.Typer(
-    help="Fleet authority and vehicle credentials (Ed25519, docs/security.md).", no_args_is_help=True
+    help="Fleet authority and vehicle credentials (Ed25519, docs/security.md).",
+    no_args_is_help=True,
+    rich_markup_mode=None,
 )
 
 
@@ -160,18 +196,28 @@ def keys_issue(
     directory: Path = typer.Argument(..., help="the authority's directory (bb-align keys init)"),
     vehicle_id: str = typer.Argument(..., help="the vehicle the credential is for"),
     days: float = typer.Option(365.0, min=0.001, help="validity, days"),
+    force: bool = typer.Option(False, "--force", help="replace an existing credential of this vehicle"),
 ) -> None:
     """Issue DIR/<VEHICLE_ID>.cred: a fresh Ed25519 key and its certificate (mode 0600; give it to that car only).
     Prints, as shell, the settings that make a service use it as its own identity:
     ``eval "$(bb-align keys issue DIR ego)"; bb-align serve``."""
     from bb_align.protocol import FleetAuthority
 
+    target = directory / f"{vehicle_id}.cred"
+    if target.exists() and not force:
+        typer.secho(
+            f"bb-align keys issue: {target} exists; use --force to replace it (the old one stays valid until it "
+            "expires)",
+            err=True,
+            fg="red",
+        )
+        raise typer.Exit(2)
     try:
         cred = FleetAuthority.load(directory).issue(vehicle_id, days=days)
     except (OSError, ValueError) as e:
         typer.secho(f"bb-align keys issue: {e}", err=True, fg="red")
         raise typer.Exit(2) from None
-    path = cred.save(directory / f"{vehicle_id}.cred")
+    path = cred.save(target)
     typer.echo(f"# wrote {path}; for a service whose ego id is {vehicle_id!r}:")
     typer.echo(f"export BBALIGN_EGO_ID={vehicle_id}")
     typer.echo(f"export BBALIGN_AUTH__CA_CERT={(directory / 'ca.pub').resolve()}")

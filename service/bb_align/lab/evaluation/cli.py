@@ -9,8 +9,6 @@ from pathlib import Path
 
 import typer
 
-from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS
-
 
 def _git_commit() -> str | None:
     try:
@@ -76,6 +74,31 @@ def _print_summary(s: dict) -> None:
     echo("failures: " + ", ".join(f"{k} {v}" for k, v in s["failure_reasons"].items()))
 
 
+def write_sample_pair(out_dir: Path, seed: int, distance_m: float) -> list[Path]:
+    """One simulated two-car frame as the files `bb-align align` reads, and the true T_ego_peer beside them."""
+    import numpy as np
+
+    from bb_align.engine.geometry import se2_params
+    from bb_align.io.clouds import save_boxes_json
+
+    from ..sim.scenario import simulate_sequence
+
+    frame = simulate_sequence(seed=seed, n_frames=1, n_agents=2, distance_m=distance_m)[0]
+    ego, peer = frame.agents["0"], frame.agents["1"]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / n for n in ("ego.npy", "peer.npy", "ego_boxes.json", "peer_boxes.json", "truth.json")]
+    np.save(paths[0], ego.points.astype(np.float32))
+    np.save(paths[1], peer.points.astype(np.float32))
+    save_boxes_json(paths[2], ego.boxes)
+    save_boxes_json(paths[3], peer.boxes)
+    T_ego_peer = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+    yaw, tx, ty = se2_params(T_ego_peer)
+    truth = {"yaw_deg": round(np.degrees(yaw), 3), "tx": round(tx, 3), "ty": round(ty, 3)}
+    truth["T_ego_peer"] = T_ego_peer.round(6).tolist()
+    paths[4].write_text(json.dumps(truth, indent=1) + "\n")
+    return paths
+
+
 def register(app: typer.Typer) -> None:
     @app.command("sim")
     def sim_cmd(
@@ -87,11 +110,12 @@ def register(app: typer.Typer) -> None:
         min_distance: float = typer.Option(4.0, "--min-distance", min=0, help="closest spacing, metres"),
         max_distance: float = typer.Option(100.0, "--max-distance", min=1, max=300, help="farthest spacing, m"),
         distortion: bool = typer.Option(True, "--distortion/--no-distortion", help="self-motion distortion"),
-        fleet: str = typer.Option(
-            ",".join(DEFAULT_FLEET),
+        fleet: str | None = typer.Option(
+            None,
             "--fleet",
-            help=f"LiDAR models the cars draw from, all different while possible "
-            f"(comma list of {', '.join(SENSOR_MODELS)}; one name: every car the same)",
+            show_default=False,
+            help="LiDAR models the cars draw from, all different while possible (comma list; one name: every car "
+            "the same; an unknown name lists the models) [default: hdl64,vlp32c,os1_64,pandar40]",
         ),
         workers: int = typer.Option(2, "--workers", min=1, help="processes"),
         sweep: bool = typer.Option(
@@ -100,10 +124,21 @@ def register(app: typer.Typer) -> None:
             help="two-car sequences whose spacing sweeps ~5-120 m (receding, approaching, overtaking, oncoming, "
             "crossing) with odometry and GNSS poses in each yaml, for `bb-align track` (--frames: e.g. 150)",
         ),
+        pair: bool = typer.Option(
+            False,
+            "--pair",
+            help="one two-car pair as plain files for `bb-align align`: ego.npy, peer.npy, ego_boxes.json, "
+            "peer_boxes.json and truth.json (T_ego_peer), the cars --max-distance apart",
+        ),
     ) -> None:
         """Simulate V2V LiDAR scenarios (heterogeneous sensors, distortion, detections) into OUT_DIR."""
         from ..sim.scenario import SimConfig
         from ..sim.writer import write_benchmark
+
+        if pair:
+            for name in write_sample_pair(out_dir, seed=seed, distance_m=max_distance):
+                typer.echo(str(name))
+            return
 
         if sweep:
             from ..sim.sweep import write_sweeps
@@ -116,7 +151,9 @@ def register(app: typer.Typer) -> None:
 
         if max_distance <= min_distance:
             raise typer.BadParameter("--max-distance must be larger than --min-distance")
-        models = tuple(m.strip() for m in fleet.split(",") if m.strip())
+        from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS
+
+        models = DEFAULT_FLEET if fleet is None else tuple(m.strip() for m in fleet.split(",") if m.strip())
         unknown = [m for m in models if m not in SENSOR_MODELS]
         if not models or unknown:
             raise typer.BadParameter(f"--fleet: unknown model(s) {unknown}; choose from {', '.join(SENSOR_MODELS)}")
@@ -162,6 +199,10 @@ def register(app: typer.Typer) -> None:
         from .runner import EvalConfig, evaluate_dataset
         from .summary import summarize
 
+        if plots is not None:  # fail now, not after the whole evaluation
+            from bb_align.io.plot import pyplot
+
+            pyplot()
         sigma_t, sigma_deg = parse_pose_noise(pose_noise)
         if detections is not None and simulate_detections:
             raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")

@@ -1,19 +1,26 @@
 """V2V LiDAR simulator: procedural streets, heterogeneous rotating LiDARs with self-motion distortion, and a
-detector error model. ``simulate_sequence`` is the one-call entry point; ``writer`` saves OPV2V-style datasets."""
+detector error model. ``simulate_sequence`` is the one-call entry point; ``writer`` saves OPV2V-style datasets.
 
-from .detections import DetectionModel, Detections, detect
-from .scenario import Scenario, SimAgent, SimConfig, SimFrame, simulate_sequence
-from .sensors import SENSOR_MODELS, SensorModel
+The names below load on first use, so the CLI can read the sensor list without building the simulator."""
 
-__all__ = [
-    "DetectionModel",
-    "Detections",
-    "SENSOR_MODELS",
-    "Scenario",
-    "SensorModel",
-    "SimAgent",
-    "SimConfig",
-    "SimFrame",
-    "detect",
-    "simulate_sequence",
-]
+from importlib import import_module
+
+_API = {
+    "DetectionModel": ".detections",
+    "Detections": ".detections",
+    "detect": ".detections",
+    "Scenario": ".scenario",
+    "SimAgent": ".scenario",
+    "SimConfig": ".scenario",
+    "SimFrame": ".scenario",
+    "simulate_sequence": ".scenario",
+    "SENSOR_MODELS": ".sensors",
+    "SensorModel": ".sensors",
+}
+__all__ = sorted(_API)
+
+
+def __getattr__(name: str):
+    if name in _API:
+        return getattr(import_module(_API[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
