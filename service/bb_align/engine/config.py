@@ -132,6 +132,13 @@ class PriorConfig(_Frozen):
     yaw and shift (the paper's setting)."""
 
     max_translation_m: float = Field(10.0, gt=0, description="how far the true pose may be from the prior")
+    sigma_m: float = Field(
+        2.0,
+        gt=0,
+        description="the prior's own 1-sigma in x and y, metres (GNSS-grade: the field's sigma_t = 2 m): its "
+        "density weighs the poses of the answer's landscape and its rivals",
+    )
+    sigma_deg: float = Field(2.0, gt=0, description="the prior's 1-sigma in yaw, degrees")
     max_yaw_deg: float = Field(10.0, gt=0, le=180)
     top_k: int = Field(4, ge=1, le=32, description="paper mode: descriptor candidates per peer keypoint gated")
     verify_prior_pose: bool = Field(True, description="multi mode: the prior pose is also verified as a hypothesis")

@@ -44,6 +44,21 @@ class Landscape:
     at_edge: bool  # the distribution's mass reaches the window's edge: not bounded within it
 
 
+@dataclass(frozen=True)
+class GaussianPrior:
+    """A prior pose with its 1-sigma (e.g. both cars' GNSS poses composed): multiplies the landscape's likelihood."""
+
+    T: np.ndarray  # 3x3 ego <- peer
+    sigma_m: float
+    sigma_deg: float
+
+    def log_density(self, poses: np.ndarray) -> np.ndarray:
+        """log N (up to a constant) of (n, 3) poses (yaw rad, tx m, ty m)."""
+        d = np.atleast_2d(poses) - np.array(se2_params(self.T))
+        d[:, 0] = np.arctan2(np.sin(d[:, 0]), np.cos(d[:, 0]))
+        return -0.5 * ((d[:, 0] / np.radians(self.sigma_deg)) ** 2 + (d[:, 1] ** 2 + d[:, 2] ** 2) / self.sigma_m**2)
+
+
 def likelihood_field(ego: BevCloud, sigma_m: float, step_m: float) -> np.ndarray:
     """(H', W') float32 on a grid of ``step_m`` cells over the ego image (bilinear from its pixel centres):
     exp(-d^2 / 2 sigma^2) of the distance d to the nearest ego lit pixel. The grid's translations are whole cells
@@ -108,11 +123,18 @@ def score_grid(
     return np.concatenate(run_parts(part, contiguous(np.asarray(yaws, dtype=np.float64), 2)), axis=0)  # fmt: skip
 
 
-def landscape(ego: BevCloud, fields: Fields, pts_peer: np.ndarray, T: np.ndarray, cfg: LandscapeConfig) -> Landscape:
+def landscape(
+    ego: BevCloud,
+    fields: Fields,
+    pts_peer: np.ndarray,
+    T: np.ndarray,
+    cfg: LandscapeConfig,
+    prior: GaussianPrior | None = None,
+) -> Landscape:
     """Score the grid around T (3x3 ego <- peer) and take its peak and distribution (module doc). Coarse to fine:
     the whole window on cells twice ``step_m`` and three times ``step_deg``, then ``fine_cells`` fine cells each way
     around the coarse peak. The fine grid gives the peak's shape; the coarse grid's mass outside it (other modes)
-    widens the covariance about the answer."""
+    widens the covariance about the answer. ``prior``: its density multiplies the distribution."""
     pts_peer = _inside(ego, pts_peer, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
     coarse = _grid(
         fields.coarse,
@@ -216,7 +238,7 @@ class _Grid:
         return float(p.sum() - inner)
 
 
-def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective_points) -> _Grid:
+def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective_points, prior=None) -> _Grid:
     n_t = max(1, int(round(half_m / step_m)))
     n_r = max(1, int(round(half_deg / step_deg)))
     yaws = np.radians(np.arange(-n_r, n_r + 1) * step_deg)
@@ -225,7 +247,10 @@ def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective
     offsets = np.arange(-n_t, n_t + 1) * step_m
     g = np.meshgrid(centre[0] + yaws, centre[1] + offsets, centre[2] + offsets, indexing="ij")
     poses = np.stack([x.ravel() for x in g], axis=1)
-    p = np.exp(effective_points * (scores.ravel() - scores.max()))
+    log_p = effective_points * scores.ravel()
+    if prior is not None:
+        log_p = log_p + prior.log_density(poses)
+    p = np.exp(log_p - log_p.max())
     step = np.array([np.radians(step_deg), step_m, step_m])
     half = np.array([yaws[-1], offsets[-1], offsets[-1]])
     return _Grid(scores, poses, p / p.sum(), step, half, centre)
@@ -238,12 +263,13 @@ def with_rivals(
     pts_peer: np.ndarray,
     rivals: list[np.ndarray],
     cfg: LandscapeConfig,
+    prior: GaussianPrior | None = None,
 ) -> tuple[np.ndarray, list[float]]:
     """The covariance of ``main``'s answer once the other poses the search found (``rivals``, 3x3 each) are counted
     as further modes of one distribution: each outside ``main``'s grid is moved to the peak of its own small grid and
     weighted ``exp(effective_points (S_rival - S_main))``; the mixture's spread about the answer is the covariance.
-    A rival as good as the answer weighs as much as it: the covariance then spans both. Returns (covariance, the
-    rivals' weights)."""
+    A rival as good as the answer weighs as much as it: the covariance then spans both. ``prior``: each mode's weight
+    is also multiplied by the prior's density there. Returns (covariance, the rivals' weights)."""
     small = cfg.model_copy(update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg})
     y0, x0, t0 = se2_params(main.T)
     total_w, second = 1.0, main.covariance.copy()
@@ -265,7 +291,12 @@ def with_rivals(
             continue  # the two poses see the ego image through different points: nothing to weigh them by
         local = landscape(ego, fields, shared, T_r, small)
         here = landscape(ego, fields, shared, main.T, small)
-        w = float(np.exp(min(50.0, cfg.effective_points * (local.score - here.score))))
+        log_w = cfg.effective_points * (local.score - here.score)
+        if prior is not None:
+            log_w += float(
+                prior.log_density(np.array(se2_params(local.T)))[0] - prior.log_density(np.array([y0, x0, t0]))[0]
+            )
+        w = float(np.exp(min(50.0, log_w)))
         y, x, t = se2_params(local.T)
         d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
         second += w * (local.covariance if not local.at_edge else main.covariance) + w * np.outer(d, d)

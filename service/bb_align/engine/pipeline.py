@@ -30,7 +30,7 @@ from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2, se2_params
 from .keypoints import detect_keypoints
-from .landscape import Fields, landscape, with_rivals
+from .landscape import Fields, GaussianPrior, landscape, with_rivals
 from .loggabor import maximum_index_map
 from .matching import Matcher
 from .parallel import run_parts
@@ -325,13 +325,15 @@ class Aligner:
             ego_cloud = pair.ego.cloud(self.config.refine)
             fields = pair.ego.cached(("likelihood_fields", lc.sigma_m, lc.step_m), lambda: Fields.of(ego_cloud, lc))
             pts = pair.peer_sample[0][: lc.max_points]
-            main = landscape(ego_cloud, fields, pts, r.T_bv, lc)
+            pc = self.config.prior
+            prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)
+            main = landscape(ego_cloud, fields, pts, r.T_bv, lc, prior)
             r.T_bv, r.covariance = main.T, main.covariance
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
             if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
                 rivals = [se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]) for h in r.acquisition["all"][1:]]
-                r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc)
+                r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc, prior)
                 if weights and max(weights) > 1e-3:
                     r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
         return None
