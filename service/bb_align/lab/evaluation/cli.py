@@ -47,6 +47,15 @@ def _print_summary(s: dict) -> None:
         f"pairs {s['pairs']}  success {_fmt(s['success_rate'], True)}  <1m&1deg {_fmt(s['frac_under_1m_1deg'], True)}"
         f"  median t {_fmt(s['median_t_err_m'])} m  median r {_fmt(s['median_r_err_deg'])} deg"
     )
+    echo(
+        "success at lambda m & deg (1 / 2 / 3): "
+        + " / ".join(_fmt(s["success_at_m"][k], True) for k in ("1", "2", "3"))
+        + "   mRTE "
+        + " / ".join(_fmt(s["mRTE_m"][k]) for k in ("1", "2", "3"))
+        + " m   mRRE "
+        + " / ".join(_fmt(s["mRRE_deg"][k]) for k in ("1", "2", "3"))
+        + " deg"
+    )
     w = s["within_70m"]
     if w.get("pairs"):
         echo(f"within 70 m: {w['pairs']} pairs, <1m&1deg {_fmt(w['frac_under_1m_1deg'], True)}")
