@@ -162,16 +162,17 @@ def test_reader_takes_the_root_or_its_parent_and_reads_dair_pcds(tmp_path):
 
 @pytest.fixture(scope="module")
 def v2i_root(tmp_path_factory) -> Path:
-    from bb_align.lab.sim.v2i import write_v2i_root
+    from bb_align.cli import app
 
     root = tmp_path_factory.mktemp("v2i") / "dair"
-    write_v2i_root(root, n_scenes=2, frames=2, seed=4)
+    r = CliRunner().invoke(app, ["sim", str(root), "--dair", "--scenarios", "2", "--frames", "2", "--seed", "4"])
+    assert r.exit_code == 0 and "DAIR-V2X-C layout" in r.output, r.output
     return root
 
 
 def test_simulated_v2i_root_recovered_against_the_truth(v2i_root, tmp_path):
     from bb_align.cli import app
-    from bb_align.lab.sim.v2i import read_truth
+    from bb_align.lab.sim.v2i import read_truth, score_against_truth
 
     truth = read_truth(v2i_root)
     before = _tree_digest(v2i_root)
@@ -192,7 +193,7 @@ def test_simulated_v2i_root_recovered_against_the_truth(v2i_root, tmp_path):
         T_true, T_out = truth[p.vehicle_id], read_calib(p.lidar_i2v)
         T_in = read_calib(v2i_root / COOP_DIR / "cooperative" / "calib" / "lidar_i2v" / f"{p.vehicle_id}.json")
         t_in, r_in = pose_error(T_in, T_true)
-        assert t_in == pytest.approx(3.0, abs=1e-6) and r_in == pytest.approx(3.0, abs=1e-6)  # the corruption
+        assert t_in == pytest.approx(4.0, abs=1e-6) and r_in == pytest.approx(4.0, abs=1e-6)  # the corruption
         row = next(r for r in rows if r["timestamp"] == p.vehicle_id)
         if row["success"]:
             recovered += 1
@@ -206,6 +207,11 @@ def test_simulated_v2i_root_recovered_against_the_truth(v2i_root, tmp_path):
     assert recovered >= 3, rows
     s = json.loads((out / "recover_summary.json").read_text())
     assert s["layout"] == "dair-v2x-c" and s["frames"] == 4 and s["recovered"] == recovered
+    # the before/after scoring used in docs/dair.md: every corrupted file is 4 m / 4 deg off (no success at any
+    # lambda), the recovered ones are successes at lambda 1
+    before, after = score_against_truth(v2i_root, v2i_root), score_against_truth(out, v2i_root)
+    assert before["frames"] == after["frames"] == 4 and before["success_at_m"]["3"] == 0.0
+    assert after["success_at_m"]["1"] == pytest.approx(recovered / 4)
 
 
 def test_recover_refuses_tracking_on_a_dair_root(v2i_root, tmp_path):

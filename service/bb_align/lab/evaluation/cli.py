@@ -113,7 +113,7 @@ def register(app: typer.Typer) -> None:
             False,
             "--dair",
             help="V2I scenes (a vehicle and a roadside LiDAR 4-5 m up, 120 deg FOV) in the DAIR-V2X-C layout, "
-            "lidar_i2v corrupted by 3 m / 3 deg, the truth in OUT_DIR/bb_align_sim_truth.json; --min/--max-distance: "
+            "lidar_i2v corrupted by 4 m / 4 deg, the truth in OUT_DIR/bb_align_sim_truth.json; --min/--max-distance: "
             "vehicle-to-pole distance along the road (defaults 8-60 m with --dair)",
         ),
     ) -> None:
