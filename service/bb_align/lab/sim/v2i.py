@@ -282,3 +282,44 @@ __all__ = [
     "v2i_scene",
     "write_v2i_root",
 ]
+
+
+def _fmt3(d: dict, pct: bool = False) -> str:
+    """The three lambdas' values of an anchor metric, as text."""
+    cells = []
+    for k in ("1", "2", "3"):
+        v = d[k]
+        cells.append("  -  " if v is None else f"{100 * v:.1f}%" if pct else f"{v:.2f}")
+    return " / ".join(cells)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m bb_align.lab.sim.v2i SIM_ROOT [RECOVERED_ROOT]``: the anchors' metrics of the lidar_i2v files
+    against the simulator's truth (before, and after recovery), overall and by distance."""
+    import sys
+
+    from ..evaluation.runner import DIST_BUCKETS
+    from ..evaluation.summary import anchor_metrics
+
+    args = sys.argv[1:] if argv is None else argv
+    if not 1 <= len(args) <= 2:
+        raise SystemExit("usage: python -m bb_align.lab.sim.v2i SIM_ROOT [RECOVERED_ROOT]")
+    for name in args:
+        s = score_against_truth(name, args[0])
+        rows = s["per_frame"]
+        print(f"{name}: {s['frames']} frames")
+        for bucket, (lo, hi) in {"all": (0.0, math.inf), **DIST_BUCKETS}.items():
+            sel = [r for r in rows if lo <= r["distance_m"] < hi]
+            if not sel:
+                continue
+            a = anchor_metrics(
+                np.array([r["t_err_m"] for r in sel]), np.array([r["r_err_deg"] for r in sel]), np.ones(len(sel), bool)
+            )
+            print(
+                f"  {bucket:>6} ({len(sel):3d}): success@1/2/3 {_fmt3(a['success_at_m'], True)}"
+                f"  mRTE {_fmt3(a['mRTE_m'])} m  mRRE {_fmt3(a['mRRE_deg'])} deg"
+            )
+
+
+if __name__ == "__main__":
+    main()
