@@ -219,3 +219,17 @@ def test_recover_refuses_tracking_on_a_dair_root(v2i_root, tmp_path):
 
     r = CliRunner().invoke(app, ["recover", str(v2i_root), str(tmp_path / "o"), "--track", "--quiet"])
     assert r.exit_code == 2 and "--track" in r.output and "DAIR-V2X-C" in r.output
+
+
+def test_cli_names_the_bad_file_and_field(tmp_path):
+    from bb_align.cli import app
+
+    base = _tiny_root(tmp_path / "r")
+    calib = base / "cooperative" / "calib" / "lidar_i2v" / "000001.json"
+    calib.write_text(json.dumps({"rotation": [[1, 0, 0], [0, 1, 0]], "translation": [[0], [0], [0]]}))
+    runner = CliRunner()
+    for args in (["eval", str(tmp_path / "r"), "--workers", "1"], ["recover", str(base), str(tmp_path / "o")]):
+        r = runner.invoke(app, args)
+        assert r.exit_code == 2, r.output
+        flat = "".join(c for c in r.output if c not in "│ \n")  # the message, unwrapped from the error box
+        assert "000001.json" in flat and "'rotation'mustbe3x3" in flat and "Traceback" not in r.output
