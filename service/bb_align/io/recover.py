@@ -454,15 +454,7 @@ def recover_dataset(
     _mirror(root, out, rewritten, cfg.link)
 
     jsonl = out / JSONL_NAME
-    rows = _read_rows(jsonl)
-    expected = {(g.scenario, g.timestamp): {p.agent for p in g.peers} for g in groups}
-    have: dict[tuple, set] = {}
-    for r in rows:
-        have.setdefault((r["scenario"], r["timestamp"]), set()).add(r["agent"])
-    done = {k for k, agents in have.items() if expected.get(k) == agents}
-    kept = [r for r in rows if (r["scenario"], r["timestamp"]) in done]
-    if len(kept) != len(rows) or (jsonl.is_file() and not jsonl.read_text().endswith("\n") and rows):
-        _atomic_text(jsonl, "".join(json.dumps(r) + "\n" for r in kept))
+    done = _resume_rows(jsonl, {(g.scenario, g.timestamp): {p.agent for p in g.peers} for g in groups})
 
     aligner = aligner or Aligner(cfg.align)
     todo = [g for g in groups if (g.scenario, g.timestamp) not in done]
@@ -579,7 +571,8 @@ class LabelDetections(YamlDetections):
 
 
 def _resume_rows(jsonl: Path, expected: dict[tuple, set]) -> set:
-    """The finished frames of an earlier run (the jsonl is trimmed to them); see :func:`recover_dataset`."""
+    """The finished frames of an earlier run: (scenario, timestamp) keys whose rows cover every expected peer.
+    The jsonl is trimmed to them (a frame half-appended, or a torn last line, is redone)."""
     rows = _read_rows(jsonl)
     have: dict[tuple, set] = {}
     for r in rows:
