@@ -71,8 +71,23 @@ class V2IScene:
     config: V2IConfig
 
 
-def v2i_scene(seed: int, distance_m: float, config: V2IConfig | None = None) -> V2IScene:
-    """A world with the vehicle (agent "0") and a roadside pole ``distance_m`` from it along the main road."""
+def _clear_vehicle_path(world, ego: int, horizon_s: float = 2.0, gap_m: float = 3.5) -> None:
+    """Move away every other vehicle that comes within ``gap_m`` of the ego's centre during ``horizon_s``
+    (crossing traffic can drive through the ego, whose LiDAR then sees only the inside of a van); indices are
+    kept, as vehicle indices name the clouds' owners."""
+    ts = np.arange(0.0, horizon_s + 0.05, 0.05)  # finer than a car passing through gap_m
+    ex, ey, _ = world.vehicles[ego].pose(ts)
+    for i, v in enumerate(world.vehicles):
+        if i == ego:
+            continue
+        vx, vy, _ = v.pose(ts)
+        if np.min(np.hypot(vx - ex, vy - ey)) < gap_m:
+            world.vehicles[i] = Vehicle(v.vid, v.length, v.width, v.height, v.kind, pose0=(1e5, 1e5, 0.0))
+
+
+def v2i_scene(seed: int, distance_m: float, config: V2IConfig | None = None, horizon_s: float = 2.0) -> V2IScene:
+    """A world with the vehicle (agent "0") and a roadside pole ``distance_m`` from it along the main road;
+    no other vehicle drives through the vehicle within ``horizon_s``."""
     cfg = config or V2IConfig()
     sc = Scenario(seed, n_agents=1, config=SimConfig(fleet=(cfg.vehicle_lidar,), stopped_prob=0.3))
     w = sc.world
@@ -88,6 +103,7 @@ def v2i_scene(seed: int, distance_m: float, config: V2IConfig | None = None) -> 
     lateral = road.half_width + 0.5 * road.sidewalk
     px, py = x - side * lateral * math.sin(h), y + side * lateral * math.cos(h)
     yaw = math.atan2(ey - py, ex - px) + math.radians(rng.uniform(-15, 15))  # facing the road towards the car
+    _clear_vehicle_path(w, sc.agents[0].vehicle, horizon_s)
     clear = np.hypot(w.static.xy[:, 0] - px, w.static.xy[:, 1] - py) > w.static.radius + 1.0
     w.static = w.static.take(clear)  # nothing stands where the pole does
     z0 = float(w.terrain.height_at(np.array([px, py])))
@@ -210,7 +226,7 @@ def write_v2i_root(
     for i in range(n_scenes):
         u = np.random.default_rng([int(seed), i, 7]).random()
         dist = cfg.min_distance_m + (i + u) / n_scenes * (cfg.max_distance_m - cfg.min_distance_m)
-        scene = v2i_scene(scenario_seed(seed, i), dist, cfg)
+        scene = v2i_scene(scenario_seed(seed, i), dist, cfg, horizon_s=max(2.0, frames * dt))
         for f in range(frames):
             fr = render_v2i_frame(scene, f, dt)
             veh_id, inf_id = f"{i * 1000 + f:06d}", f"{500000 + i * 1000 + f:06d}"
