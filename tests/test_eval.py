@@ -13,7 +13,7 @@ from bb_align.engine.boxes import transform_boxes
 from bb_align.engine.geometry import pose_error, se2
 from bb_align.lab.evaluation.ap import ApAccumulator, bev_iou, match_frame, nms_bev, voc_ap
 from bb_align.lab.evaluation.baseline import graph_match
-from bb_align.lab.evaluation.summary import accuracy
+from bb_align.lab.evaluation.summary import accuracy, anchor_metrics
 
 
 def test_bev_iou_hand_checked():
@@ -80,6 +80,24 @@ def test_accuracy_counts_failures_as_failures():
     assert s["frac_under_1m_1deg_raw"] == 0.75
     assert s["median_t_err_m"] == pytest.approx((0.3 + 5.0) / 2)  # errors 0.2, 0.3, 5.0, inf
     assert accuracy(np.ones(3), np.ones(3), np.zeros(3, bool))["median_t_err_m"] is None
+
+
+def test_anchor_metrics_hand_worked():
+    # pairs (t m, r deg, success): a (0.5, 0.2, ok) b (1.5, 0.5, ok) c (0.8, 2.5, ok) d (2.9, 2.9, ok)
+    # e (0.1, 0.1, refused) f (9, 9, ok)
+    t = np.array([0.5, 1.5, 0.8, 2.9, 0.1, 9.0])
+    r = np.array([0.2, 0.5, 2.5, 2.9, 0.1, 9.0])
+    ok = np.array([1, 1, 1, 1, 0, 1], bool)
+    a = anchor_metrics(t, r, ok)
+    # lambda 1: a only; 2: a, b (c fails on rotation); 3: a, b, c, d; e is refused, never a success
+    assert a["success_at_m"] == {"1": pytest.approx(1 / 6), "2": pytest.approx(2 / 6), "3": pytest.approx(4 / 6)}
+    assert a["mRTE_m"]["1"] == pytest.approx(0.5) and a["mRRE_deg"]["1"] == pytest.approx(0.2)
+    assert a["mRTE_m"]["2"] == pytest.approx(1.0) and a["mRRE_deg"]["2"] == pytest.approx(0.35)
+    assert a["mRTE_m"]["3"] == pytest.approx((0.5 + 1.5 + 0.8 + 2.9) / 4)
+    assert a["mRRE_deg"]["3"] == pytest.approx((0.2 + 0.5 + 2.5 + 2.9) / 4)
+    none = anchor_metrics(np.array([5.0]), np.array([5.0]), np.array([True]))
+    assert none["success_at_m"]["3"] == 0.0 and none["mRTE_m"]["3"] is None and none["mRRE_deg"]["1"] is None
+    assert accuracy(t, r, ok)["success_at_m"] == a["success_at_m"]  # every accuracy block carries them
 
 
 def test_simulated_end_to_end_through_the_cli(tmp_path):
@@ -150,6 +168,18 @@ def test_simulated_end_to_end_through_the_cli(tmp_path):
         assert key in s
     assert s["pairs"] == 3
     assert set(s["by_distance"]) == {"0-20", "20-40", "40-70", "70+"}
+    # the anchors' metrics, recomputed from the records by hand, overall and in every distance bucket
+    for lam in (1, 2, 3):
+        hits = [r for r in rows if r["success"] and r["t_err_m"] < lam and r["r_err_deg"] < lam]
+        assert s["success_at_m"][str(lam)] == pytest.approx(len(hits) / len(rows))
+        assert s["mRTE_m"][str(lam)] == pytest.approx(np.mean([r["t_err_m"] for r in hits]))
+        assert s["mRRE_deg"][str(lam)] == pytest.approx(np.mean([r["r_err_deg"] for r in hits]))
+        for name, b in s["by_distance"].items():
+            if b["pairs"]:
+                lo, hi = {"0-20": (0, 20), "20-40": (20, 40), "40-70": (40, 70), "70+": (70, 1e9)}[name]
+                sel = [r for r in rows if lo <= r["distance_m"] < hi]
+                n_hit = sum(r["success"] and r["t_err_m"] < lam and r["r_err_deg"] < lam for r in sel)
+                assert b["success_at_m"][str(lam)] == pytest.approx(n_hit / len(sel))
     # short range, heterogeneous sensors, distortion on: the engine recovers these pairs
     assert s["frac_under_1m_1deg"] >= 2 / 3
     assert s["frac_under_1m_1deg"] <= s["success_rate"]

@@ -26,7 +26,10 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
     @app.command("recover")
     def recover_cmd(
         root: Path = typer.Argument(
-            ..., exists=True, file_okay=False, help="dataset root: ROOT/<scenario>/... or ROOT/<split>/<scenario>/..."
+            ...,
+            exists=True,
+            file_okay=False,
+            help="dataset root: ROOT/<scenario>/... or ROOT/<split>/<scenario>/..., or a DAIR-V2X-C root",
         ),
         out: Path = typer.Argument(..., file_okay=False, help="where to write the corrected copy (not inside ROOT)"),
         prior: bool = typer.Option(False, "--prior", help="gate the engine's matches by the reported (noisy) pose"),
@@ -58,8 +61,13 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
     ) -> None:
         """Recover each non-ego agent's pose relative to the ego, frame by frame, and write a copy of the
         dataset to OUT with the recovered lidar_pose (failures keep the reported one) plus
-        OUT/recovered_poses.jsonl. Rerun the same command to resume an interrupted run."""
+        OUT/recovered_poses.jsonl. Rerun the same command to resume an interrupted run.
+
+        On a DAIR-V2X-C root (cooperative-vehicle-infrastructure or its parent) the vehicle is the ego, the
+        roadside unit the peer, the boxes are the labels, and OUT's cooperative/calib/lidar_i2v/<id>.json holds
+        the recovered transform (x, y, yaw recovered; z, roll, pitch kept)."""
         from .config_file import load_align_config
+        from .dataset import is_dair_root
         from .recover import (
             JSONL_NAME,
             SUMMARY_NAME,
@@ -93,7 +101,8 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
             seed=seed,
             link=not copy,
         )
-        typer.echo(f"detections: {source.name}")
+        dair = is_dair_root(root)
+        typer.echo(f"detections: {'labels' if dair and isinstance(source, YamlDetections) else source.name}")
         try:
             summary = recover_dataset(root, out, cfg, source, limit=limit, progress=not quiet)
         except (ValueError, FileNotFoundError) as exc:
@@ -103,6 +112,9 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
             f"recovered {summary['recovered']}, kept the reported pose {summary['kept_reported']}"
         )
         typer.echo("outcomes: " + json.dumps(summary["outcomes"]))
+        if summary.get("frames_left_out"):
+            left = summary["frames_left_out"]
+            typer.echo(f"note: {len(left)} cooperative frames left out (files missing), e.g. {left[0]}")
         boxes = summary["agent_frames_with_boxes"]
         if boxes["ego"] < summary["agent_frames"] or boxes["peer"] < summary["agent_frames"]:
             typer.echo(

@@ -12,6 +12,9 @@
   frame (yaw in radians); ``detection_scores`` (optional) one confidence per detection.
 
 Agents of a scenario with the same timestamp were captured together; the lowest agent id is the ego.
+
+A DAIR-V2X-C root (``cooperative/data_info.json``; see ``bb_align.io.dair``) is read by the same
+:func:`iter_frames`: the vehicle is the ego, the roadside unit the peer.
 """
 
 from __future__ import annotations
@@ -203,10 +206,24 @@ def find_scenarios(root: str | Path) -> list[tuple[str, Path]]:
     return found
 
 
-def iter_frames(root: str | Path, min_agents: int = 2) -> Iterator[FrameGroup]:
+def is_dair_root(root: str | Path) -> bool:
+    """True when ``root`` is a DAIR-V2X-C root (``cooperative-vehicle-infrastructure`` or its parent)."""
+    from .dair import find_dair_root
+
+    return find_dair_root(root) is not None
+
+
+def iter_frames(root: str | Path, min_agents: int = 2, *, system_error_offset: bool = False) -> Iterator[FrameGroup]:
     """Every (scenario, timestamp) with at least ``min_agents`` agents having both .yaml and .pcd, sorted.
 
-    Scenarios are found by :func:`find_scenarios` (directly under ``root`` or in split folders)."""
+    Scenarios are found by :func:`find_scenarios` (directly under ``root`` or in split folders). A DAIR-V2X-C
+    root gives its cooperative frames instead (``system_error_offset``: the reference pose includes it; see
+    ``bb_align.io.dair``)."""
+    if is_dair_root(root):
+        from .dair import iter_dair_frames
+
+        yield from iter_dair_frames(root, system_error_offset=system_error_offset)
+        return
     for name, scen in find_scenarios(root):
         yield from iter_scenario_frames(name, scen, min_agents)
 

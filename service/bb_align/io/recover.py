@@ -15,6 +15,10 @@ when OUT is on the same file system). ``OUT/recovered_poses.jsonl`` has one row 
 Resumable and never half-written: each file is written to a temporary name and renamed; a frame counts as done
 when its rows are in the jsonl (written in one append after the frame's yaml files); a rerun with the same
 ROOT, OUT and settings continues after the last finished frame. ROOT is only read.
+
+A DAIR-V2X-C root (``bb_align.io.dair``) is recovered the same way by :func:`recover_dair_dataset`: the vehicle
+is the ego, the roadside unit the peer, and the file rewritten is ``cooperative/calib/lidar_i2v/<veh id>.json``
+(x, y and yaw recovered; z, roll and pitch kept from the file; its other keys kept).
 """
 
 from __future__ import annotations
@@ -430,6 +434,12 @@ def recover_dataset(
 
     ``limit``: stop after this many newly finished frames (the run is then resumable). ``detections``: the
     boxes' source (default: the yaml's ``detections``). ``on_frame`` is called after each finished frame."""
+    from .dataset import is_dair_root
+
+    if is_dair_root(root):
+        return recover_dair_dataset(
+            root, out, cfg, detections, limit=limit, progress=progress, aligner=aligner, on_frame=on_frame
+        )
     cfg = cfg or RecoverConfig()
     detections = detections or YamlDetections()
     root, out = _check_paths(Path(root), Path(out))
@@ -444,15 +454,7 @@ def recover_dataset(
     _mirror(root, out, rewritten, cfg.link)
 
     jsonl = out / JSONL_NAME
-    rows = _read_rows(jsonl)
-    expected = {(g.scenario, g.timestamp): {p.agent for p in g.peers} for g in groups}
-    have: dict[tuple, set] = {}
-    for r in rows:
-        have.setdefault((r["scenario"], r["timestamp"]), set()).add(r["agent"])
-    done = {k for k, agents in have.items() if expected.get(k) == agents}
-    kept = [r for r in rows if (r["scenario"], r["timestamp"]) in done]
-    if len(kept) != len(rows) or (jsonl.is_file() and not jsonl.read_text().endswith("\n") and rows):
-        _atomic_text(jsonl, "".join(json.dumps(r) + "\n" for r in kept))
+    done = _resume_rows(jsonl, {(g.scenario, g.timestamp): {p.agent for p in g.peers} for g in groups})
 
     aligner = aligner or Aligner(cfg.align)
     todo = [g for g in groups if (g.scenario, g.timestamp) not in done]
@@ -557,3 +559,114 @@ def summarize_rows(rows: list[dict], frames_total: int, settings: dict) -> dict:
         "root": settings["root"],
         "config": settings["config"],
     }
+
+
+# ---- DAIR-V2X-C ----------------------------------------------------------------------------------------------
+
+
+class LabelDetections(YamlDetections):
+    """DAIR-V2X-C: each side's own labels (vehicle classes) as its boxes."""
+
+    name = "labels"
+
+
+def _resume_rows(jsonl: Path, expected: dict[tuple, set]) -> set:
+    """The finished frames of an earlier run: (scenario, timestamp) keys whose rows cover every expected peer.
+    The jsonl is trimmed to them (a frame half-appended, or a torn last line, is redone)."""
+    rows = _read_rows(jsonl)
+    have: dict[tuple, set] = {}
+    for r in rows:
+        have.setdefault((r["scenario"], r["timestamp"]), set()).add(r["agent"])
+    done = {k for k, agents in have.items() if expected.get(k) == agents}
+    kept = [r for r in rows if (r["scenario"], r["timestamp"]) in done]
+    if len(kept) != len(rows) or (jsonl.is_file() and not jsonl.read_text().endswith("\n") and rows):
+        _atomic_text(jsonl, "".join(json.dumps(r) + "\n" for r in kept))
+    return done
+
+
+def recover_dair_dataset(
+    root: str | Path,
+    out: str | Path,
+    cfg: RecoverConfig | None = None,
+    detections: DetectionSource | None = None,
+    *,
+    limit: int | None = None,
+    progress: bool = True,
+    aligner: Aligner | None = None,
+    on_frame: Callable[[FrameGroup], None] | None = None,
+) -> dict:
+    """Recover every cooperative frame of a DAIR-V2X-C root into OUT: a copy of ROOT whose
+    ``cooperative/calib/lidar_i2v/<veh id>.json`` holds the recovered roadside->vehicle transform (failures keep
+    the file as it was), plus the jsonl and summary of :func:`recover_dataset`. ``detections`` defaults to the
+    labels. Resumable the same way; ``track`` is not supported (cooperative frames are not one sequence)."""
+    from .dair import calib_text, find_dair_root, frame_group, read_calib, read_pairs
+
+    cfg = cfg or RecoverConfig()
+    if cfg.track:
+        raise ValueError("track (--track) is not supported on DAIR-V2X-C roots; recover each frame alone")
+    detections = detections or LabelDetections()
+    if isinstance(detections, YamlDetections) and not isinstance(detections, LabelDetections):
+        detections = LabelDetections()
+    root, out = _check_paths(Path(root), Path(out))
+    base = find_dair_root(root)
+    pairs, skipped = read_pairs(root)
+    if not pairs:
+        raise ValueError(f"no complete cooperative frame under {base} ({len(skipped)} listed with missing files)")
+    settings = {
+        "root": str(root),
+        "layout": "dair-v2x-c",
+        "detections": detections.name,
+        "config": cfg.model_dump(mode="json"),
+    }
+    _start_run(root, out, settings)
+    _mirror(root, out, {p.lidar_i2v for p in pairs}, cfg.link)
+    jsonl = out / JSONL_NAME
+    done = _resume_rows(jsonl, {("", p.vehicle_id): {"infrastructure-side"} for p in pairs})
+
+    aligner = aligner or Aligner(cfg.align)
+    todo = [p for p in pairs if ("", p.vehicle_id) not in done]
+    bar = tqdm(total=len(pairs), initial=len(pairs) - len(todo), desc="recovering", unit="frame", disable=not progress)
+    finished = 0
+    for pair in todo:
+        if limit is not None and finished >= limit:
+            break
+        g = frame_group(base, pair)
+        ego, peer = g.ego, g.peers[0]
+        ego_pts, peer_pts = ego.load_points(), peer.load_points()
+        ego_boxes, peer_boxes = detections(ego, ego_pts), detections(peer, peer_pts)
+        ego_boxes = None if ego_boxes is None else as_boxes(ego_boxes)
+        peer_boxes = None if peer_boxes is None else as_boxes(peer_boxes)
+        T_rep = read_calib(pair.lidar_i2v)
+        pose_value = T_rep.tolist()
+        if cfg.pose_noise_t_m > 0 or cfg.pose_noise_deg > 0:
+            rng = np.random.default_rng([cfg.seed, zlib.crc32(pair.vehicle_id.encode())])
+            pose_value = noisy_pose_value(pose_value, rng, cfg.pose_noise_t_m, cfg.pose_noise_deg)
+        (rec,) = recover_peers(
+            aligner,
+            ego_pts,
+            ego_boxes,
+            np.eye(4).tolist(),
+            [PeerInput(peer.agent, peer_pts, peer_boxes, pose_value)],
+            use_prior=cfg.use_prior,
+        )
+        template = json.loads(pair.lidar_i2v.read_text())
+        dest = out / pair.lidar_i2v.relative_to(root)
+        _atomic_text(dest, calib_text(np.asarray(rec.pose_value, dtype=float), template))
+        row = _row("", pair.vehicle_id, ego.agent, None if ego_boxes is None else len(ego_boxes), rec)
+        row["infrastructure_frame"] = pair.infra_id
+        row["lidar_i2v"] = str(pair.lidar_i2v.relative_to(base))
+        with open(jsonl, "a") as fh:  # the frame's done-marker
+            fh.write(json.dumps(row) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        finished += 1
+        bar.update()
+        if on_frame is not None:
+            on_frame(g)
+    bar.close()
+    summary = summarize_rows(_read_rows(jsonl), len(pairs), settings)
+    summary["layout"] = "dair-v2x-c"
+    summary["frames_left_out"] = skipped
+    if summary["complete"]:
+        _atomic_text(out / SUMMARY_NAME, json.dumps(summary, indent=1))
+    return summary

@@ -65,6 +65,10 @@ class EvalConfig(BaseModel):
     use_prior: bool = Field(False, description="give the engine the noisy pose as a GNSS-grade prior (T_prior)")
     common_min_points: int = Field(10, ge=1, description="a car is 'seen' by an agent with this many points")
     nms_iou: float = Field(0.15, gt=0, le=1, description="late-fusion NMS threshold (OpenCOOD's)")
+    system_error_offset: bool = Field(
+        False,
+        description="DAIR-V2X-C: score against lidar_i2v shifted by the frame's system_error_offset (bb_align.io.dair)",
+    )
     seed: int = 0
 
 
@@ -148,7 +152,7 @@ def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: 
     else:
         found = None
         if cfg.detections_dir is not None:
-            found = DetectionDir(cfg.detections_dir).path_for(scenario, agent.agent, ts)
+            found = DetectionDir(cfg.detections_dir).path_for(scenario, agent.agent, agent.timestamp or ts)
         if found is not None:
             boxes, scores = load_detection_file(found)
             scores = scores if scores is not None else np.ones(len(boxes))
@@ -156,7 +160,7 @@ def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: 
         elif cfg.detections_dir is None and agent.detections is not None:
             boxes = agent.detections
             scores = agent.detection_scores if agent.detection_scores is not None else np.ones(len(boxes))
-            source = "yaml"
+            source = str(agent.extra.get("detections_from", "yaml"))  # DAIR-V2X-C: its labels
         else:  # no detections: stage 2 is skipped, late fusion has no boxes from this agent
             boxes, scores, source = np.zeros((0, 7)), np.zeros(0), "none"
     t0 = time.perf_counter()
@@ -320,7 +324,7 @@ def evaluate_dataset(
     cfg = cfg or EvalConfig()
     groups = []
     n_pairs = 0
-    for g in iter_frames(root):
+    for g in iter_frames(root, system_error_offset=cfg.system_error_offset):
         if limit is not None and n_pairs >= limit:
             break
         groups.append(g)

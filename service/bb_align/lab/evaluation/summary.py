@@ -4,6 +4,11 @@ Conventions: a pair counts as "under 1 m & 1 deg" only when the engine reported 
 under the limits (a failure is a failure, whatever pose came with it). Medians count a failure as an infinite
 error (so a median is ``None`` in JSON when half the pairs or more failed). The ``*_raw`` numbers use the
 reported pose regardless of success, for diagnosis.
+
+The anchors' metrics (V2X-Reg++ Table III, and the DAIR-V2X pose-recovery papers after it): ``success_at_m[l]``
+is the fraction of pairs with a reported pose whose translation error is under l m AND rotation error under
+l deg, for l = 1, 2, 3; ``mRTE_m[l]`` / ``mRRE_deg[l]`` are the mean translation / rotation errors over those
+successes (None when there are none). Errors are this project's: ground-plane translation and yaw.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from .runner import AP_IOUS, AP_RANGES, DIST_BUCKETS, POSES, PairRecord
 CAR_BUCKETS = {"0-2": (0, 2), "3-5": (3, 5), "6-10": (6, 10), ">10": (11, 10**9)}
 BV_INLIER_BUCKETS = {"<=25": (0, 25), "26-50": (26, 50), "51-100": (51, 100), ">100": (101, 10**9)}
 BOX_INLIER_BUCKETS = {"<=6": (0, 6), "7-12": (7, 12), "13-20": (13, 20), ">20": (21, 10**9)}
+ANCHOR_LAMBDAS = (1, 2, 3)  # metres and degrees: success when t < lambda m AND r < lambda deg
 
 
 def _median(x: np.ndarray) -> float | None:
@@ -27,6 +33,25 @@ def _median(x: np.ndarray) -> float | None:
         return None
     m = float(np.median(x))
     return m if math.isfinite(m) else None
+
+
+def _mean(x: np.ndarray) -> float | None:
+    return float(np.mean(x)) if len(x) else None
+
+
+def anchor_metrics(t: np.ndarray, r: np.ndarray, ok: np.ndarray) -> dict:
+    """success_at_m, mRTE_m and mRRE_deg for each lambda of :data:`ANCHOR_LAMBDAS` (keys "1", "2", "3").
+
+    A refused alignment (``ok`` False) is never a success, whatever pose came with it."""
+    t, r, ok = np.asarray(t, float), np.asarray(r, float), np.asarray(ok, bool)
+    out: dict = {"success_at_m": {}, "mRTE_m": {}, "mRRE_deg": {}}
+    for lam in ANCHOR_LAMBDAS:
+        hit = ok & (t < lam) & (r < lam)
+        key = str(lam)
+        out["success_at_m"][key] = float(hit.mean()) if len(t) else None
+        out["mRTE_m"][key] = _mean(t[hit])
+        out["mRRE_deg"][key] = _mean(r[hit])
+    return out
 
 
 def accuracy(t: np.ndarray, r: np.ndarray, ok: np.ndarray) -> dict:
@@ -47,6 +72,7 @@ def accuracy(t: np.ndarray, r: np.ndarray, ok: np.ndarray) -> dict:
         "median_t_err_m_raw": _median(t),
         "median_r_err_deg_raw": _median(r),
         "frac_success_but_over_1m_or_1deg": float((ok & ~under).mean()),
+        **anchor_metrics(t, r, ok),
     }
 
 
