@@ -9,7 +9,7 @@ import pytest
 from bb_align.engine.bev import BevImage
 from bb_align.engine.config import LandscapeConfig, RefineConfig
 from bb_align.engine.geometry import se2, se2_params
-from bb_align.engine.landscape import Fields, landscape, likelihood_field, score_grid, with_rivals
+from bb_align.engine.landscape import Fields, landscape, likelihood_field, score_grid, with_refinement, with_rivals
 from bb_align.engine.refine import bev_cloud, bev_points
 
 RES, RANGE = 0.4, 40.0  # 200 x 200 pixels, the sensor at the centre
@@ -52,9 +52,10 @@ def _pair(world_xy: np.ndarray, T_ego_peer: np.ndarray):
 def test_score_kernel_matches_plain_numpy():
     ego, pts = _pair(_street(None), se2(np.radians(3.0), 4.0, 1.0))
     field = likelihood_field(ego, CFG.sigma_m, CFG.step_m)
+    wide = likelihood_field(ego, CFG.wide_sigma_m, CFG.step_m)
     T = se2(np.radians(2.5), 3.6, 1.2)
     yaws = np.radians([-0.3, 0.0, 0.4])
-    scores = score_grid(field, ego, pts, T, yaws, 2, CFG.step_m)
+    scores = score_grid((field, wide), ego, pts, T, yaws, 2, CFG.step_m)
     yaw0, tx, ty = se2_params(T)
     for k, dyaw in enumerate(yaws):
         for a in range(5):
@@ -65,7 +66,7 @@ def test_score_kernel_matches_plain_numpy():
                 r = np.floor((RANGE - x) / CFG.step_m).astype(int)
                 q = np.floor((RANGE - y) / CFG.step_m).astype(int)
                 ok = (r >= 0) & (q >= 0) & (r < field.shape[0]) & (q < field.shape[1])
-                expected = field[r[ok], q[ok]].astype(np.float64).sum() / len(pts)
+                expected = field[r[ok], q[ok]].astype(np.float64).sum() / wide[r[ok], q[ok]].astype(np.float64).sum()
                 assert scores[k, a, b] == pytest.approx(expected, abs=1e-7)
 
 
@@ -114,3 +115,16 @@ def test_a_distinct_worse_rival_leaves_the_covariance_alone():
     cov, weights = with_rivals(main, ego, fields, pts, [se2(np.radians(180.0), -12.0, 0.0)], CFG)
     assert weights[0] < 1e-6
     assert np.allclose(cov, main.covariance, atol=1e-6)
+
+
+def test_a_refined_pose_the_landscape_rules_out_widens_the_covariance_to_span_both():
+    T_true = se2(np.radians(2.0), 12.0, 0.5)
+    ego, pts = _pair(_street(None), T_true)
+    main = landscape(ego, Fields.of(ego, CFG), pts, T_true, CFG)
+    near = se2(np.radians(2.0), 12.05, 0.5)  # within the landscape's own uncertainty: nothing changes
+    assert np.allclose(with_refinement(main, near, 11.345), main.covariance)
+    far = se2(np.radians(2.0), 14.5, 0.5)  # 2.5 m along x: two estimators disagree
+    cov = with_refinement(main, far, 11.345)
+    d = np.array(se2_params(far)) - np.array(se2_params(main.T))
+    np.testing.assert_allclose(cov, main.covariance + 0.5 * np.outer(d, d), atol=1e-12)  # two modes, equal weight
+    assert np.sqrt(cov[1, 1]) > 1.5  # the answer may be either pose: never within a 1 m bound

@@ -880,7 +880,8 @@ class Acquirer:
         result.inlier_xy_peer = np.repeat(peer.keypoints_xy[rows], used.shape[1], axis=0)[mask]
         result.inlier_xy_ego = ego.keypoints_xy[used.ravel()][mask]
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
-        if not dense_ok and (window is not None or gave_way) and cfg.landscape.enabled:
+        weighed = window is not None and cfg.landscape.enabled
+        if not dense_ok and weighed:
             # Inside a prior's window, or once the free space has ruled out the poses that outscored this one, the
             # rivals left are weighed in the answer's covariance instead (pipeline._judge): a street's repeated
             # structure then widens the uncertainty along it rather than refusing the pose.
@@ -894,7 +895,7 @@ class Acquirer:
                 f"the boxes vouch for another pose: {rival.box_pairs} cars on cars, {best.box_pairs} here"
             )
             return FailureReason.ambiguous_bv, full_sample
-        if not dense_ok and window is None:
+        if not dense_ok and not weighed:
             result.notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap, full_sample

@@ -475,6 +475,12 @@ class LandscapeConfig(_Frozen):
         "(S(T) - S_max)). 100: the true pose within the chi2(3) 99 % bound for 98.5 % of the simulated pairs at "
         "40-100 m (seed 2024); checked on the real KITTI 00 pairs at 73-80 m: 100 % (docs/real_pairs.md)",
     )
+    refinement_d2: float | None = Field(
+        11.345,
+        gt=0,
+        description="when the refined pose lies beyond this squared Mahalanobis distance of the landscape's answer "
+        "(chi2(3) 99 %), the two disagree and both count as modes of equal weight (None: the landscape alone)",
+    )
     max_edge_mass: float = Field(
         0.05, gt=0, le=1, description="more probability than this on the grid's faces: no bounded peak (a corridor)"
     )

@@ -7,15 +7,19 @@ moved 0.3-1.5 m along the street and lost a fifth of the overlap. And its covari
 point, cannot see a second basin a few metres along the street.
 
 So the answer is judged on a grid instead (a correlative scan match, as in Olson's real-time correlative matching):
-every pose within ``half_width_m`` / ``half_yaw_deg`` of the refined one is scored by the mean likelihood-field value
-of the peer's lit pixels on the ego image, ``S(T) = mean_i exp(-d_i^2 / 2 sigma^2)`` (``d_i``: the distance of peer
-pixel i under T to the nearest ego lit pixel). The pose is the grid's peak; its distribution is
-``p(T) ~ exp(effective_points * (S(T) - S_max))``, whose covariance is the answer's (never smaller than the grid's
-own quantisation). ``effective_points`` says how many independent measurements the peer's pixels are worth:
-neighbouring pixels of one wall are one measurement seen many times (calibrated, see LandscapeConfig).
+every pose within ``half_width_m`` / ``half_yaw_deg`` of the refined one is scored at the peer's lit pixels by the
+ego image's likelihood fields, ``S(T) = sum_i f(d_i) / sum_i g(d_i)`` (``d_i``: the distance of peer pixel i under
+T to the nearest ego lit pixel; ``f`` a narrow Gaussian, ``g`` a wide one): how well the structure that lands near
+ego structure lies on it, not how much of it lands there (a pose moved towards the denser near field would
+otherwise gain). The pose is the grid's peak; its distribution is ``p(T) ~ exp(effective_points S(T))`` (times a
+prior's density when there is one), whose covariance is the answer's, never finer than the images' pixels.
+``effective_points`` says how many independent measurements the peer's pixels are worth: neighbouring pixels of one
+wall are one measurement seen many times (calibrated, see LandscapeConfig).
 
-A landscape whose mass reaches the edge of the window has no bounded peak there (a corridor): its covariance is
-reported as unbounded along that axis.
+Further modes widen that covariance: the coarse grid's mass away from the peak, other poses the search found
+(``with_rivals``) and the refinement's own pose when the landscape rules it out (``with_refinement``: the two
+estimators disagree). A landscape whose mass reaches the edge of its window has no bounded peak there (a
+corridor): its covariance is unbounded and the pose stays where the refinement put it.
 """
 
 from __future__ import annotations
@@ -304,3 +308,17 @@ def with_rivals(
         weights.append(w)
     cov = second / total_w
     return 0.5 * (cov + cov.T), weights
+
+
+def with_refinement(main: Landscape, T_refined: np.ndarray, max_d2: float) -> np.ndarray:
+    """The covariance of ``main``'s answer once the refinement's own pose (``T_refined``, the grid's centre) is
+    counted as a second mode of equal weight when the landscape puts it beyond ``max_d2`` (squared Mahalanobis
+    distance): two estimators that disagree, so the answer may be either (the landscape's score is biased where
+    one car sees the near face of a thing and the other its far face)."""
+    y0, x0, t0 = se2_params(main.T)
+    y, x, t = se2_params(T_refined)
+    d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+    if float(d @ np.linalg.solve(main.covariance, d)) <= max_d2:
+        return main.covariance
+    cov = main.covariance + 0.5 * np.outer(d, d)
+    return 0.5 * (cov + cov.T)

@@ -30,7 +30,7 @@ from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2, se2_params
 from .keypoints import detect_keypoints
-from .landscape import Fields, GaussianPrior, landscape, with_rivals
+from .landscape import Fields, GaussianPrior, landscape, with_refinement, with_rivals
 from .loggabor import maximum_index_map
 from .matching import Matcher
 from .parallel import run_parts
@@ -327,8 +327,11 @@ class Aligner:
             pts = pair.peer_sample[0][: lc.max_points]
             pc = self.config.prior
             prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)
-            main = landscape(ego_cloud, fields, pts, r.T_bv, lc, prior)
+            T_refined = r.T_bv
+            main = landscape(ego_cloud, fields, pts, T_refined, lc, prior)
             r.T_bv, r.covariance = main.T, main.covariance
+            if lc.refinement_d2 is not None and not main.at_edge:
+                r.covariance = main.covariance = with_refinement(main, T_refined, lc.refinement_d2)
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
             if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
