@@ -121,10 +121,12 @@ def test_a_refined_pose_the_landscape_rules_out_widens_the_covariance_to_span_bo
     T_true = se2(np.radians(2.0), 12.0, 0.5)
     ego, pts = _pair(_street(None), T_true)
     main = landscape(ego, Fields.of(ego, CFG), pts, T_true, CFG)
-    near = se2(np.radians(2.0), 12.05, 0.5)  # within the landscape's own uncertainty: nothing changes
-    assert np.allclose(with_refinement(main, near, 11.345), main.covariance)
+    near = np.array(main.T) @ se2(0.0, 0.05, 0.0)  # within the landscape's 1 sigma: the refined pose stands
+    T, cov = with_refinement(main, near, 11.345)
+    assert np.allclose(T, near) and np.allclose(cov, main.covariance)
     far = se2(np.radians(2.0), 14.5, 0.5)  # 2.5 m along x: two estimators disagree
-    cov = with_refinement(main, far, 11.345)
+    T, cov = with_refinement(main, far, 11.345)
+    assert np.allclose(T, main.T)
     d = np.array(se2_params(far)) - np.array(se2_params(main.T))
     np.testing.assert_allclose(cov, main.covariance + 0.5 * np.outer(d, d), atol=1e-12)  # two modes, equal weight
     assert np.sqrt(cov[1, 1]) > 1.5  # the answer may be either pose: never within a 1 m bound

@@ -310,15 +310,19 @@ def with_rivals(
     return 0.5 * (cov + cov.T), weights
 
 
-def with_refinement(main: Landscape, T_refined: np.ndarray, max_d2: float) -> np.ndarray:
-    """The covariance of ``main``'s answer once the refinement's own pose (``T_refined``, the grid's centre) is
-    counted as a second mode of equal weight when the landscape puts it beyond ``max_d2`` (squared Mahalanobis
-    distance): two estimators that disagree, so the answer may be either (the landscape's score is biased where
-    one car sees the near face of a thing and the other its far face)."""
+def with_refinement(main: Landscape, T_refined: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The answer and its covariance once the refinement's own pose (``T_refined``, the grid's centre) is weighed
+    against ``main``: within 1 sigma of the landscape's answer, the refinement's (continuous, finer than the grid's
+    cells) pose stands; beyond ``max_d2`` (squared Mahalanobis distance) the two estimators disagree and both count
+    as modes of equal weight (the landscape's score is biased where one car sees the near face of a thing and the
+    other its far face); between the two, the landscape's answer."""
     y0, x0, t0 = se2_params(main.T)
     y, x, t = se2_params(T_refined)
     d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
-    if float(d @ np.linalg.solve(main.covariance, d)) <= max_d2:
-        return main.covariance
+    d2 = float(d @ np.linalg.solve(main.covariance, d))
+    if d2 <= 1.0:
+        return np.array(T_refined, dtype=float), main.covariance
+    if d2 <= max_d2:
+        return main.T, main.covariance
     cov = main.covariance + 0.5 * np.outer(d, d)
-    return 0.5 * (cov + cov.T)
+    return main.T, 0.5 * (cov + cov.T)

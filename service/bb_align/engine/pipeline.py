@@ -331,7 +331,8 @@ class Aligner:
             main = landscape(ego_cloud, fields, pts, T_refined, lc, prior)
             r.T_bv, r.covariance = main.T, main.covariance
             if lc.refinement_d2 is not None and not main.at_edge:
-                r.covariance = main.covariance = with_refinement(main, T_refined, lc.refinement_d2)
+                r.T_bv, r.covariance = with_refinement(main, T_refined, lc.refinement_d2)
+                main.covariance = r.covariance
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
             if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
