@@ -142,6 +142,8 @@ class ZenohLink:
             with query:
                 if isinstance(outcome, Result):
                     query.reply(self.align_key, self.service.encode_answer(outcome))
+                elif getattr(outcome, "refusal", None) is not None:  # an authenticated query: a signed Refusal
+                    query.reply_err(self.service.encode_answer(outcome.refusal))
                 else:
                     query.reply_err(pack(_error_body(outcome)))
         except Exception:
