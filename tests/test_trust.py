@@ -545,3 +545,141 @@ def test_the_rest_client_pins_the_ego_and_the_frame_it_asked_about(fleet, pair):
         "the ego, another car": (409, "peer_seq"),
         "the ego, this frame": 4,
     }
+
+
+# ---- issue 31, F2/F3: identities that cannot be borrowed -------------------------------------------------------
+def test_a_fleet_key_holder_cannot_lock_out_or_speak_as_a_certified_car(fleet, pair):
+    """F2 (mixed mode: authority and fleet key): before car1's first frame (or after a restart) the fleet key signed
+    as car1 with stamps 1.9 s ahead; its 12 frames were aligned as car1's and genuine car1 got 0 of 117 frames in
+    (all 'replayed'). Now the fleet key speaks only for auth.fleet_ids: its frames are refused (403) without
+    touching car1's replay window, and every genuine frame of car1 is taken."""
+    settings = _settings(fleet, fleet_key=FLEET_KEY, fleet_ids=["legacy-*"])
+    ep = settings.zenoh.listen
+    _, _, peer = pair[0]
+    with running_service(settings) as (_, url):
+        with (
+            ZenohPeer("car1", connect=ep, key=FLEET_KEY, block_when_congested=True, verify_answers=False) as forger,
+            ZenohPeer("car1", connect=ep, key=Credential.load(fleet / "car1.cred"), trust=fleet / "ca.pub") as car1,
+            AlignClient(url, key=FLEET_KEY, trust=fleet / "ca.pub") as rest,
+        ):
+            car1.block_when_congested = True
+            assert forger.wait_for_subscriber(10) and car1.wait_for_subscriber(10)
+            t0 = time.time()
+            for i in range(12):  # the forger first, with stamps ahead of everything car1 will send
+                forger.publish(_enc(peer, "car1", 10**6 + i, t0 + 1.9))
+            with pytest.raises(ServiceError) as e:  # and over REST
+                rest.post_frame(_enc(peer, "car1", 10**6 + 99, t0 + 1.9))
+            assert (e.value.status, e.value.body.error) == (403, "forbidden")
+            for i in range(10):
+                car1.publish(_enc(peer, "car1", i, time.time()))
+                time.sleep(0.05)
+            wait_for(lambda: httpx.get(f"{url}/v1/peers").json().get("car1", {}).get("frames_accepted") == 10)
+            text = httpx.get(f"{url}/metrics").text
+            forged = _metric_value(text, "bbalign_frames_rejected_total", door="zenoh", error="forbidden")
+            assert forged == 12, text
+            r = httpx.post(  # the reserved id space still works for the shared key
+                f"{url}/v1/frames",
+                content=_enc(peer, "legacy-7", 1, time.time(), key=FLEET_KEY),
+                headers={"content-type": "application/msgpack"},
+            )
+            assert r.status_code == 202, r.text
+
+
+def test_no_certificate_is_issued_for_or_acts_as_the_fleet_key(fleet, pair):
+    """F3: a certificate for the id 'fleet' was treated as the fleet key (it signed as any unseen id, and answers
+    as any ego); `bb-align keys issue DIR fleet` was allowed."""
+    from bb_align.protocol import Certificate
+    from bb_align.protocol.identity import CERT_DOMAIN
+
+    r = CliRunner().invoke(cli, ["keys", "issue", str(fleet), "fleet"])
+    assert r.exit_code == 2 and "reserved" in r.output and not (fleet / "fleet.cred").exists()
+    ca = FleetAuthority.load(fleet)  # the authority itself signing one by hand: still refused by every receiver
+    own = FleetAuthority.load(fleet).issue("car9")
+    unsigned = Certificate(ca.name, "fleet", own.certificate.public_key, time.time() - 60, time.time() + 3600, b"")
+    cert = Certificate(**{**unsigned.__dict__, "signature": ca._key.sign(CERT_DOMAIN + unsigned.tbs())})
+    rogue = Credential(cert, own._key)
+    _, ego, peer = pair[0]
+    ring = AuthSettings(ca_cert=fleet / "ca.pub", credential=fleet / "ego.cred").keyring()
+    with pytest.raises(WireError) as e:
+        load_frame(_enc(peer, "car3", 1, key=rogue), LIMITS, keyring=ring, now=time.time())
+    assert (e.value.status, e.value.error) == (403, "forbidden") and "reserved" in e.value.detail
+    forged = Result(ego_id="ego", peer_id="car3", peer_seq=1, peer_stamp=time.time(), success=True)
+    with pytest.raises(WireError) as e:
+        load_result(sign_result(forged, rogue), AnswerTrust(TrustStore.load(fleet / "ca.pub")))
+    assert e.value.status == 403
+    with pytest.raises(ValueError, match="reserved"):
+        secure_settings(False, ego_id="fleet")
+
+
+# ---- issue 31, F4: revocation and key rotation ----------------------------------------------------------------
+def test_a_revoked_certificate_is_refused_and_a_rotated_key_is_taken(tmp_path, pair):
+    """F4: a certificate stayed valid until it expired (365 days by default); there was no revocation."""
+    runner = CliRunner()
+    for args in (["init", str(tmp_path)], *(["issue", str(tmp_path), v] for v in ("ego", "car1", "car2"))):
+        assert runner.invoke(cli, ["keys", *args]).exit_code == 0
+    old_car2 = Credential.load(tmp_path / "car2.cred")
+    r = runner.invoke(cli, ["keys", "revoke", str(tmp_path), "car2"])
+    assert r.exit_code == 0 and f"BBALIGN_AUTH__REVOCATIONS={(tmp_path / 'revoked.json').resolve()}" in r.output
+    assert runner.invoke(cli, ["keys", "revoke", str(tmp_path), "car8"]).exit_code == 2  # no such credential
+    settings = secure_settings(
+        False,
+        auth={
+            "ca_cert": str(tmp_path / "ca.pub"),
+            "credential": str(tmp_path / "ego.cred"),
+            "revocations": str(tmp_path / "revoked.json"),
+        },
+    )
+    assert settings.startup_problem() is None
+    ring = settings.auth.keyring()
+    ring.trust.revocations_poll_s = 0.0  # read the list again at once when it changes (default: every 2 s)
+    _, _, peer = pair[0]
+
+    def load(name, seq, key):
+        return load_frame(_enc(peer, name, seq, key=key), LIMITS, keyring=ring, now=time.time())
+
+    with pytest.raises(WireError) as e:
+        load("car2", 1, old_car2)
+    assert e.value.status == 401 and "revoked" in e.value.detail
+    car1 = Credential.load(tmp_path / "car1.cred")
+    assert load("car1", 1, car1).vehicle_id == "car1"
+    assert runner.invoke(cli, ["keys", "issue", str(tmp_path), "car2"]).exit_code == 0  # rotation: a new key
+    assert load("car2", 2, Credential.load(tmp_path / "car2.cred")).vehicle_id == "car2"
+    time.sleep(0.01)  # a new mtime
+    assert runner.invoke(cli, ["keys", "revoke", str(tmp_path), "car1"]).exit_code == 0  # while the service runs
+    with pytest.raises(WireError) as e:
+        load("car1", 2, car1)
+    assert "revoked" in e.value.detail
+    doc = (tmp_path / "revoked.json").read_text()  # a list edited by anyone but the authority
+    (tmp_path / "revoked.json").write_text(doc.replace('"car1"', '"carX"'))
+    fresh = secure_settings(False, auth=settings.auth.model_dump(exclude={"fleet_key", "rest_token"}))
+    assert "does not verify" in fresh.startup_problem()
+
+
+# ---- issue 31, F5: the replay window survives a restart ------------------------------------------------------
+def test_frames_accepted_before_a_kill_are_refused_after_the_restart(tmp_path, pair):
+    """F5: the replay window was only in memory: after kill -9 and a restart, frames signed 4.8 s earlier were
+    accepted again. Now a new process refuses every frame stamped before its own start + max_stamp_lead_s."""
+    from bb_align.lab.harness import start_service
+
+    _, ego, peer = pair[0]
+    ct = {"content-type": "application/msgpack"}
+    outcomes, before = [], b""
+    for run in range(2):
+        settings = secure_settings(False)
+        svc = start_service(settings, FLEET_KEY, tmp_path, timeout_s=120)
+        try:
+            if run == 0:  # stamped ahead within the lead, as a car whose clock is 1.9 s fast
+                before = _enc(peer, "car1", 1, time.time() + 1.9, key=FLEET_KEY)
+            outcomes.append(httpx.post(f"{svc.rest}/v1/frames", content=before, headers=ct).status_code)
+            if run == 1:
+                r = httpx.post(f"{svc.rest}/v1/frames", content=before, headers=ct)
+                assert "before this service started" in r.json()["detail"]
+                fresh = _enc(peer, "car1", 2, time.time() + 1.9, key=FLEET_KEY)  # started > 0.1 s ago
+                outcomes.append(httpx.post(f"{svc.rest}/v1/frames", content=fresh, headers=ct).status_code)
+        finally:
+            if run == 0:
+                svc.proc.kill()  # kill -9: nothing is saved
+                svc.proc.wait(10)
+            else:
+                assert svc.stop() == 0
+    assert outcomes == [202, 409, 202]
