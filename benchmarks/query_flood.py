@@ -22,12 +22,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 KEY = "bench-fleet-key-0123456789abcdef"
 
 
-def _sender(endpoint: str, seconds: float, nbytes: int, out) -> None:
+def _junk(kind: str, nbytes: int) -> bytes:
+    """``junk``: a msgpack map header and zeros (refused at the first look); ``envelope``: a well-formed
+    HMAC-SHA256 envelope under the fleet key's id with a zero MAC (decoded and its MAC computed before refusal)."""
+    import msgpack
+
+    if kind == "junk":
+        return b"\x81\xa3mac" + b"\0" * (nbytes - 5)
+    payload = b"\0" * (nbytes - 200)
+    return msgpack.packb({"key_id": "fleet", "alg": "hmac-sha256", "mac": b"\0" * 32, "payload": payload})
+
+
+def _sender(endpoint: str, seconds: float, nbytes: int, kind: str, out) -> None:
     import zenoh
 
     from bb_align.protocol import ZenohSettings
 
-    junk = b"\x81\xa3mac" + b"\0" * (nbytes - 5)  # a msgpack map header: looks like a start of an envelope
+    junk = _junk(kind, nbytes)
     sent, deadline = 0, time.monotonic() + seconds
     with zenoh.open(ZenohSettings(listen=[], connect=[endpoint]).to_zenoh_config()) as s:
         while time.monotonic() < deadline:
@@ -42,6 +53,7 @@ def main() -> None:
     ap.add_argument("--senders", type=int, default=2)
     ap.add_argument("--mb", type=float, default=4.0)
     ap.add_argument("--after", type=float, default=10.0, help="seconds watched after the flood")
+    ap.add_argument("--kind", choices=("junk", "envelope"), default="envelope")
     a = ap.parse_args()
 
     from bb_align.lab.harness import start_service
@@ -80,7 +92,7 @@ def main() -> None:
                     ask(i)
                     time.sleep(1.0)
                 q = mp.get_context("spawn").Queue()
-                procs = [mp.get_context("spawn").Process(target=_sender, args=(ep, a.seconds, nbytes, q))
+                procs = [mp.get_context("spawn").Process(target=_sender, args=(ep, a.seconds, nbytes, a.kind, q))
                          for _ in range(a.senders)]  # fmt: skip
                 for p in procs:
                     p.start()
@@ -106,6 +118,7 @@ def main() -> None:
         json.dumps(
             {
                 "senders": a.senders,
+                "kind": a.kind,
                 "query_mb": round(nbytes / 2**20, 3),
                 "seconds": a.seconds,
                 "queries_sent": sent,

@@ -117,6 +117,13 @@ class Limits(BaseModel):
         description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
         "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
     )
+    query_queue: int = Field(
+        4,
+        ge=1,
+        description="Zenoh queries waiting for the query thread in Zenoh's own FIFO; full, Zenoh pushes back on the "
+        "queriers' links (a Python callback is fed through an unbounded channel: a 4 MB query flood grew the "
+        "service by 1.1 GB). Bounds that memory to this many messages of up to max_message_bytes",
+    )
     door_share: float = Field(
         0.02,
         gt=0,
