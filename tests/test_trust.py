@@ -683,3 +683,26 @@ def test_frames_accepted_before_a_kill_are_refused_after_the_restart(tmp_path, p
             else:
                 assert svc.stop() == 0
     assert outcomes == [202, 409, 202]
+
+
+# ---- issue 31, F10: a per-key rate limit on REST ---------------------------------------------------------------
+def test_rest_limits_each_verified_sender_and_only_after_its_signature(pair):
+    """F10: one key holder posting valid frames over REST had no rate limit. Now each verified sender has a token
+    bucket (limits.rest_rate_hz, rest_burst; 429 past it); forged frames claiming car2 never spend car2's."""
+    settings = secure_settings(False, limits={"rest_rate_hz": 0.5, "rest_burst": 5})
+    _, _, peer = pair[0]
+    ct = {"content-type": "application/msgpack"}
+    with running_service(settings) as (_, url):
+        t = time.time()
+
+        def post(name, seq, key=FLEET_KEY):
+            return httpx.post(f"{url}/v1/frames", content=_enc(peer, name, seq, t + 0.001 * seq, key=key), headers=ct)
+
+        car1 = [post("car1", i) for i in range(10)]
+        forged = [post("car2", i, key="not-the-fleet-key-0123456789") for i in range(10)]
+        car2 = [post("car2", 100 + i).status_code for i in range(5)]
+    codes = [r.status_code for r in car1]
+    assert codes[:5] == [202] * 5 and codes.count(429) >= 4, codes  # 0.5/s: at most one more within 2 s
+    refused = next(r.json() for r in car1 if r.status_code == 429)
+    assert (refused["field"], refused["setting"]) == ("vehicle_id", "BBALIGN_LIMITS__REST_RATE_HZ")
+    assert {r.status_code for r in forged} == {401} and car2 == [202] * 5

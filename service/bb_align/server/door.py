@@ -119,6 +119,28 @@ class Budget:
             self._start, self._used = self._clock(), 0.0
 
 
+class KeyRate:
+    """A token bucket per verified sender (REST): ``rate_hz`` frames a second on average, ``burst`` at once. Only
+    a sender whose signature verified is charged, so nobody can spend another car's allowance. Bounded: the
+    least recently seen of more than ``max_keys`` senders is forgotten (it starts again with a full bucket)."""
+
+    def __init__(self, rate_hz: float, burst: float, max_keys: int = 4096, clock=time.monotonic):
+        self.rate_hz, self.burst, self.max_keys, self._clock = rate_hz, burst, max_keys, clock
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # key -> (tokens, when)
+        self._lock = threading.Lock()
+
+    def allow(self, key: str) -> bool:
+        now = self._clock()
+        with self._lock:
+            tokens, then = self._buckets.pop(key, (self.burst, now))
+            tokens = min(self.burst, tokens + (now - then) * self.rate_hz)
+            ok = tokens >= 1.0
+            self._buckets[key] = (tokens - 1.0 if ok else tokens, now)
+            while len(self._buckets) > self.max_keys:
+                self._buckets.popitem(last=False)
+        return ok
+
+
 class Door:
     """``lane(sender, data)`` for stream messages: the intake lane a raw message may wait in, or WireError when
     the gate would certainly refuse it. ``newest(vehicle_id)``: the newest (stamp, seq) accepted from a sender."""
