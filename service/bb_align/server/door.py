@@ -12,7 +12,9 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
 4. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
    an older frame): read without trusting it, since a frame that old is refused whoever signed it;
 5. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
-   the key chunk it came under.
+   the key chunk it came under;
+6. a signed payload that is not a frame (no readable stamp and seq): a compromised car's junk is refused here,
+   so its signature check counts against the door's CPU budget instead of costing the gate a second one.
 
 A message that passes goes to the ego's lane (signed by the ego) or the signed lane, one signed by a genuine
 vehicle for another's key chunk to the unverified lane (the gate names the error). The gate checks everything
@@ -174,6 +176,8 @@ class Door:
         except AuthError as e:
             raise WireError(e.status, e.error, e.detail, "mac", env.alg) from None
         self.recent.add(env.key_id, env.mac, env.payload)
+        if stamp_and_seq(env.payload) is None:  # signed junk: refused here, its signature check within the budget
+            raise _undecodable("the signed payload is not a frame (no readable stamp and seq)")
         try:
             self.keyring.authorize(signer, sender)
         except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
