@@ -167,3 +167,13 @@ def test_the_gate_agrees_with_the_door_on_a_frame_it_let_through(fleet, frame_ca
     lane, signer = door.lane("car1", data)
     assert (lane, signer) == (SIGNED, "car1")
     assert load_frame(data, LIMITS, keyring=ring, now=time.time()).vehicle_id == "car1"
+
+
+def test_a_genuine_signers_junk_is_refused_at_the_door_within_its_budget(fleet):
+    """Issue 31 F9: a compromised car's signed junk (not frames) passed the door as a signed frame, outside the
+    door's CPU budget (service 0.47 -> 1.28 cores); the gate then checked its signature again and refused it."""
+    door, ring = _door(fleet)
+    junk = sign(msgpack.packb({"x": b"\0" * 100_000}), fleet[1]["car1"])
+    assert _refusal(door, "car1", junk).error == "undecodable"
+    with pytest.raises(WireError):  # the gate agrees
+        load_frame(junk, LIMITS, keyring=ring, now=time.time())

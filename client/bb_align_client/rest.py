@@ -11,15 +11,18 @@ from bb_align.protocol import (
     AnswerTrust,
     Credential,
     ErrorBody,
+    Limits,
     Result,
     TrustStore,
+    WireError,
     json_align_request,
     pack_align_request,
+    peek_frame,
 )
 
 from .encode import sign_frame
 from .errors import ServiceError
-from .trust import answer_trust, read_answer
+from .trust import answer_trust, bound_to, read_answer
 
 
 def _align_body(peer: bytes, ego: bytes | None) -> tuple[bytes, str]:
@@ -54,6 +57,20 @@ class _Signer:
         return frame if frame is None or self._key is None else sign_frame(frame, self._key, self._key_id)
 
 
+def _bound_answer(content: bytes, trust, ego_id: str, peer: bytes) -> Result:
+    """The answer, verified as ``ego_id``'s and naming exactly the peer frame sent (its id, seq and stamp): a
+    genuine answer to another request, played back, is refused (WireError 409)."""
+    answer = read_answer(content, trust, ego_id)
+    if trust is not None and not bound_to(answer, *peek_frame(peer, Limits())):
+        raise WireError(
+            409,
+            "replayed",
+            f"answer for {answer.peer_id!r} seq {answer.peer_seq} stamp {answer.peer_stamp}: not the frame sent",
+            "peer_seq",
+        )
+    return answer
+
+
 def _headers(token: str | None) -> dict:
     return {} if token is None else {"authorization": f"Bearer {token}"}
 
@@ -62,7 +79,8 @@ class AlignClient:
     """``AlignClient("http://127.0.0.1:8000", token=..., key=...)``; usable as a context manager.
 
     ``token``: the service's REST bearer token; ``key``/``key_id``: sign unsigned frames (a Credential: Ed25519; or
-    an HMAC key, fleet by default). ``trust`` / ``verify_answers``: every answer is verified (see ZenohPeer)."""
+    an HMAC key, fleet by default). ``trust`` / ``verify_answers``: every answer is verified (see ZenohPeer): signed
+    by ``ego_id`` (the service's ego id, pinned) and naming the peer frame sent (id, seq, stamp)."""
 
     def __init__(
         self,
@@ -74,16 +92,19 @@ class AlignClient:
         key_id: str = FLEET_KEY_ID,
         trust: AnswerTrust | TrustStore | str | None = None,
         verify_answers: bool = True,
+        ego_id: str = "ego",
     ):
         self._trust = answer_trust(key, key_id, trust, verify_answers)
+        self.ego_id = ego_id
         self._http = httpx.Client(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
     def align(self, peer: bytes, ego: bytes | None = None) -> Result:
         """Align an encoded peer frame against ``ego`` (or the service's cached ego frame nearest in time)."""
-        body, media = _align_body(self._sign(peer), self._sign(ego))
+        peer = self._sign(peer)
+        body, media = _align_body(peer, self._sign(ego))
         r = self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
-        return read_answer(_check(r).content, self._trust)
+        return _bound_answer(_check(r).content, self._trust, self.ego_id, peer)
 
     def post_frame(self, frame: bytes) -> dict:
         """Hand in an encoded ego or peer frame (202 Accepted; its result is published like a Zenoh frame's)."""
@@ -119,15 +140,18 @@ class AsyncAlignClient:
         key_id: str = FLEET_KEY_ID,
         trust: AnswerTrust | TrustStore | str | None = None,
         verify_answers: bool = True,
+        ego_id: str = "ego",
     ):
         self._trust = answer_trust(key, key_id, trust, verify_answers)
+        self.ego_id = ego_id
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, headers=_headers(token))
         self._sign = _Signer(key, key_id)
 
     async def align(self, peer: bytes, ego: bytes | None = None) -> Result:
-        body, media = _align_body(self._sign(peer), self._sign(ego))
+        peer = self._sign(peer)
+        body, media = _align_body(peer, self._sign(ego))
         r = await self._http.post("/v1/align", content=body, headers={"content-type": media, "accept": MSGPACK})
-        return read_answer(_check(r).content, self._trust)
+        return _bound_answer(_check(r).content, self._trust, self.ego_id, peer)
 
     async def post_frame(self, frame: bytes) -> dict:
         frame = self._sign(frame)

@@ -15,6 +15,7 @@ from .codec import (
     load_result,
     pack,
     pack_align_request,
+    peek_frame,
     peek_seq_stamp,
     peek_signed,
     sign,
@@ -29,6 +30,7 @@ from .identity import (
     Credential,
     FleetAuthority,
     IdentityError,
+    RevocationList,
     TrustStore,
 )
 from .keys import align_key, frames_key, poses_key
@@ -62,6 +64,7 @@ __all__ = [
     "Credential",
     "FleetAuthority",
     "IdentityError",
+    "RevocationList",
     "TrustStore",
     "sign_result",
     "FLEET_KEY_ID",
@@ -98,6 +101,7 @@ __all__ = [
     "pack",
     "pack_align_request",
     "limit_env",
+    "peek_frame",
     "peek_seq_stamp",
     "peek_signed",
     "poses_key",

@@ -315,14 +315,20 @@ def load_result(data: bytes, trust: AnswerTrust | None = None) -> Result:
 def peek_seq_stamp(data: bytes, limits: Limits) -> tuple[int | None, float | None]:
     """The seq and stamp a raw frame (or the frame inside a Signed envelope) claims, when they can be read, for
     telling a sender which of its frames was refused; (None, None) otherwise. Never raises."""
+    return peek_frame(data, limits)[1:]
+
+
+def peek_frame(data: bytes, limits: Limits) -> tuple[str | None, int | None, float | None]:
+    """(vehicle_id, seq, stamp) a raw frame (or the frame inside a Signed envelope) claims, each None when it
+    cannot be read: what binds an answer to the frame it answers. Never raises."""
     try:
         encoding = JSON if data[:1] == b"{" else MSGPACK
         obj = _unpack(data, encoding, limits)
         if _is_envelope(obj):
             obj = _unpack(_envelope(obj).payload, encoding, limits)
     except WireError:
-        return None, None
-    seq, stamp = obj.get("seq"), obj.get("stamp")
+        return None, None, None
+    vid, seq, stamp = obj.get("vehicle_id"), obj.get("seq"), obj.get("stamp")
     seq_ok = type(seq) is int and 0 <= seq < 2**63
     stamp_ok = type(stamp) in (int, float) and math.isfinite(stamp) and stamp >= 0
-    return (seq if seq_ok else None), (float(stamp) if stamp_ok else None)
+    return (vid if isinstance(vid, str) else None), (seq if seq_ok else None), (float(stamp) if stamp_ok else None)

@@ -36,11 +36,12 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption, PrivateFormat, PublicFormat
 
-from .limits import VEHICLE_ID_PATTERN
+from .limits import FLEET_KEY_ID, VEHICLE_ID_PATTERN
 
 CERT_DOMAIN = b"bb-align/cert/v1\x00"
 FRAME_DOMAIN = b"bb-align/frame/v1\x00"  # the same tag as the HMAC's (signatures.DOMAIN)
 RESULT_DOMAIN = b"bb-align/result/v1\x00"
+REVOCATION_DOMAIN = b"bb-align/revoked/v1\x00"
 SIGNATURE_BYTES = 64
 MAX_CERT_BYTES = 512  # a certificate is ~150 bytes; anything longer is refused before it is parsed
 
@@ -132,6 +133,8 @@ class FleetAuthority:
         pair (returns the whole Credential)."""
         if not _ID.match(vehicle_id):
             raise ValueError(f"{vehicle_id!r} is not a vehicle id ({VEHICLE_ID_PATTERN})")
+        if vehicle_id == FLEET_KEY_ID:
+            raise ValueError(f"{FLEET_KEY_ID!r} is reserved for the shared fleet key; no certificate may name it")
         private = None
         if public_key is None:
             private = Ed25519PrivateKey.generate()
@@ -157,6 +160,60 @@ class FleetAuthority:
     def load(cls, directory: Path) -> FleetAuthority:
         doc = _read(Path(directory) / "ca.key", "bb-align-ca-key")
         return cls(doc["name"], Ed25519PrivateKey.from_private_bytes(base64.b64decode(doc["private_key"])))
+
+    def revoke(self, certificate: Certificate, previous: RevocationList | None = None) -> RevocationList:
+        """The revocation list ``previous`` (or an empty one) with ``certificate``'s key added, signed anew."""
+        if certificate.issuer != self.name:
+            raise ValueError(f"the certificate was issued by {certificate.issuer!r}, not by {self.name!r}")
+        entries = dict(previous.entries) if previous is not None else {}
+        entries.setdefault(certificate.public_key, (certificate.vehicle_id, time.time()))
+        unsigned = RevocationList(self.name, time.time(), entries, b"")
+        signature = self._key.sign(REVOCATION_DOMAIN + unsigned.tbs())
+        return RevocationList(self.name, unsigned.issued_at, entries, signature)
+
+
+@dataclass(frozen=True)
+class RevocationList:
+    """Certificates the authority has revoked, by public key (a vehicle's new key, issued for the same id, stays
+    valid: that is key rotation), signed by the authority. File ``revoked.json`` (``bb-align keys revoke``)."""
+
+    issuer: str
+    issued_at: float
+    entries: dict  # public key (raw, 32 bytes) -> (vehicle id, revoked at)
+    signature: bytes
+
+    def tbs(self) -> bytes:
+        rows = sorted([pk, vid, at] for pk, (vid, at) in self.entries.items())
+        return msgpack.packb([1, self.issuer, self.issued_at, rows], use_bin_type=True)
+
+    def save(self, path: Path) -> Path:
+        doc = {
+            "kind": "bb-align-revocations",
+            "issuer": self.issuer,
+            "issued_at": self.issued_at,
+            "revoked": [
+                {"vehicle_id": vid, "public_key": _b64(pk), "revoked_at": at} for pk, (vid, at) in self.entries.items()
+            ],
+            "signature": _b64(self.signature),
+        }
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        os.replace(tmp, path)  # a service reading it never sees half a file
+        return path
+
+    @classmethod
+    def load(cls, path: Path | str) -> RevocationList:
+        """Read (not verify) a revocation list; ValueError when it is not one."""
+        doc = _read(Path(path), "bb-align-revocations")
+        try:
+            entries = {
+                base64.b64decode(e["public_key"]): (str(e["vehicle_id"]), float(e["revoked_at"]))
+                for e in doc["revoked"]
+            }
+            return cls(str(doc["issuer"]), float(doc["issued_at"]), entries, base64.b64decode(doc["signature"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}: malformed revocation list ({type(e).__name__}: {e})") from None
 
 
 class Credential:
@@ -204,6 +261,48 @@ class TrustStore:
         self._cache: OrderedDict[bytes, tuple[Certificate, Ed25519PublicKey]] = OrderedDict()
         self._cache_size = cache_size
         self._lock = threading.Lock()
+        self._revoked: frozenset[bytes] = frozenset()
+        self._revocations: Path | None = None
+        self._revocations_seen: tuple[float, int] | None = None  # (mtime, size) of the file last read
+        self._revocations_checked = 0.0
+        self.revocations_poll_s = 2.0
+
+    def use_revocations(self, path: Path | str) -> int:
+        """Refuse every certificate the authority's list at ``path`` revokes (``bb-align keys revoke``); the file is
+        read again when it changes (looked at every ``revocations_poll_s``). Returns how many are revoked;
+        ValueError when the list is not signed by a trusted authority."""
+        self._revocations = Path(path)
+        self._reload_revocations()
+        return len(self._revoked)
+
+    def verify_revocations(self, rl: RevocationList) -> None:
+        ca = self._cas.get(rl.issuer)
+        if ca is None:
+            raise ValueError(f"revocation list issued by {rl.issuer!r}, not a trusted fleet authority")
+        try:
+            ca.verify(rl.signature, REVOCATION_DOMAIN + rl.tbs())
+        except InvalidSignature:
+            raise ValueError("the revocation list's authority signature does not verify") from None
+
+    def _reload_revocations(self) -> None:
+        st = self._revocations.stat()
+        seen = (st.st_mtime, st.st_size)
+        if seen == self._revocations_seen:
+            return
+        rl = RevocationList.load(self._revocations)
+        self.verify_revocations(rl)
+        self._revoked = frozenset(rl.entries)
+        self._revocations_seen = seen
+
+    def _poll_revocations(self) -> None:
+        now = time.monotonic()
+        if self._revocations is None or now - self._revocations_checked < self.revocations_poll_s:
+            return
+        self._revocations_checked = now
+        try:
+            self._reload_revocations()
+        except (OSError, ValueError):  # a broken or forged file: the list last verified stays in force
+            pass
 
     @classmethod
     def load(cls, *paths: Path | str) -> TrustStore:
@@ -236,6 +335,11 @@ class TrustStore:
         now = time.time() if now is None else now
         if not cert.not_before <= now <= cert.not_after:
             raise IdentityError(401, f"certificate of {cert.vehicle_id!r} is not valid now (expired or not yet)")
+        if cert.vehicle_id == FLEET_KEY_ID:  # the shared fleet key's id: a certificate can never speak as it
+            raise IdentityError(403, f"a certificate for the reserved id {FLEET_KEY_ID!r} is never accepted")
+        self._poll_revocations()
+        if cert.public_key in self._revoked:
+            raise IdentityError(401, f"certificate of {cert.vehicle_id!r} is revoked by its authority")
         return hit
 
     def verify(self, domain: bytes, key_id: str, payload: bytes, signature: bytes, cert: bytes, now=None) -> str:

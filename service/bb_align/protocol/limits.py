@@ -117,6 +117,20 @@ class Limits(BaseModel):
         description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
         "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
     )
+    rest_rate_hz: float = Field(
+        20.0,
+        gt=0,
+        description="REST: frames a second one verified sender may hand in (/v1/frames and /v1/align together), on "
+        "average; past it 429. Checked after the signature, so nobody spends another car's allowance",
+    )
+    rest_burst: float = Field(40.0, ge=1, description="REST: frames one sender may hand in at once (the bucket)")
+    query_queue: int = Field(
+        4,
+        ge=1,
+        description="Zenoh queries waiting for the query thread in Zenoh's own FIFO; full, Zenoh pushes back on the "
+        "queriers' links (a Python callback is fed through an unbounded channel: a 4 MB query flood grew the "
+        "service by 1.1 GB). Bounds that memory to this many messages of up to max_message_bytes",
+    )
     door_share: float = Field(
         0.02,
         gt=0,

@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import threading
-from collections import OrderedDict
+from collections.abc import Callable
 
 from .identity import FRAME_DOMAIN, IdentityError, TrustStore
 from .limits import FLEET_KEY_ID
@@ -42,14 +41,25 @@ class AuthError(Exception):
         self.unknown = unknown  # the receiver has nothing to check it with (tolerated when signing is optional)
 
 
+def fleet_space(fleet_ids) -> Callable[[str], bool]:
+    """Whether a vehicle id lies in the fleet key's reserved id space: ``fleet_ids`` entries are ids, or prefixes
+    ending in ``*`` (``"legacy-*"``)."""
+    exact = frozenset(f for f in fleet_ids if not f.endswith("*"))
+    prefixes = tuple(f[:-1] for f in fleet_ids if f.endswith("*"))
+    return lambda vid: vid in exact or (bool(prefixes) and vid.startswith(prefixes))
+
+
 class Keyring:
     """What a receiver accepts. ``keys``: HMAC key id (``"fleet"`` or a vehicle id) -> secret; ``trust``: the fleet
     authorities whose vehicle certificates are accepted (Ed25519); ``pinned``: vehicle id -> the only public key
     that may sign as it (the ego's own identity). ``required``: unsigned frames are refused.
 
-    The fleet HMAC key is one secret shared by every car, so it cannot tell cars apart: it is refused for a vehicle
-    id that has an identity of its own (a pinned key, its own HMAC key, or a certificate already seen on the air),
-    so a fleet-key holder can neither sign as the ego nor as a car that signs for itself."""
+    The fleet HMAC key is one secret shared by every car, so it cannot tell cars apart. It never signs as a
+    vehicle with an identity of its own (a pinned key, its own HMAC key). With an authority as well (mixed mode)
+    the two never share an id, whatever was seen on the air and across restarts: the fleet key signs only for the
+    ids of ``fleet_ids`` (its reserved id space; ids or ``prefix*``; none by default) and a certificate for an id
+    in that space (or for ``"fleet"`` itself) is refused. Without an authority ``fleet_ids`` (when given) limits
+    the fleet key the same way."""
 
     def __init__(
         self,
@@ -58,15 +68,15 @@ class Keyring:
         *,
         trust: TrustStore | None = None,
         pinned: dict[str, bytes] | None = None,
-        max_certified: int = 4096,
+        fleet_ids: list[str] | None = None,
     ):
         self.required = required
         self._keys: dict[str, bytes] = {kid: k.encode() if isinstance(k, str) else bytes(k) for kid, k in keys.items()}
         self.trust = trust
         self.pinned = dict(pinned or {})
-        self._certified: OrderedDict[str, None] = OrderedDict()  # ids seen signing with a certificate
-        self._max_certified = max_certified
-        self._lock = threading.Lock()
+        limited = fleet_ids is not None or trust is not None
+        self.fleet_ids = list(fleet_ids or [])
+        self._fleet_space = fleet_space(self.fleet_ids) if limited else (lambda vid: True)
 
     @property
     def algorithms(self) -> list[str]:
@@ -78,7 +88,7 @@ class Keyring:
 
     def verify_signed(self, key_id: str, alg: str, mac: bytes, payload: bytes, cert: bytes | None, now=None) -> str:
         """Verify an envelope's signature on the raw payload; returns the vehicle id the signature is bound to
-        (``"fleet"`` for the fleet key). Raises AuthError."""
+        (``"fleet"`` for the fleet key: no certificate can name it). Raises AuthError."""
         if alg == "ed25519":
             if self.trust is None:
                 raise AuthError(
@@ -91,23 +101,29 @@ class Keyring:
             pinned = self.pinned.get(vid)
             if pinned is not None and self.trust.certificate(cert, now)[0].public_key != pinned:
                 raise AuthError(403, "forbidden", f"{vid!r} has its own pinned key; this certificate is not it")
-            with self._lock:
-                self._certified[vid] = None
-                self._certified.move_to_end(vid)
-                while len(self._certified) > self._max_certified:
-                    self._certified.popitem(last=False)
+            if FLEET_KEY_ID in self._keys and self._fleet_space(vid):
+                raise AuthError(
+                    403, "forbidden", f"{vid!r} is in the fleet key's id space (auth.fleet_ids): no certificate for it"
+                )
             return vid
         bound = self.verify(key_id, mac, payload)
         return FLEET_KEY_ID if bound is None else bound
 
     def authorize(self, signer: str, vehicle_id: str) -> None:
         """May ``signer`` (a vehicle id, or ``"fleet"``) sign a frame of ``vehicle_id``? Raises AuthError 403."""
+        if vehicle_id == FLEET_KEY_ID:
+            raise AuthError(403, "forbidden", f"{FLEET_KEY_ID!r} names the shared key, never a vehicle")
         if signer == FLEET_KEY_ID:
-            with self._lock:
-                own = vehicle_id in self.pinned or vehicle_id in self._keys or vehicle_id in self._certified
-            if own:
+            if vehicle_id in self.pinned or vehicle_id in self._keys:
                 raise AuthError(
                     403, "forbidden", f"{vehicle_id!r} has its own identity: the shared fleet key cannot sign as it"
+                )
+            if not self._fleet_space(vehicle_id):
+                raise AuthError(
+                    403,
+                    "forbidden",
+                    f"{vehicle_id!r} is not in the fleet key's id space (auth.fleet_ids {self.fleet_ids}): with a "
+                    "fleet authority, only those ids may use the shared key",
                 )
         elif signer != vehicle_id:
             raise AuthError(403, "forbidden", f"signed by {signer!r} but claims vehicle id {vehicle_id!r}")

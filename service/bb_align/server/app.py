@@ -32,6 +32,7 @@ from bb_align.protocol import (
     Result,
     Signed,
     WireError,
+    limit_env,
     load_align_request,
     load_frame,
     setting_env,
@@ -40,6 +41,7 @@ from bb_align.protocol import (
 from .bandwidth import BandwidthReport
 from .core import AlignService, Unavailable
 from .docs_page import docs_html
+from .door import KeyRate
 from .peers import PeerStatus
 from .settings import Settings
 
@@ -72,6 +74,7 @@ def _errors(*codes: int) -> dict:
         403: "Frame signed with another vehicle's key",
         409: "Replayed frame: (stamp, seq) not newer than the last accepted from that sender",
         413: "Body too large",
+        429: "Too many frames from one sender (limits.rest_rate_hz, after its signature verified)",
         415: "Unsupported media type",
         422: "Invalid field (named in `field`, with the `limit`)",
         503: "Overloaded or shutting down",
@@ -188,6 +191,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.link = None
     limits = settings.limits
     keyring = service.keyring
+    rate = KeyRate(limits.rest_rate_hz, limits.rest_burst, max_keys=limits.max_peers * 4 + 16)
+
+    def charge(vehicle_id: str) -> None:
+        """One frame from a sender whose signature verified: 429 past its allowance (a frame this sender's key did
+        not sign was refused before it got here). Not in the demo profile: there an id proves nothing."""
+        if keyring.required and not rate.allow(vehicle_id):
+            raise WireError(
+                429,
+                "overloaded",
+                f"{vehicle_id!r} sent more than {limits.rest_rate_hz:g} frames a second (burst {limits.rest_burst:g})"
+                " over REST; retry later",
+                "vehicle_id",
+                limits.rest_rate_hz,
+                limit_env("rest_rate_hz"),
+            )
 
     @app.exception_handler(WireError)
     async def _wire_error(_: Request, e: WireError) -> JSONResponse:
@@ -201,7 +219,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Align a peer frame now and return T_ego_peer",
         responses={
             200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
-            **_errors(400, 401, 403, 409, 413, 415, 422, 503, 504),
+            **_errors(400, 401, 403, 409, 413, 415, 422, 429, 503, 504),
         },
         dependencies=guard,
         openapi_extra=_binary_body(
@@ -214,6 +232,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         received = time.perf_counter()
         data, encoding = await _read_body(request, limits.max_message_bytes)
         req = await asyncio.to_thread(load_align_request, data, limits, encoding, keyring=keyring, now=time.time())
+        charge(req.peer.vehicle_id)
         future: concurrent.futures.Future = concurrent.futures.Future()
         accepted = service.submit_request(
             future.set_result,
@@ -252,7 +271,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         response_model=Accepted,
         status_code=202,
         summary="Hand in an ego or peer frame, as if it came over Zenoh",
-        responses=_errors(400, 401, 403, 409, 413, 415, 422, 503),
+        responses=_errors(400, 401, 403, 409, 413, 415, 422, 429, 503),
         dependencies=guard,
         openapi_extra=_binary_body(
             Frame,
@@ -266,6 +285,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         received = time.perf_counter()
         data, encoding = await _read_body(request, limits.max_message_bytes)
         frame = await asyncio.to_thread(load_frame, data, limits, encoding, keyring=keyring, now=time.time())
+        charge(frame.vehicle_id)
         if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
             raise WireError(503, "unavailable", "the service is shutting down")
         kind = "ego" if frame.vehicle_id == settings.ego_id else "peer"

@@ -224,6 +224,35 @@ def keys_issue(
     typer.echo(f"export BBALIGN_AUTH__CREDENTIAL={path.resolve()}")
 
 
+@keys_app.command("revoke")
+def keys_revoke(
+    directory: Path = typer.Argument(..., help="the authority's directory (bb-align keys init)"),
+    vehicle_id: str = typer.Argument(..., help="the vehicle whose credential is revoked"),
+    cred: Path | None = typer.Option(None, help="the credential to revoke (default DIR/<VEHICLE_ID>.cred)"),
+) -> None:
+    """Revoke a vehicle credential: add its key to DIR/revoked.json, the list the authority signs. Services with
+    BBALIGN_AUTH__REVOCATIONS=DIR/revoked.json refuse it (read again within seconds of a change). To rotate a key:
+    ``bb-align keys issue DIR car1`` (a new key, same id), give the car its new credential, then revoke the old
+    one with ``--cred``."""
+    from bb_align.protocol import Credential, FleetAuthority
+    from bb_align.protocol.identity import RevocationList
+
+    path = directory / "revoked.json"
+    try:
+        ca = FleetAuthority.load(directory)
+        cert = Credential.load(cred or directory / f"{vehicle_id}.cred").certificate
+        if cert.vehicle_id != vehicle_id:
+            raise ValueError(f"{cred} is {cert.vehicle_id!r}'s credential, not {vehicle_id!r}'s")
+        previous = RevocationList.load(path) if path.exists() else None
+        revoked = ca.revoke(cert, previous)
+    except (OSError, ValueError, KeyError) as e:
+        typer.secho(f"bb-align keys revoke: {e}", err=True, fg="red")
+        raise typer.Exit(2) from None
+    revoked.save(path)
+    typer.echo(f"# {path}: {len(revoked.entries)} revoked; services need:")
+    typer.echo(f"export BBALIGN_AUTH__REVOCATIONS={path.resolve()}")
+
+
 def register(app: typer.Typer) -> None:
     app.command()(serve)
     app.command("wire-schemas")(wire_schemas)

@@ -55,7 +55,7 @@ from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
 from .door import Door
 from .metrics import Metrics
-from .peers import PeerStatus, PeerTable
+from .peers import PeerStatus, PeerTable, process_started_at
 from .refusals import RefusalNotices
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE, Intake, Job, Scheduler
 from .settings import Settings
@@ -161,6 +161,7 @@ class AlignService:
             refuse_replays=self.keyring.required,
             new_pass_on_rewind=limits.replay,
             on_evict=self._forget,
+            not_before=process_started_at() + limits.max_stamp_lead_s if limits.clock_checked else None,
         )
         self.notices = RefusalNotices(settings.ego_id, settings.refusal_notice_interval_s, limits.max_peers + 1)
         self.metrics = Metrics(
@@ -422,6 +423,7 @@ class AlignService:
             except WireError as e:
                 self._refused(job, e)
                 if job.reply is not None:
+                    e.refusal = self.notices.for_query(job, e, limits)  # signed when the query was authenticated
                     _answer(job, e)
                 else:
                     self._tell_sender(job, e)

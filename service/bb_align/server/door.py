@@ -12,7 +12,9 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
 4. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
    an older frame): read without trusting it, since a frame that old is refused whoever signed it;
 5. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
-   the key chunk it came under.
+   the key chunk it came under;
+6. a signed payload that is not a frame (no readable stamp and seq): a compromised car's junk is refused here,
+   so its signature check counts against the door's CPU budget instead of costing the gate a second one.
 
 A message that passes goes to the ego's lane (signed by the ego) or the signed lane, one signed by a genuine
 vehicle for another's key chunk to the unverified lane (the gate names the error). The gate checks everything
@@ -119,6 +121,28 @@ class Budget:
             self._start, self._used = self._clock(), 0.0
 
 
+class KeyRate:
+    """A token bucket per verified sender (REST): ``rate_hz`` frames a second on average, ``burst`` at once. Only
+    a sender whose signature verified is charged, so nobody can spend another car's allowance. Bounded: the
+    least recently seen of more than ``max_keys`` senders is forgotten (it starts again with a full bucket)."""
+
+    def __init__(self, rate_hz: float, burst: float, max_keys: int = 4096, clock=time.monotonic):
+        self.rate_hz, self.burst, self.max_keys, self._clock = rate_hz, burst, max_keys, clock
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # key -> (tokens, when)
+        self._lock = threading.Lock()
+
+    def allow(self, key: str) -> bool:
+        now = self._clock()
+        with self._lock:
+            tokens, then = self._buckets.pop(key, (self.burst, now))
+            tokens = min(self.burst, tokens + (now - then) * self.rate_hz)
+            ok = tokens >= 1.0
+            self._buckets[key] = (tokens - 1.0 if ok else tokens, now)
+            while len(self._buckets) > self.max_keys:
+                self._buckets.popitem(last=False)
+        return ok
+
+
 class Door:
     """``lane(sender, data)`` for stream messages: the intake lane a raw message may wait in, or WireError when
     the gate would certainly refuse it. ``newest(vehicle_id)``: the newest (stamp, seq) accepted from a sender."""
@@ -152,6 +176,8 @@ class Door:
         except AuthError as e:
             raise WireError(e.status, e.error, e.detail, "mac", env.alg) from None
         self.recent.add(env.key_id, env.mac, env.payload)
+        if stamp_and_seq(env.payload) is None:  # signed junk: refused here, its signature check within the budget
+            raise _undecodable("the signed payload is not a frame (no readable stamp and seq)")
         try:
             self.keyring.authorize(signer, sender)
         except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong

@@ -8,6 +8,13 @@ so junk ids cannot fill the table. At most ``max_peers`` senders besides the ego
 forgotten sender's old frames are older than ``max_stamp_age_s`` (Limits requires peer_idle_s >=
 max_stamp_age_s), so the stamp window refuses them.
 
+The replay window survives a restart without any state on disk: a frame accepted before the service last
+stopped (crashed, killed) was stamped at most ``max_stamp_lead_s`` after that moment, which is before this process
+started; so every frame stamped before the process start (when the server's modules were imported) +
+``max_stamp_lead_s`` is refused (``not_before``). Genuine frames of the first ``max_stamp_lead_s`` after that are
+refused too; the process spends about that long importing and warming up. It assumes the receiver's clock does
+not go back across a restart (the stamp checks already assume a synchronised clock).
+
 The replay profile (``limits.replay``, recorded or simulated data) takes a ``(stamp, seq)`` that goes back as
 the start of a new pass over the recording: accepted, counted (``sequence_restarts``), and the window starts
 again from it. It gives up replay protection (docs/security.md).
@@ -25,6 +32,15 @@ from bb_align.protocol import Frame, Result, WireError, limit_env
 from bb_align.protocol.limits import REPLAY_HINT
 
 from .bandwidth import PeerBandwidth
+
+_IMPORTED = time.time()
+
+
+def process_started_at() -> float:
+    """A wall-clock time after this process started and before it took any frame: when the server's modules were
+    imported. (/proc's start tick is earlier but counted from a boot time rounded to the second and drifting from
+    the wall clock: measured 1.1 s off here, enough to let a fast restart take a frame again.)"""
+    return _IMPORTED
 
 
 class PeerStatus(BaseModel):
@@ -70,8 +86,11 @@ class PeerTable:
         new_pass_on_rewind: bool = False,
         on_evict: Callable[[str, _Entry], None] = lambda vid, entry: None,
         clock=time.monotonic,
+        not_before: float | None = None,
     ):
         self.max_peers, self.idle_s, self.reserved = max_peers, idle_s, reserved
+        # frames stamped earlier may have been accepted before a restart (only with replays refused)
+        self.not_before = not_before if refuse_replays and not new_pass_on_rewind else None
         self.refuse_replays, self.new_pass_on_rewind = refuse_replays, new_pass_on_rewind
         self._on_evict = on_evict
         self._clock = clock
@@ -81,6 +100,16 @@ class PeerTable:
     def admit(self, frame: Frame, channel: str) -> bool:
         """Track ``frame``'s sender (or refresh it); raises WireError 409 (replayed) or 503 (table full). True
         when the frame starts a new pass (replay profile: its (stamp, seq) went back)."""
+        if self.not_before is not None and frame.stamp < self.not_before:
+            raise WireError(
+                409,
+                "replayed",
+                f"stamp {frame.stamp} is before this service started ({self.not_before:.3f} with the stamp lead): "
+                "it may have been accepted before a restart, so it is refused as a replay",
+                "stamp",
+                self.not_before,
+                limit_env("max_stamp_lead_s"),
+            )
         now = self._clock()
         evicted = []
         with self._lock:
@@ -123,7 +152,8 @@ class PeerTable:
         return rewound and self.new_pass_on_rewind
 
     def newest(self, vehicle_id: str, channel: str) -> tuple[float, int] | None:
-        """The newest (stamp, seq) accepted from a tracked sender on ``channel`` (None: none, or not tracked)."""
+        """The newest (stamp, seq) accepted from a tracked sender on ``channel`` (None: none, or not tracked). The
+        restart floor (``not_before``) is not part of it: the gate refuses those frames and tells their sender."""
         with self._lock:
             entry = self._entries.get(vehicle_id)
             return None if entry is None else entry.newest.get(channel)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import threading
 import time
 
-from bb_align.protocol import Limits, Refusal, WireError, peek_seq_stamp
+from bb_align.protocol import Limits, Refusal, WireError, peek_frame, peek_seq_stamp
 
 from .scheduler import Job
 
@@ -41,6 +41,23 @@ class RefusalNotices:
             peer_stamp=stamp,
             status=error.status,
             refused=error.body(),
+        )
+
+    def for_query(self, job: Job, error: WireError, limits: Limits) -> Refusal | None:
+        """A refused query's error reply, signed like a Result when the query's signature was verified (so a car
+        can tell the ego's refusal from a rogue queryable's); None for an unauthenticated query (its error reply
+        stays unsigned: a keyless query flood makes the service sign nothing). A query has its own reply channel:
+        no rate limit here."""
+        if job.reply is None or job.meta.get("signer") is None:
+            return None
+        if job.frame is not None:
+            vid, seq, stamp = job.frame.vehicle_id, job.frame.seq, job.frame.stamp
+        else:
+            vid, seq, stamp = peek_frame(job.data or b"", limits)
+        if vid is None:
+            return None
+        return Refusal(
+            ego_id=self.ego_id, peer_id=vid, peer_seq=seq, peer_stamp=stamp, status=error.status, refused=error.body()
         )
 
     def _allow(self, sender: str) -> bool:

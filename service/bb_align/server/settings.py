@@ -61,6 +61,18 @@ class AuthSettings(BaseModel):
     rest_token: SecretStr | None = Field(
         None, description="REST: every /v1 call and /metrics need 'Authorization: Bearer <token>'"
     )
+    fleet_ids: list[str] | None = Field(
+        None,
+        description="the fleet key's reserved id space: vehicle ids, or prefixes ending in '*' ('legacy-*'). With "
+        "a fleet authority (ca_cert) the fleet key signs only for these (none by default) and no certificate for "
+        "them is accepted, so the shared key can never speak for a certified car, seen or not, before or after a "
+        "restart. Without an authority: when set, limits the fleet key the same way",
+    )
+    revocations: Path | None = Field(
+        None,
+        description="the authority's signed revocation list (bb-align keys revoke DIR <vehicle_id>, DIR/revoked.json):"
+        " certificates it names are refused; read again when the file changes",
+    )
 
     @field_validator("fleet_key", "rest_token")
     @classmethod
@@ -79,6 +91,15 @@ class AuthSettings(BaseModel):
                 raise ValueError(f"peer_keys[{vid!r}]: keys need at least {MIN_KEY_CHARS} characters")
         return v
 
+    @field_validator("fleet_ids")
+    @classmethod
+    def _fleet_ids(cls, v: list[str] | None) -> list[str] | None:
+        for entry in v or []:
+            vid = entry[:-1] if entry.endswith("*") else entry
+            if not (re.match(VEHICLE_ID_PATTERN, vid) or (entry.endswith("*") and vid == "")) or vid == FLEET_KEY_ID:
+                raise ValueError(f"fleet_ids: {entry!r} is not a vehicle id or a prefix ending in '*'")
+        return v
+
     @property
     def has_keys(self) -> bool:
         return self.fleet_key is not None or bool(self.peer_keys) or self.ca_cert is not None
@@ -89,7 +110,12 @@ class AuthSettings(BaseModel):
 
     @cached_property
     def trust(self) -> TrustStore | None:
-        return None if self.ca_cert is None else TrustStore.load(self.ca_cert)
+        if self.ca_cert is None:
+            return None
+        store = TrustStore.load(self.ca_cert)
+        if self.revocations is not None:
+            store.use_revocations(self.revocations)
+        return store
 
     @cached_property
     def ego_credential(self) -> Credential | None:
@@ -103,7 +129,7 @@ class AuthSettings(BaseModel):
             keys[FLEET_KEY_ID] = self.fleet_key.get_secret_value()
         cred = self.ego_credential
         pinned = {} if cred is None else {cred.vehicle_id: cred.certificate.public_key}
-        return Keyring(keys, required=self.required, trust=self.trust, pinned=pinned)
+        return Keyring(keys, required=self.required, trust=self.trust, pinned=pinned, fleet_ids=self.fleet_ids)
 
     def answer_key(self) -> tuple[Credential | str | None, str]:
         """What signs the service's answers, and its key id: the ego's credential (Ed25519), else the fleet key
@@ -120,6 +146,8 @@ class AuthSettings(BaseModel):
             trust, cred = self.trust, self.ego_credential
         except (OSError, ValueError, KeyError) as e:
             return f"auth.ca_cert / auth.credential: {type(e).__name__}: {e}"
+        if self.revocations is not None and trust is None:
+            return "auth.revocations needs auth.ca_cert (the authority that signed it)"
         if cred is not None:
             if cred.vehicle_id != ego_id:
                 return f"auth.credential is {cred.vehicle_id!r}'s, but this service's ego id is {ego_id!r}"
@@ -199,6 +227,13 @@ class Settings(BaseSettings):
         "sender's results key, at most once per this many seconds per sender (a flood of one car's replayed "
         "frames makes the service publish no faster)",
     )
+
+    @field_validator("ego_id")
+    @classmethod
+    def _not_the_fleet_id(cls, v: str) -> str:
+        if v == FLEET_KEY_ID:
+            raise ValueError(f"{FLEET_KEY_ID!r} is reserved for the shared fleet key, not a vehicle id")
+        return v
 
     @model_validator(mode="after")
     def _demo_profile_turns_auth_off(self) -> Settings:
