@@ -596,11 +596,19 @@ class TrackConfig(_Frozen):
     )
     max_odometry_yaw_rate_deg_s: float = Field(90.0, gt=0, description="likewise for its yaw rate")
     max_gap_s: float = Field(5.0, gt=0, description="a peer silent longer than this loses its track")
-    max_coast_s: float = Field(
-        0.3,
+    support_ratio: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="a tracked frame's refinement validates an answer only when its fitness is at least this share "
+        "of the track's recent valid evidence: a refinement caught in a local minimum near a wrong prediction (an "
+        "odometry jump) finds a fraction of the overlap the right pose found",
+    )
+    reacquire_s: float = Field(
+        1.0,
         ge=0,
-        description="after the last fused measurement, frames whose measurement "
-        "failed are answered from the prediction as valid for at most this long",
+        description="a track that max_rejects frames in a row did not confirm on their own evidence runs a full "
+        "acquisition, at most this often",
     )
 
 
