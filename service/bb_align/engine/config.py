@@ -604,6 +604,15 @@ class TrackConfig(_Frozen):
         "of the track's recent valid evidence: a refinement caught in a local minimum near a wrong prediction (an "
         "odometry jump) finds a fraction of the overlap the right pose found",
     )
+    evidence_sigmas: float = Field(
+        3.0,
+        gt=0,
+        description="a tracked answer is valid only when this frame's own measurement, trusted to this many of its "
+        "own sigmas, puts the truth within evidence_bound_m / _deg of the answer: the answer's distance from the "
+        "measurement plus this many sigmas (worst direction of the peer's position; yaw)",
+    )
+    evidence_bound_m: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on position, metres")
+    evidence_bound_deg: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on yaw, degrees")
     reacquire_s: float = Field(
         1.0,
         ge=0,

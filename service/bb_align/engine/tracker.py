@@ -30,8 +30,8 @@ from enum import Enum
 import numpy as np
 
 from .config import TrackConfig
-from .covariance import fuse_poses, mahalanobis2
-from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
+from .covariance import fuse_poses, mahalanobis2, params_covariance
+from .geometry import log_left, pose_error, se2, se2_params, worst_sigma_m, wrap_angle
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
 
@@ -216,8 +216,28 @@ class PeerTrack:
         d2 = mahalanobis2(ev.covariance, log_left(T, ev.T_ego_peer))
         if d2 > self.cfg.gate_chi2:
             return f"the answer lies outside this frame's measurement (Mahalanobis^2 {d2:.1f})"
+        why = self._bounded(ev, T)
+        if why is not None:
+            return why
         if not self._confident(P_T):
             return "the track's uncertainty exceeds the answer bounds"
+        return None
+
+    def _bounded(self, ev: Evidence, T: np.ndarray) -> str | None:
+        """Why this frame's measurement ``ev`` does not bound the error of the answer T within evidence_bound, or
+        None."""
+        c = self.cfg
+        # The farthest the truth can be from the answer if this frame's measurement is right to evidence_sigmas of
+        # its own covariance: the correction plus that many sigmas (of the peer's position and of the yaw).
+        t_off, r_off = pose_error(T, ev.T_ego_peer)
+        cov = params_covariance(ev.covariance, ev.T_ego_peer)
+        t_bound = t_off + c.evidence_sigmas * worst_sigma_m(cov)
+        r_bound = r_off + c.evidence_sigmas * np.degrees(np.sqrt(cov[0, 0]))
+        if t_bound > c.evidence_bound_m or r_bound > c.evidence_bound_deg:
+            return (
+                f"this frame's measurement bounds the answer's error by {t_bound:.2f} m / {r_bound:.2f} deg only "
+                f"(evidence_bound {c.evidence_bound_m:g} m / {c.evidence_bound_deg:g} deg)"
+            )
         return None
 
     # ---- the cross-check beside the track ----------------------------------------------------------------------
@@ -361,7 +381,10 @@ class PeerTrack:
         if changed:
             event = (event + "; acquired") if event else "acquired"
         self.last_event = event or self.last_event
-        return self._answer(stamp, "acquisition", True, m.T_ego_peer, np.asarray(m.covariance, float), event)
+        # The engine's verdict starts the track; the answer is held to the evidence bound like a tracked one.
+        why = None if m.evidence is None else self._bounded(m.evidence, m.T_ego_peer)
+        cov = np.asarray(m.covariance, float)
+        return self._answer(stamp, "acquisition", why is None, m.T_ego_peer, cov, event, None, why)
 
     def _odometry_jump(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray) -> str | None:
         """Why a car's odometry step since the last frame cannot be motion (a relocalisation or reset), if so."""
