@@ -41,10 +41,12 @@ def _odometry(car: str, k: int, T_world_sensor: np.ndarray) -> np.ndarray:
     return se3_from_se2(se2(0.0, DRIFT_M_PER_FRAME * k, 0.0)) @ ODOM_ORIGIN[car] @ T_world_sensor
 
 
-def _drive(http, scene, peer_id: str, odometry: bool, faults=()) -> list[tuple[int, object, np.ndarray]]:
-    """Every frame pair through the service in order; (frame, Result, true T_ego_peer) per frame."""
+def _drive(http, scene, peer_id: str, odometry: bool, faults=(), stamps=None) -> list[tuple[int, object, np.ndarray]]:
+    """Every frame pair through the service in order; (frame, Result, true T_ego_peer) per frame. ``stamps``: the
+    frames' stamps when not the scene's own time."""
     out = []
     for k, (stamp, ego, peer) in enumerate(scene):
+        stamp = stamp if stamps is None else float(stamps[k])
         frames = []
         for car, name, frame in (("peer", peer_id, peer), ("ego", "ego", ego)):
             O = None
@@ -82,6 +84,23 @@ def test_a_clean_stream_is_answered_and_never_wrong(service, scene, odometry):
     assert sources[0] == "acquisition" and sources.count("tracking") >= FRAMES - 4, sources
     answered = sum(res.success for _, res, _ in rows)
     assert answered >= 0.8 * FRAMES, [(k, res.reason, res.notes[-1:]) for k, res, _ in rows if not res.success]
+
+
+@pytest.mark.parametrize(
+    "clock",
+    [
+        lambda n, rng: 0.5 * np.arange(n),  # a wall clock while the scene runs 5 times faster (a slow sender)
+        lambda n, rng: 1.0 + 0.1 * np.arange(n) + rng.uniform(-0.08, 0.08, n),  # stamps that jitter by up to 80 ms
+    ],
+    ids=["slow_clock", "jitter"],
+)
+def test_stamps_that_are_not_the_scenes_time_may_answer_less_never_wrongly(service, scene, clock):
+    """Without odometry the constant-velocity model is fooled by the stamps: its predictions are off, the answers
+    rest on each frame's own measurement."""
+    stamps = clock(FRAMES, np.random.default_rng(3))
+    rows = _drive(service, scene, f"clock_{stamps[1]:.3f}", False, stamps=stamps)
+    assert _wrong(rows) == []
+    assert sum(res.success for _, res, _ in rows) >= FRAMES // 2
 
 
 @pytest.mark.parametrize(

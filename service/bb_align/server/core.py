@@ -779,7 +779,7 @@ def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[s
         stage2_applied=res.stage2_applied,
         covariance=None if res.covariance is None else np.asarray(res.covariance, dtype=float).tolist(),
         prior_used=prior_used,
-        source=None if res.track_state is None else res.source,
+        source=res.source if res.track_state is not None and res.source != "none" else None,  # "none": no pose
         track_state=res.track_state,
         track_event=res.track_event,
         notes=list(res.notes),
