@@ -127,3 +127,32 @@ def test_an_odometry_fault_is_never_answered_wrongly_and_the_track_recovers(serv
         assert sum(after) >= len(after) // 2, [(k, res.source, res.reason, res.notes[-1:]) for k, res, _ in rows]
     events = [res.track_event for k, res, _ in rows if k >= FAULT_AT and res.track_event]
     assert events, "the fault left no trace in the track's events"
+
+
+def test_the_demo_summary_counts_wrong_successes():
+    from bb_align.lab.demo import summarize
+
+    def row(seq, success, err):
+        steps = dict.fromkeys(("queue_wait", "peer_prepare", "ego_features", "align"), 1.0)
+        r = {"seq": seq, "peer": "car1", "success": success, "latency_ms": 5.0, "service_ms": 4.0, "bytes": 10}
+        return r | {"service_steps_ms": steps, "err": err}
+
+    rows = [row(0, True, [0.2, 0.1]), row(1, True, [3.3, 0.1]), row(2, True, [0.1, 1.5]), row(3, False, [6.6, 0])]
+    s = summarize(rows, 4)
+    assert (s["success"], s["wrong_success"], s["wrong_seqs"]) == (3, 2, [["car1", 1], ["car1", 2]])
+    assert s["err_t_m_max"] == 3.3 and s["err_r_deg_max"] == 1.5  # over the successes; the failure is no answer
+
+
+def test_an_odometry_fault_moves_the_odometry_frame_from_its_frame_on():
+    O = se3_from_se2(se2(0.5, 10.0, -2.0))
+    jump = OdometryFault.parse("ego:15:4,4")
+    assert jump == OdometryFault("ego", 15, 4.0, 4.0)
+    np.testing.assert_array_equal(jump.apply("ego", 14, O), O)
+    np.testing.assert_array_equal(jump.apply("car1", 20, O), O)
+    np.testing.assert_allclose(jump.apply("ego", 15, O)[:2, 3], [14.0, 2.0])  # shifted in the odometry frame
+    np.testing.assert_allclose(jump.apply("ego", 15, O)[:3, :3], O[:3, :3])
+    lie = OdometryFault.parse("car1:2:0.3,0", ramp=True)
+    assert [lie.shift("car1", k) for k in (1, 2, 4)] == [(0.0, 0.0), (0.3, 0.0), (pytest.approx(0.9), 0.0)]
+    for bad in ("ego:15", "ego:x:1,1", "ego:3:1", "ego:-1:1,1", "ego:3:nan,1"):
+        with pytest.raises(ValueError, match="odometry fault"):
+            OdometryFault.parse(bad)
