@@ -22,7 +22,7 @@ import numpy as np
 from bb_align.engine.config import TrackConfig
 from bb_align.engine.covariance import left_covariance, params_covariance
 from bb_align.engine.geometry import pose_error, se2
-from bb_align.engine.tracker import Measurement, PeerTrack, combine
+from bb_align.engine.tracker import Evidence, Measurement, PeerTrack, combine
 from bb_align.lab.tracking.replay import error_components
 
 GRID = {
@@ -46,18 +46,21 @@ def _sequences(paths: list[str]) -> dict[str, list[dict]]:
 
 def _measurement(r: dict, inflation: float, cfg: TrackConfig) -> Measurement:
     """The frame's recorded measurement as the follower built it: the engine run's pose and covariance (inflated
-    unless an acquisition), fused with the boxes' measurement when one was recorded and they agree."""
+    unless an acquisition), fused with the boxes' measurement when one was recorded and they agree; its evidence
+    the same without the inflation. The refinement's fitness is not recorded: the support check is not replayed."""
     if r["measured"] is None or r["measured_cov"] is None:
-        m = Measurement(False, reason=r["reason"] or "none")
-    else:
-        T = se2(*r["measured"])
-        scale = inflation if r["source"] != "acquisition" else 1.0
-        m = Measurement(True, T, scale * left_covariance(np.array(r["measured_cov"]), T))
+        return Measurement(False, reason=r["reason"] or "none")
+    T = se2(*r["measured"])
+    cov = left_covariance(np.array(r["measured_cov"]), T)
+    scale = inflation if r["source"] != "acquisition" else 1.0
+    m, own = Measurement(True, T, scale * cov), Measurement(True, T, cov)
     if r.get("box_measured") is not None and r["source"] != "acquisition" and cfg.boxes:
         # Recorded at the default box_sigma_m; the covariance scales with its square.
         scale = (cfg.box_sigma_m / TrackConfig().box_sigma_m) ** 2
         box = Measurement(True, se2(*r["box_measured"]), scale * np.array(r["box_cov"]))
         m, _ = combine(m, box, cfg.box_agreement_chi2)
+        own, _ = combine(own, box, cfg.box_agreement_chi2)
+    m.evidence = Evidence(own.T_ego_peer, own.covariance, 1.0)
     return m
 
 

@@ -261,3 +261,40 @@ def test_only_signed_stream_frames_are_told_why_and_at_a_bounded_rate():
     garbled = Job("car1", 0.0, "zenoh", data=b"\xc1", meta={"signer": "fleet"})
     clock[0] = 1.0
     assert notices.notice(garbled, e, Limits()).peer_seq is None  # told, even when its seq cannot be read
+
+
+def test_a_senders_results_leave_in_order_even_when_publishing_is_slow():
+    """Two workers, one sender: the sender's next frame runs only after the previous result was published, so a
+    slow publish (a busy link) cannot let the next frame's result overtake it."""
+    from bb_align.protocol import Result
+    from bb_align.server.core import AlignService
+    from bb_align.server.settings import Settings
+
+    svc = AlignService(Settings(profile="demo", workers=2, zenoh={"enabled": False}))
+    svc._run = lambda job: Result(
+        ego_id="ego", peer_id=job.sender, peer_seq=job.data[0], peer_stamp=0.0, success=False, reason="test"
+    )
+    published, first_started = [], threading.Event()
+
+    def publish(res):
+        if res.peer_seq == 1:
+            first_started.set()
+            time.sleep(0.3)  # the first result is slow to leave
+        published.append(res.peer_seq)
+
+    svc.publishers.append(publish)
+    workers = [threading.Thread(target=svc._work, daemon=True) for _ in range(2)]
+    for w in workers:
+        w.start()
+    try:
+        svc.scheduler.put_frame(_job("car1", 1))
+        assert first_started.wait(10)
+        svc.scheduler.put_frame(_job("car1", 2))  # a worker is free: it may not take car1's frame yet
+        deadline = time.monotonic() + 10
+        while len(published) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        svc.scheduler.close()
+        for w in workers:
+            w.join(10)
+    assert published == [1, 2]

@@ -651,11 +651,28 @@ class TrackConfig(_Frozen):
     )
     max_odometry_yaw_rate_deg_s: float = Field(90.0, gt=0, description="likewise for its yaw rate")
     max_gap_s: float = Field(5.0, gt=0, description="a peer silent longer than this loses its track")
-    max_coast_s: float = Field(
-        0.3,
+    support_ratio: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="a tracked frame's refinement validates an answer only when its fitness is at least this share "
+        "of the track's recent valid evidence: a refinement caught in a local minimum near a wrong prediction (an "
+        "odometry jump) finds a fraction of the overlap the right pose found",
+    )
+    evidence_sigmas: float = Field(
+        3.0,
+        gt=0,
+        description="a tracked answer is valid only when this frame's own measurement, trusted to this many of its "
+        "own sigmas, puts the truth within evidence_bound_m / _deg of the answer: the answer's distance from the "
+        "measurement plus this many sigmas (worst direction of the peer's position; yaw)",
+    )
+    evidence_bound_m: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on position, metres")
+    evidence_bound_deg: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on yaw, degrees")
+    reacquire_s: float = Field(
+        1.0,
         ge=0,
-        description="after the last fused measurement, frames whose measurement "
-        "failed are answered from the prediction as valid for at most this long",
+        description="a track that max_rejects frames in a row did not confirm on their own evidence runs a full "
+        "acquisition, at most this often",
     )
 
 

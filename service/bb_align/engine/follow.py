@@ -30,7 +30,7 @@ from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
-from .tracker import OUT_OF_ORDER, Measurement, PeerTrack, TrackAnswer, combine
+from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
 from .verdict import FailureReason
 
 
@@ -40,12 +40,13 @@ def ground_pose(T: np.ndarray | None) -> np.ndarray | None:
 
 
 def as_measurement(r: AlignResult, inflation: float = 1.0) -> Measurement:
-    """An engine result as the tracker's evidence: the ground-plane pose and its covariance of left increments
-    (times ``inflation``)."""
+    """An engine result as the tracker's measurement: the ground-plane pose and its covariance of left increments
+    (times ``inflation``); its evidence is the same pose with the run's own covariance."""
     if not r.success or r.covariance is None:
         return Measurement(False, reason=r.reason or "no covariance")
     T = r.T_box @ r.T_bv
-    return Measurement(True, T, inflation * left_covariance(r.covariance, T))
+    cov = left_covariance(r.covariance, T)
+    return Measurement(True, T, inflation * cov, evidence=Evidence(T, cov, float(r.refine_fitness or 0.0)))
 
 
 class Follower:
@@ -91,8 +92,14 @@ class Follower:
             m = as_measurement(runs[-1], inflation)
             self.last_boxes = self._boxes(ego, peer, T_pred)
             if self.last_boxes.ok:
+                ev = m.evidence
                 m, used = combine(m, self.last_boxes, c.box_agreement_chi2)
                 runs[-1].notes.append(f"box measurement {'fused' if used else 'left out: disagrees'}")
+                if ev is not None:  # this frame's own evidence: the refinement and the boxes, neither inflated
+                    own, _ = combine(
+                        Measurement(True, ev.T_ego_peer, ev.covariance), self.last_boxes, c.box_agreement_chi2
+                    )
+                    m.evidence = Evidence(own.T_ego_peer, own.covariance, ev.fitness)
             return m
 
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
@@ -184,6 +191,8 @@ class Follower:
             r.covariance = params_covariance(a.covariance, a.T_ego_peer)
         r.success = bool(a.valid)
         r.reason = None if a.valid else self._reason(a, r)
+        if a.why_not:
+            r.notes.append(f"not valid on this frame's evidence: {a.why_not}")
         if not own:
             p = 0.0 if r.covariance is None else probability_within(r.covariance, 1.0, 1.0)
             cap = self.aligner.config.confidence.cap_stage1_failed

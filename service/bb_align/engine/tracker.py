@@ -30,8 +30,8 @@ from enum import Enum
 import numpy as np
 
 from .config import TrackConfig
-from .covariance import fuse_poses
-from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
+from .covariance import fuse_poses, mahalanobis2, params_covariance
+from .geometry import log_left, pose_error, se2, se2_params, worst_sigma_m, wrap_angle
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
 
@@ -43,13 +43,26 @@ class TrackState(str, Enum):
 
 
 @dataclass
+class Evidence:
+    """What one frame's own engine run says, before any fusion: the refined (or acquired) T_ego_peer (3x3) and the
+    run's own covariance (left increments, not inflated). A tracked answer is valid only on this."""
+
+    T_ego_peer: np.ndarray
+    covariance: np.ndarray
+    fitness: float = 0.0  # the share of the peer's points the run found on the ego's (its support)
+
+
+@dataclass
 class Measurement:
-    """One frame's evidence: a refined or acquired T_ego_peer (3x3) and its covariance, or a failure."""
+    """One frame's measurement as the filter fuses it: a refined or acquired T_ego_peer (3x3) and its covariance
+    (possibly inflated, possibly combined with the boxes'), or a failure; ``evidence``: the frame's own engine run
+    (None when the refinement failed and only the boxes measured)."""
 
     ok: bool
     T_ego_peer: np.ndarray | None = None
     covariance: np.ndarray | None = None  # 3x3, left increments (yaw, tx, ty)
     reason: str | None = None
+    evidence: Evidence | None = None
 
 
 @dataclass
@@ -64,6 +77,7 @@ class TrackAnswer:
     covariance: np.ndarray | None  # 3x3, left increments (yaw, tx, ty)
     event: str | None = None  # why the state changed this frame, if it did
     mahalanobis2: float | None = None  # the measurement's squared Mahalanobis distance to the prediction
+    why_not: str | None = None  # why a tracked pose was not valid, when it was not
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:
@@ -81,7 +95,7 @@ def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[
     if not m.ok:
         return other, True
     fused = fuse_poses(m.T_ego_peer, m.covariance, other.T_ego_peer, other.covariance, agreement_chi2)
-    return (m, False) if fused is None else (Measurement(True, *fused), True)
+    return (m, False) if fused is None else (Measurement(True, *fused, evidence=m.evidence), True)
 
 
 def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -107,6 +121,8 @@ class PeerTrack:
         self.stamp: float | None = None
         self.last_acquired: float | None = None
         self.rejects = 0
+        self.misses = 0  # tracked frames in a row without valid evidence of their own: an acquisition when too many
+        self.support: float | None = None  # the track's reference fitness (its recent valid evidence)
         self.last_event: str | None = None
         self.last_fused: float | None = None
         self.epoch = 0  # counts tracks: a cross-check run beside the track applies only to the track it checked
@@ -149,17 +165,80 @@ class PeerTrack:
         P_T = H @ P @ H.T
         sigma = worst_sigma_m(P_T)
         periodic = crosscheck and self.crosscheck_due(stamp)
-        if sigma > self.cfg.max_sigma_m or periodic:
-            # The full method, seeded by the prediction: fused when it agrees, a fresh track when it does not;
-            # when it fails, the refinement below still tries to hold the track.
+        # A track no frame has confirmed for max_rejects frames is checked by the full method (at most every
+        # reacquire_s: an acquisition costs ~0.3 s).
+        unsupported = self.misses >= self.cfg.max_rejects and stamp - self.last_acquired >= self.cfg.reacquire_s
+        if sigma > self.cfg.max_sigma_m or periodic or unsupported:
+            # The full method: fused when it agrees, a fresh track when it does not; when it fails, the refinement
+            # below still tries to hold the track.
             self.last_acquired = stamp
             m = acquire(T_pred)
             if m.ok:
                 return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "acquisition", crosscheck=True)
         m = measure(T_pred)
+        ev = m.evidence if m.ok else None
+        if ev is not None and (d2 := self._disagreement(ev, T_pred, P_T)) > self.cfg.gate_chi2:
+            # This frame's own run contradicts the prediction beyond both uncertainties: an event (an odometry
+            # jump or relocalisation, a car lying about its motion, a wrong track), not a correction to fuse.
+            event = self._drop(
+                f"this frame's refinement disagrees with the prediction (Mahalanobis^2 {d2:.1f}, gate "
+                f"{self.cfg.gate_chi2:g}): an odometry jump, a relocalisation or a wrong track"
+            )
+            return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
         if not m.ok:
+            self.misses += 1
             return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False)
         return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
+
+    def _disagreement(self, ev: Evidence, T_pred: np.ndarray, P_T: np.ndarray) -> float:
+        """Squared Mahalanobis distance of this frame's own evidence to the prediction, under the evidence's own
+        covariance plus the prediction's (never the inflated one the filter fuses)."""
+        return mahalanobis2(P_T + ev.covariance, log_left(ev.T_ego_peer, T_pred))
+
+    def _supported(self, ev: Evidence | None) -> str | None:
+        """Why this frame's evidence cannot validate an answer, or None: a refinement that found too little of the
+        peer on the ego (below support_ratio of the track's recent evidence: a local minimum near a wrong
+        prediction finds a fraction of what the right pose found)."""
+        if ev is None:
+            return "no refinement of this frame"
+        if self.support is not None and ev.fitness < self.cfg.support_ratio * self.support:
+            return (
+                f"the refinement found {ev.fitness:.2f} of the peer, under {self.cfg.support_ratio:g} of the "
+                f"track's {self.support:.2f}"
+            )
+        return None
+
+    def _judge(self, ev: Evidence | None, T: np.ndarray, P_T: np.ndarray) -> str | None:
+        """Why the tracked pose T (covariance P_T) is not a valid answer on this frame's own evidence, or None."""
+        why = self._supported(ev)
+        if why is not None:
+            return why
+        d2 = mahalanobis2(ev.covariance, log_left(T, ev.T_ego_peer))
+        if d2 > self.cfg.gate_chi2:
+            return f"the answer lies outside this frame's measurement (Mahalanobis^2 {d2:.1f})"
+        why = self._bounded(ev, T)
+        if why is not None:
+            return why
+        if not self._confident(P_T):
+            return "the track's uncertainty exceeds the answer bounds"
+        return None
+
+    def _bounded(self, ev: Evidence, T: np.ndarray) -> str | None:
+        """Why this frame's measurement ``ev`` does not bound the error of the answer T within evidence_bound, or
+        None."""
+        c = self.cfg
+        # The farthest the truth can be from the answer if this frame's measurement is right to evidence_sigmas of
+        # its own covariance: the correction plus that many sigmas (of the peer's position and of the yaw).
+        t_off, r_off = pose_error(T, ev.T_ego_peer)
+        cov = params_covariance(ev.covariance, ev.T_ego_peer)
+        t_bound = t_off + c.evidence_sigmas * worst_sigma_m(cov)
+        r_bound = r_off + c.evidence_sigmas * np.degrees(np.sqrt(cov[0, 0]))
+        if t_bound > c.evidence_bound_m or r_bound > c.evidence_bound_deg:
+            return (
+                f"this frame's measurement bounds the answer's error by {t_bound:.2f} m / {r_bound:.2f} deg only "
+                f"(evidence_bound {c.evidence_bound_m:g} m / {c.evidence_bound_deg:g} deg)"
+            )
+        return None
 
     # ---- the cross-check beside the track ----------------------------------------------------------------------
     def crosscheck_due(self, stamp: float) -> bool:
@@ -230,14 +309,17 @@ class PeerTrack:
     def _update(
         self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, source: str, crosscheck: bool = False
     ) -> TrackAnswer:
-        """Kalman update on left increments; a measurement outside the Mahalanobis gate is rejected."""
+        """Kalman update on left increments; a measurement outside the Mahalanobis gate is rejected. The answer is
+        valid only on this frame's own evidence (``_judge``)."""
         nu = log_left(m.T_ego_peer, T_pred)
         d2, dx, P_new = kalman_step(P, H, np.asarray(m.covariance, float), nu)
+        ev = m.evidence
         if d2 > self.cfg.gate_chi2:
             if crosscheck:  # a full acquisition that disagrees with the track: the track was wrong
                 event = self._drop(f"the cross-check acquisition disagrees with the track (Mahalanobis^2 {d2:.1f})")
                 return self._acquire(stamp, m, O_e, O_p, self.with_odometry, event)
             self.rejects += 1
+            self.misses += 1
             if self.rejects >= self.cfg.max_rejects:
                 event = self._drop(f"{self.rejects} measurements in a row outside the gate (Mahalanobis^2 {d2:.1f})")
                 return self._answer(stamp, "none", False, None, None, event, d2)
@@ -251,15 +333,25 @@ class PeerTrack:
         self._keep(stamp, X, P_new)
         self.last_fused = stamp
         T, P_T = np.linalg.inv(O_e) @ X @ O_p, H @ self.P @ H.T
-        return self._answer(stamp, source, self._confident(P_T), T, P_T, None, d2)
+        if not self.with_odometry and ev is not None:
+            # The constant-velocity model only predicts (where to refine from, what to gate): the relative motion
+            # may change at any moment, so the answer is this frame's own measurement, with its own covariance.
+            T, P_T = ev.T_ego_peer, ev.covariance
+        if source == "acquisition" and ev is not None:
+            self.support = ev.fitness  # a full acquisition that agrees: the reference the next frames are held to
+        why = self._judge(ev, T, P_T)
+        if why is None:
+            self.misses = 0
+            self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
+        else:
+            self.misses += 1
+        return self._answer(stamp, source, why is None, T, P_T, None, d2, why)
 
     def _coast(self, stamp, X, P, T_pred, P_T, why: str, rejected: bool, d2: float | None = None) -> TrackAnswer:
-        """No usable measurement this frame: the prediction stands. It is a valid answer only when nothing
-        contradicted it (the measurement failed, it was not rejected), shortly after the last fused measurement,
-        and while its uncertainty is in bounds."""
+        """No usable measurement this frame: the prediction stands, never as a valid answer (nothing of this frame
+        supports it)."""
         self._keep(stamp, X, P)
-        valid = not rejected and stamp - self.last_fused <= self.cfg.max_coast_s and self._confident(P_T)
-        return self._answer(stamp, "prediction", valid, T_pred, P_T, why, d2)
+        return self._answer(stamp, "prediction", False, T_pred, P_T, why, d2, why)
 
     def _acquire(self, stamp, m: Measurement, O_e, O_p, odometry: bool, event: str | None) -> TrackAnswer:
         """A full acquisition's outcome: a new track, or (failed) the old track given up."""
@@ -279,7 +371,8 @@ class PeerTrack:
             )
             P = np.block([[P, np.zeros((3, 3))], [np.zeros((3, 3)), np.diag(v0**2)]])
         self.w = np.zeros(3)
-        self.rejects = 0
+        self.rejects = self.misses = 0
+        self.support = m.evidence.fitness if m.evidence is not None else None
         self.last_fused = stamp
         changed = self.state != TrackState.tracking
         self.state = TrackState.tracking
@@ -288,7 +381,10 @@ class PeerTrack:
         if changed:
             event = (event + "; acquired") if event else "acquired"
         self.last_event = event or self.last_event
-        return self._answer(stamp, "acquisition", True, m.T_ego_peer, np.asarray(m.covariance, float), event)
+        # The engine's verdict starts the track; the answer is held to the evidence bound like a tracked one.
+        why = None if m.evidence is None else self._bounded(m.evidence, m.T_ego_peer)
+        cov = np.asarray(m.covariance, float)
+        return self._answer(stamp, "acquisition", why is None, m.T_ego_peer, cov, event, None, why)
 
     def _odometry_jump(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray) -> str | None:
         """Why a car's odometry step since the last frame cannot be motion (a relocalisation or reset), if so."""
@@ -320,9 +416,10 @@ class PeerTrack:
         self.X = self.P = None
         self.w = np.zeros(3)
         self.state = TrackState.lost
-        self.rejects = 0
+        self.rejects = self.misses = 0
+        self.support = None
         self.last_event = f"lost: {why}"
         return self.last_event
 
-    def _answer(self, stamp, source, valid, T, cov, event=None, d2=None) -> TrackAnswer:
-        return TrackAnswer(stamp, self.state, source, valid, T, cov, event, d2)
+    def _answer(self, stamp, source, valid, T, cov, event=None, d2=None, why_not=None) -> TrackAnswer:
+        return TrackAnswer(stamp, self.state, source, valid, T, cov, event, d2, why_not)

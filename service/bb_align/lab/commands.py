@@ -41,14 +41,30 @@ def demo(
         show_default=False,
         help="the simpler option: the fleet HMAC key to sign every car's frames with (without a credential)",
     ),
+    odometry: bool = typer.Option(False, help="every car sends its odometry (drifting, as in the swept sequences)"),
+    odometry_jump: list[str] = typer.Option(
+        [],
+        metavar="CAR:FRAME:DX,DY",
+        help="re-anchor CAR's odometry by (DX, DY) m from FRAME on, as a relocalisation does (implies --odometry; "
+        "repeatable), e.g. ego:15:4,4",
+    ),
+    odometry_lie: list[str] = typer.Option(
+        [],
+        metavar="CAR:FRAME:DX,DY",
+        help="CAR's odometry drifts by a further (DX, DY) m every frame from FRAME on: a car lying about its motion "
+        "(implies --odometry; repeatable)",
+    ),
 ) -> None:
     """Drive a simulated N-car scene through a running service over Zenoh; table of true vs recovered poses.
 
     Frames are signed with per-vehicle Ed25519 credentials when BBALIGN_AUTH__CREDENTIAL is set (as for `bb-align
     serve`), else with the fleet HMAC key when one is given, else not at all (a service started with --demo)."""
     from bb_align.lab.demo import demo_signers, run_demo
+    from bb_align.lab.tracking.faults import OdometryFault
 
     try:
+        faults = tuple(OdometryFault.parse(t) for t in odometry_jump)
+        faults += tuple(OdometryFault.parse(t, ramp=True) for t in odometry_lie)
         signers = demo_signers(ego_id, agents, credential, ca_cert, key)
     except (OSError, ValueError) as e:
         typer.secho(f"bb-align demo: {e}", err=True, fg="red")
@@ -75,6 +91,8 @@ def demo(
         range_m=range_m,
         json_out=json_out,
         plot=plot,
+        odometry=odometry,
+        faults=faults,
         **signers,
     )
     if summary["results"] == 0:

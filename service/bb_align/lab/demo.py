@@ -5,6 +5,13 @@ frame carries a GNSS-like reported pose (paper noise: sigma 2 m on x, y and 2 de
 takes only roll, pitch and tz. A live table shows, per peer frame, the true and recovered T_ego_peer, the error
 of the recovered pose and of the reported poses, the latency from publishing the frame to receiving its result,
 and the frame's size against its raw points.
+
+Frames are stamped with the scene's own time (each LiDAR's mid-sweep time, on a clock started at the first
+frame), as a car stamps its sweeps with sensor time, and no frame is published before its stamp: a service that
+answers slowly makes the demo run slower than real time, never its stamps lie about the scene's motion. With
+``odometry`` every car also sends its odometry (the swept sequences' model: scale error, yaw bias, noise), and
+``faults`` re-anchor or skew one car's odometry (bb_align.lab.tracking.faults). The summary counts the wrong
+successes: a successful answer off the scene's truth by more than 1 m or 1 deg.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from bb_align.engine.geometry import pose_error, se2_params
 GNSS_SIGMA_M = 2.0
 GNSS_SIGMA_DEG = 2.0
 DT_S = 0.1
+WRONG_M, WRONG_DEG = 1.0, 1.0  # a successful answer farther than this from the truth is a wrong success
 
 
 def _noisy(T_world_sensor: np.ndarray, rng) -> np.ndarray:
@@ -133,8 +141,14 @@ def plot_demo(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def is_wrong(row: dict) -> bool:
+    """A successful answer off the truth by more than WRONG_M or WRONG_DEG (or with no truth to check it by)."""
+    return bool(row["success"]) and ("err" not in row or row["err"][0] > WRONG_M or row["err"][1] > WRONG_DEG)
+
+
 def summarize(rows: list[dict], n_sent: int) -> dict:
     ok = [r for r in rows if r["success"]]
+    wrong = [r for r in ok if is_wrong(r)]
     lat = np.array([r["latency_ms"] for r in rows]) if rows else np.zeros(0)
     svc = np.array([r["service_ms"] for r in rows if r["service_ms"] is not None])
     err_t = np.array([r["err"][0] for r in ok if "err" in r])
@@ -145,6 +159,10 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
         "peer_frames_sent": n_sent,
         "results": len(rows),
         "success": len(ok),
+        "wrong_success": len(wrong),
+        "wrong_seqs": [[r["peer"], r["seq"]] for r in wrong],
+        "err_t_m_max": q(np.array([r["err"][0] for r in ok if "err" in r]), 100),
+        "err_r_deg_max": q(np.array([r["err"][1] for r in ok if "err" in r]), 100),
         "err_t_m_median": q(err_t, 50),
         "err_r_deg_median": q(err_r, 50),
         "err_t_m_p90": q(err_t, 90),
@@ -165,9 +183,10 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
     }
 
 
-def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_frame):
-    """Simulate and build every frame up front (so publishing keeps its pace): per frame, (name, Frame) with the
-    ego first; the true and the reported (noisy) poses by (seq, name). Stamps are set when a frame is published."""
+def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_frame, odometry=None, faults=()):
+    """Simulate and build every frame up front (so publishing keeps its pace): per frame, (name, Frame, scene time
+    in s) with the ego first; the true and the reported (noisy) poses by (seq, name). A frame's stamp is its scene
+    time on the clock the publisher starts. ``odometry``: agent id -> PoseSensors (each car's odometry), or None."""
     frames, truth, reported = [], {}, {}
     order = ["0"] + [a for a in scenario.agent_ids if a != "0"]
     for i in tqdm(range(n_frames), desc="simulating and encoding", unit="frame"):
@@ -177,6 +196,11 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
             agent, name = frame.agents[aid], names[aid]
             truth[(i, name)] = agent.T_world_sensor
             reported[(i, name)] = _noisy(agent.T_world_sensor, rng)
+            O = None
+            if odometry is not None:
+                O = odometry[aid].step(agent.T_world_sensor)[0]
+                for fault in faults:
+                    O = fault.apply(name, i, O)
             msgs.append(
                 (
                     aid,
@@ -187,9 +211,11 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
                         stamp=0.0,
                         seq=i,
                         pose=reported[(i, name)],
+                        odometry=O,
                         scores=np.clip(agent.scores, 0, 1),
                         **bev,
                     ),
+                    float(agent.time_s),
                 )
             )
         frames.append(msgs)
@@ -231,11 +257,14 @@ def run_demo(
     console: Console | None = None,
     key: str | dict | None = None,
     trust: Path | None = None,
+    odometry: bool = False,
+    faults: tuple = (),
 ) -> dict:
     """Publish a simulated scene frame by frame (lockstep when rate_hz is 0, else paced) and tabulate the
     service's results against the truth. Every wait is bounded by timeout_s. ``key``: vehicle name -> its
     Credential (Ed25519; ``trust``: the authority's ca.pub, to verify the answers), or the fleet HMAC key for
-    every car; None when the service takes unsigned frames (demo profile)."""
+    every car; None when the service takes unsigned frames (demo profile). ``odometry``: the cars send their
+    odometry; ``faults``: OdometryFaults applied to it (bb_align.lab.tracking.faults)."""
     from bb_align.protocol import pack
     from bb_align_client import FrameRefused, ZenohPeer
     from bb_align_client.encode import make_frame
@@ -245,6 +274,14 @@ def run_demo(
     console = console or Console(width=max(Console().width, 170))
     scenario = Scenario(seed, n_agents, distance_m)
     names = {aid: (ego_id if aid == "0" else f"car{aid}") for aid in scenario.agent_ids}
+    sensors = None
+    if odometry or faults:
+        from .sim.sweep import PoseSensors, SweepConfig
+
+        sensors = {
+            a: PoseSensors(np.random.default_rng([seed, 98, k]), SweepConfig(), DT_S)
+            for k, a in enumerate(scenario.agent_ids)
+        }
     frames, truth, reported = _encode_scene(
         scenario,
         names,
@@ -252,6 +289,8 @@ def run_demo(
         {} if range_m is None else {"range_m": range_m},
         np.random.default_rng([seed, 99]),
         make_frame,
+        sensors,
+        faults,
     )
     sent: dict = {}  # (name, seq) -> {"t": publish time, "reported": pose}
     rows: list[dict] = []
@@ -296,10 +335,13 @@ def run_demo(
         pending: set = set()
         with Live(_table(rows, title), console=console, refresh_per_second=4) as live:
             t0 = time.monotonic()
+            clock0 = time.time()  # the cars' common clock at the scene's start: stamps are scene time on it
             for i, msgs in enumerate(frames):
-                stamp = time.time()  # the cars' common clock at capture: checked by the service against its own
-                for aid, frame in msgs:
-                    data = pack(frame.model_copy(update={"stamp": stamp}))
+                # A sweep is published once it was captured, never before: the service checks stamps against its
+                # own clock (the lead it allows is small), and a sender faster than real time has no real sensor.
+                time.sleep(max(0.0, t0 + max(t for _, _, t in msgs) - time.monotonic()))
+                for aid, frame, t_scene in msgs:
+                    data = pack(frame.model_copy(update={"stamp": clock0 + t_scene}))
                     sent[(names[aid], i)] = {"t": time.perf_counter(), "reported": reported[(i, names[aid])]}
                     cars[aid].publish(data)
                     if aid != "0":
@@ -333,8 +375,10 @@ def run_demo(
 def _summary_text(s: dict) -> str:
     f = lambda v, spec: "-" if v is None else format(v, spec)  # noqa: E731
     return (
-        f"{s['results']}/{s['peer_frames_sent']} peer frames answered, {s['success']} successful; "
-        f"error median {f(s['err_t_m_median'], '.2f')} m / {f(s['err_r_deg_median'], '.2f')} deg; "
+        f"{s['results']}/{s['peer_frames_sent']} peer frames answered, {s['success']} successful, "
+        f"{s['wrong_success']} of them wrong (off > {WRONG_M:g} m or {WRONG_DEG:g} deg; worst "
+        f"{f(s['err_t_m_max'], '.2f')} m / {f(s['err_r_deg_max'], '.2f')} deg); error median "
+        f"{f(s['err_t_m_median'], '.2f')} m / {f(s['err_r_deg_median'], '.2f')} deg; "
         f"latency publish->result median {f(s['latency_ms_median'], '.0f')} ms, "
         f"p90 {f(s['latency_ms_p90'], '.0f')} ms (service-side median "
         f"{f(s['service_latency_ms_median'], '.0f')} ms); frame {f(s['bytes_per_frame_mean'], '.0f')} B vs raw "

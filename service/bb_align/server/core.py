@@ -538,23 +538,28 @@ class AlignService:
             if job is None:
                 return
             try:
-                outcome = self._run(job)
-            except WireError as e:
-                self._refused(job, e)
-                outcome = e
-            except Exception as e:  # a bug must not kill the worker; the request still gets an answer
-                log.exception("job from %s failed", job.sender or "?")
-                outcome = e
-            finally:
+                self._handle(job)
+            finally:  # only after the answer left: the sender's next frame cannot overtake it
                 self.scheduler.done(job)
-            if isinstance(outcome, Exception) and job.task == "frame":
-                self.peer_table.update(job.sender, lambda e: setattr(e.status, "failed", e.status.failed + 1))
-                if job.reply is None:  # a stream frame still gets a result, saying that it failed
-                    outcome = self._failed(job, outcome)
-            if job.reply is not None:
-                _answer(job, outcome)
-            elif isinstance(outcome, Result):
-                self._publish(outcome)
+
+    def _handle(self, job: Job) -> None:
+        """Run one job and send its answer (a request's reply, or a stream frame's published result)."""
+        try:
+            outcome = self._run(job)
+        except WireError as e:
+            self._refused(job, e)
+            outcome = e
+        except Exception as e:  # a bug must not kill the worker; the request still gets an answer
+            log.exception("job from %s failed", job.sender or "?")
+            outcome = e
+        if isinstance(outcome, Exception) and job.task == "frame":
+            self.peer_table.update(job.sender, lambda e: setattr(e.status, "failed", e.status.failed + 1))
+            if job.reply is None:  # a stream frame still gets a result, saying that it failed
+                outcome = self._failed(job, outcome)
+        if job.reply is not None:
+            _answer(job, outcome)
+        elif isinstance(outcome, Result):
+            self._publish(outcome)
 
     def _run(self, job: Job) -> Result | None:
         if job.task == "ego_features":
@@ -776,7 +781,7 @@ def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[s
         stage2_applied=res.stage2_applied,
         covariance=None if res.covariance is None else np.asarray(res.covariance, dtype=float).tolist(),
         prior_used=prior_used,
-        source=None if res.track_state is None else res.source,
+        source=res.source if res.track_state is not None and res.source != "none" else None,  # "none": no pose
         track_state=res.track_state,
         track_event=res.track_event,
         notes=list(res.notes),
