@@ -642,7 +642,7 @@ def test_a_revoked_certificate_is_refused_and_a_rotated_key_is_taken(tmp_path, p
     assert e.value.status == 401 and "revoked" in e.value.detail
     car1 = Credential.load(tmp_path / "car1.cred")
     assert load("car1", 1, car1).vehicle_id == "car1"
-    assert runner.invoke(cli, ["keys", "issue", str(tmp_path), "car2"]).exit_code == 0  # rotation: a new key
+    assert runner.invoke(cli, ["keys", "issue", str(tmp_path), "car2", "--force"]).exit_code == 0  # rotation: a new key
     assert load("car2", 2, Credential.load(tmp_path / "car2.cred")).vehicle_id == "car2"
     time.sleep(0.01)  # a new mtime
     assert runner.invoke(cli, ["keys", "revoke", str(tmp_path), "car1"]).exit_code == 0  # while the service runs
