@@ -93,7 +93,7 @@ def main() -> None:
         "an ego pixel; ramp: the landscape's score at the truth minus its best within 2 m along the baseline, 0 when "
         "the truth is the best).",
         "",
-        "| set | pairs | lit 0-20 / 20-40 / 40-70 / 70-100 m | overlap at the truth | best alias overlap | "
+        "| set | pairs | lit 0-20 / 20-40 / 40-70 / 70-100 m | overlap at the truth | best kept alias overlap | "
         "alias above the truth | ramp (median, 10th pct) | right / wrong / refused (no prior) |",
         "| --- | ---: | --- | ---: | ---: | ---: | --- | --- |",
     ]
