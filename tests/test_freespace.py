@@ -186,3 +186,27 @@ def test_a_pose_chosen_because_the_best_gave_way_must_be_clear_of_the_free_space
     off = aligner.config.free_space.model_copy(update={"ruled_out_first": False})
     res_off = Aligner(aligner.config.model_copy(update={"free_space": off})).align(ego, peer)
     assert res_off.reason == "free_space_conflict" and any("conflict 0.50" in n for n in res_off.notes)
+
+
+def test_a_pose_chosen_after_others_gave_way_needs_the_images_own_evidence(monkeypatch):
+    """As above, with the half turn clear enough (gave_way_max_conflict 0.10) but the images' evidence short of
+    acquire.min_evidence: a pose the free space chose is not carried by box evidence alone, it is refused."""
+    T_true = se2(np.radians(8.0), 45.0, 2.0)
+    aligner, ego, peer = _street_pair(T_true)
+
+    def fake_conflict(free, near, bev, pts, T):
+        errors = [pose_error(se3_from_se2(X), se3_from_se2(T_true)) for X in (T, np.linalg.inv(T))]
+        return 0.5 if any(t < 3.0 and r < 3.0 for t, r in errors) else 0.05
+
+    def with_half_turn(*args, **kwargs):
+        return [*hypotheses(*args, **kwargs), acquire.Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
+
+    hypotheses = acquire.pose_hypotheses
+    monkeypatch.setattr(acquire, "pose_hypotheses", with_half_turn)
+    monkeypatch.setattr(acquire, "conflict", fake_conflict)
+    overrides = ["acquire.min_margin=1.0", "acquire.first_k=0", "free_space.gave_way_max_conflict=0.10"]
+    res = Aligner(with_overrides(aligner.config, [*overrides, "acquire.min_evidence=100.0"])).align(ego, peer)
+    assert not res.success and res.reason == "ambiguous_bv"
+    assert any("box evidence alone does not carry it" in n for n in res.notes)
+    enough = Aligner(with_overrides(aligner.config, [*overrides, "acquire.min_evidence=0.0"])).align(ego, peer)
+    assert not any("box evidence alone" in n for n in enough.notes)  # with the evidence there, the rule is silent

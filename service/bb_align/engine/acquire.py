@@ -882,11 +882,14 @@ class Acquirer:
         dense_ok = margin >= a.min_margin and margin * best.relative_fitness >= a.min_evidence
         weighed = window is not None and cfg.landscape.enabled
         if not dense_ok and weighed:
-            # Inside a prior's window, or once the free space has ruled out the poses that outscored this one, the
-            # rivals left are weighed in the answer's covariance instead (pipeline._judge): a street's repeated
-            # structure then widens the uncertainty along it rather than refusing the pose.
-            where = "inside the prior's window" if window is not None else "among the poses the free space leaves"
-            result.notes.append(f"margin {margin:.2f} {where}: the rivals are weighed instead")
+            # Inside a prior's window the rivals are weighed in the answer's covariance instead (pipeline._judge): a
+            # street's repeated structure then widens the uncertainty along it rather than refusing the pose.
+            result.notes.append(f"margin {margin:.2f} inside the prior's window: the rivals are weighed instead")
+        elif not dense_ok and gave_way:
+            # Chosen because better-scoring poses gave way: the images misled once already, and the boxes pair at
+            # many poses along rows of parked cars, so the images' own evidence must carry it.
+            result.notes.append("chosen after better-scoring poses gave way: box evidence alone does not carry it")
+            return FailureReason.ambiguous_bv, full_sample
         elif not dense_ok and not _box_confirmed(hyps, a, bound):
             return FailureReason.ambiguous_bv, full_sample
         reach = (cfg.box.max_correction_m, cfg.box.max_correction_deg)
