@@ -313,10 +313,11 @@ class Aligner:
         return self.verdict.stage1(r)
 
     def _judge(self, pair: _Pair) -> None:
-        """The refined stage-1 pose judged on its landscape (engine.landscape): moved to the grid's peak, with the
-        covariance of the grid's distribution; inside a prior's window, or when better-scoring poses gave way to the
-        free space, the other poses the search kept count as further modes (they replace the margin there). Without
-        the landscape: the refinement's covariance."""
+        """The refined stage-1 pose judged on its landscape (engine.landscape): it stands when the grid agrees within
+        1 sigma, else the grid's answer is taken; the covariance is the grid's distribution, widened by the refined
+        pose when the grid rules it out and, inside a prior's window (where they replace the margin) or when
+        better-scoring poses gave way to the free space, by the other poses the search kept. Without the landscape:
+        the refinement's covariance."""
         lc = self.config.landscape
         if not (lc.enabled and pair.multi and self.config.covariance.enabled) or pair.peer_sample is None:
             return self._covariance(pair)
@@ -332,7 +333,7 @@ class Aligner:
             r.T_bv, r.covariance = main.T, main.covariance
             if lc.refinement_d2 is not None and not main.at_edge:
                 r.T_bv, r.covariance = with_refinement(main, T_refined, lc.refinement_d2)
-                main.covariance = r.covariance
+                main.T, main.covariance = r.T_bv, r.covariance  # the rivals below are weighed about the answer
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
             if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
