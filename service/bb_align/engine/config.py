@@ -136,7 +136,7 @@ class PriorConfig(_Frozen):
         2.0,
         gt=0,
         description="the prior's own 1-sigma in x and y, metres (GNSS-grade: the field's sigma_t = 2 m): its "
-        "density weighs the poses of the answer's landscape and its rivals",
+        "density weighs each rival of the answer inside the prior's window",
     )
     sigma_deg: float = Field(2.0, gt=0, description="the prior's 1-sigma in yaw, degrees")
     max_yaw_deg: float = Field(10.0, gt=0, le=180)

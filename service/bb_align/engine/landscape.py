@@ -11,8 +11,8 @@ every pose within ``half_width_m`` / ``half_yaw_deg`` of the refined one is scor
 ego image's likelihood fields, ``S(T) = sum_i f(d_i) / sum_i g(d_i)`` (``d_i``: the distance of peer pixel i under
 T to the nearest ego lit pixel; ``f`` a narrow Gaussian, ``g`` a wide one): how well the structure that lands near
 ego structure lies on it, not how much of it lands there (a pose moved towards the denser near field would
-otherwise gain). The pose is the grid's peak; its distribution is ``p(T) ~ exp(effective_points S(T))`` (times a
-prior's density when there is one), whose covariance is the answer's, never finer than the images' pixels.
+otherwise gain). The pose is the grid's peak; its distribution is ``p(T) ~ exp(effective_points S(T))``, whose
+covariance is the answer's, never finer than the images' pixels.
 ``effective_points`` says how many independent measurements the peer's pixels are worth: neighbouring pixels of one
 wall are one measurement seen many times (calibrated, see LandscapeConfig).
 
@@ -50,7 +50,7 @@ class Landscape:
 
 @dataclass(frozen=True)
 class GaussianPrior:
-    """A prior pose with its 1-sigma (e.g. both cars' GNSS poses composed): multiplies the landscape's likelihood."""
+    """A prior pose with its 1-sigma (e.g. both cars' GNSS poses composed): weighs the rivals of an answer."""
 
     T: np.ndarray  # 3x3 ego <- peer
     sigma_m: float
@@ -133,12 +133,11 @@ def landscape(
     pts_peer: np.ndarray,
     T: np.ndarray,
     cfg: LandscapeConfig,
-    prior: GaussianPrior | None = None,
 ) -> Landscape:
     """Score the grid around T (3x3 ego <- peer) and take its peak and distribution (module doc). Coarse to fine:
     the whole window on cells twice ``step_m`` and three times ``step_deg``, then ``fine_cells`` fine cells each way
     around the coarse peak. The fine grid gives the peak's shape; the coarse grid's mass outside it (other modes)
-    widens the covariance about the answer. ``prior``: its density multiplies the distribution."""
+    widens the covariance about the answer."""
     pts_peer = _inside(ego, pts_peer, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
     coarse = _grid(
         fields.coarse,
@@ -242,7 +241,7 @@ class _Grid:
         return float(p.sum() - inner)
 
 
-def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective_points, prior=None) -> _Grid:
+def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective_points) -> _Grid:
     n_t = max(1, int(round(half_m / step_m)))
     n_r = max(1, int(round(half_deg / step_deg)))
     yaws = np.radians(np.arange(-n_r, n_r + 1) * step_deg)
@@ -252,8 +251,6 @@ def _grid(field, ego, pts_peer, T, half_m, step_m, half_deg, step_deg, effective
     g = np.meshgrid(centre[0] + yaws, centre[1] + offsets, centre[2] + offsets, indexing="ij")
     poses = np.stack([x.ravel() for x in g], axis=1)
     log_p = effective_points * scores.ravel()
-    if prior is not None:
-        log_p = log_p + prior.log_density(poses)
     p = np.exp(log_p - log_p.max())
     step = np.array([np.radians(step_deg), step_m, step_m])
     half = np.array([yaws[-1], offsets[-1], offsets[-1]])

@@ -329,7 +329,7 @@ class Aligner:
             pc = self.config.prior
             prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)
             T_refined = r.T_bv
-            main = landscape(ego_cloud, fields, pts, T_refined, lc, prior)
+            main = landscape(ego_cloud, fields, pts, T_refined, lc)
             r.T_bv, r.covariance = main.T, main.covariance
             if lc.refinement_d2 is not None and not main.at_edge:
                 r.T_bv, r.covariance = with_refinement(main, T_refined, lc.refinement_d2)
