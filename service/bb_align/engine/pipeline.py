@@ -324,7 +324,9 @@ class Aligner:
         r = pair.result
         with _timed(r.timings_ms, "landscape"):
             ego_cloud = pair.ego.cloud(self.config.refine)
-            fields = pair.ego.cached(("likelihood_fields", lc.sigma_m, lc.step_m), lambda: Fields.of(ego_cloud, lc))
+            # Keyed by every setting the fields depend on: a frame may be judged by aligners of other configs.
+            key = ("landscape_fields", lc.sigma_m, lc.wide_sigma_m, lc.step_m)
+            fields = pair.ego.cached(key, lambda: Fields.of(ego_cloud, lc))
             pts = pair.peer_sample[0][: lc.max_points]
             pc = self.config.prior
             prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)

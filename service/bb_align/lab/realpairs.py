@@ -193,7 +193,8 @@ def run(data: Path, config: AlignConfig | None = None, groups: set[str] | None =
 
     def frame(path: Path):
         if path not in prepared:
-            prepared.clear() if len(prepared) > 16 else None  # bounded: the runs' frames repeat in order
+            if len(prepared) > 16:  # bounded: the pairs of one folder come together
+                prepared.clear()
             prepared[path] = aligner.warm(aligner.prepare(load_cloud(path)))
         return prepared[path]
 
