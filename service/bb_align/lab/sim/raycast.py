@@ -208,8 +208,14 @@ def cast_sweep(
     if porous.any():
         u = rng.random(hit.shape)
         hit &= ~(porous & (u < por[:, None, :]))
-        with np.errstate(invalid="ignore"):
-            depth = np.where(hit & porous, np.minimum(leave - enter, 1.0) * rng.random(hit.shape), 0.0)
+        # Where a ray that does not pass stops: a porous shape is a uniform medium that lets ``porosity`` of the
+        # rays through its whole chord, so the stop is exponential along the chord with mu * chord = -ln(porosity)
+        # (a crown is seen through its depth, not only on the face towards the sensor).
+        with np.errstate(invalid="ignore", divide="ignore"):
+            chord = np.maximum(leave - enter, 0.0)
+            p_pass = np.clip(por[:, None, :], 1e-6, 1.0 - 1e-6)
+            frac = -np.log1p(-rng.random(hit.shape) * (1.0 - p_pass)) / -np.log(p_pass)
+            depth = np.where(hit & porous, chord * np.clip(frac, 0.0, 1.0), 0.0)
         enter = enter + depth
     rough = relief[:, None, :] > 0
     if rough.any():
