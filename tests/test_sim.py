@@ -159,3 +159,47 @@ def test_simulated_scenario_round_trips_through_the_reader(tmp_path):
         # the other agent is among this agent's vehicles, itself is not
         other = frame.agents["1" if k == "0" else "0"].vehicle_id
         assert str(other) in agent.vehicles and str(sim.vehicle_id) not in agent.vehicles
+
+
+def test_porous_shape_stops_rays_through_its_depth():
+    """A porous slab 2 m deep (porosity 0.5) in front of a wall: half the rays pass it (they meet the wall), and
+    those that stop in it do so exponentially along the chord, mu * 2 m = ln 2: mean depth
+    2 m * (1 / ln 2 - 0.5 / 0.5) = 0.885 m (a face-only model would put every return within its first metre)."""
+    sh = Shapes()
+    sh.prism(11.0, 0.0, 1.0, 30.0, 0.0, 0.0, 6.0, porosity=0.5)  # slab from x = 10 to 12 m
+    sh.prism(20.5, 0.0, 0.5, 30.0, 0.0, 0.0, 6.0)  # wall behind, face at x = 20 m
+    terrain = Terrain(np.array([-200.0, -200.0]), 2.0, np.zeros((201, 201)), np.zeros((201, 201)))
+    car = Vehicle(0, 4.5, 1.8, 1.5, "car", path=straight((-100.0, 0.0), 0.0, 200.0), s0=100.0, speed=0.0)
+    flat = SENSOR.model_copy(update={"elevations_deg": (0.0,), "columns": 3600})
+    sweep = cast_sweep(World([], sh.arrays(), [car], terrain, []), 0, flat, Mount(height_m=2.0), 0.0,
+                       np.random.default_rng(1))  # fmt: skip
+    p = sweep.points
+    az = np.arctan2(p[:, 1], p[:, 0])
+    ahead = (p[:, 0] > 5) & (np.abs(az) < np.radians(8))  # near-perpendicular rays: chord 2-2.02 m
+    x = np.hypot(p[ahead, 0], p[ahead, 1])  # range along the ray (the slab's face 10-10.1 m away)
+    in_slab = x < 15
+    assert ahead.sum() > 150
+    assert abs(in_slab.mean() - 0.5) < 0.12
+    depth = x[in_slab] - 10.0 / np.cos(az[ahead][in_slab])
+    assert depth.min() >= -0.01 and depth.max() <= 2.05
+    assert abs(depth.mean() - 2.0 * (1 / np.log(2) - 1.0)) < 0.15
+
+
+@pytest.mark.parametrize("family", ["street", "turn"])
+def test_scenario_families_place_the_cars_as_named(family):
+    """street: the peer ahead of the ego in its lane, nearly the same heading; turn: the peer on a crossing street
+    (65-115 deg, with the lane's own few degrees), at the drawn spacing (nearest feasible for turn)."""
+    lo, hi = (60.0, 100.0) if family == "street" else (40.0, 70.0)
+    for seed in (3, 4):
+        sc = Scenario(seed, 2, None, SimConfig(family=family, min_distance_m=lo, max_distance_m=hi))
+        T_world = {a: sc.world.vehicles[s.vehicle].pose(0.0) for a, s in zip("ep", sc.agents)}
+        (xe, ye, he), (xp, yp, hp) = ([float(v) for v in T_world[a]] for a in "ep")
+        d = np.hypot(xp - xe, yp - ye)
+        dyaw = np.degrees(np.arctan2(np.sin(hp - he), np.cos(hp - he)))
+        if family == "street":
+            assert lo - 1 <= d <= hi + 1
+            assert abs(dyaw) < 5.0
+            assert (xp - xe) * np.cos(he) + (yp - ye) * np.sin(he) > 0.95 * d  # ahead, in line
+        else:
+            assert 20.0 <= d <= hi + 5
+            assert 60.0 <= abs(dyaw) <= 120.0

@@ -139,6 +139,12 @@ def register(app: typer.Typer) -> None:
             help="one two-car pair as plain files for `bb-align align`: ego.npy, peer.npy, ego_boxes.json, "
             "peer_boxes.json and truth.json (T_ego_peer), the cars --max-distance apart",
         ),
+        family: str = typer.Option(
+            "mixed",
+            "--family",
+            help="mixed: the benchmark's streets; street: one car following another on a straight residential street "
+            "(defaults 60-100 m); turn: the peer has turned into a crossing street ahead (defaults 40-70 m)",
+        ),
         dair: bool = typer.Option(
             False,
             "--dair",
@@ -175,6 +181,12 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"wrote {len(names)} swept sequences x {frames} frames x 2 agents to {out_dir}")
             return
 
+        from ..sim.streets import FAMILIES
+
+        if family not in FAMILIES:
+            raise typer.BadParameter(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")
+        if family != "mixed" and (min_distance, max_distance) == (4.0, 100.0):  # the flags' defaults
+            min_distance, max_distance = {"street": (60.0, 100.0), "turn": (40.0, 70.0)}[family]
         if max_distance <= min_distance:
             raise typer.BadParameter("--max-distance must be larger than --min-distance")
         from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS
@@ -183,7 +195,9 @@ def register(app: typer.Typer) -> None:
         unknown = [m for m in models if m not in SENSOR_MODELS]
         if not models or unknown:
             raise typer.BadParameter(f"--fleet: unknown model(s) {unknown}; choose from {', '.join(SENSOR_MODELS)}")
-        cfg = SimConfig(min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion, fleet=models)
+        cfg = SimConfig(
+            min_distance_m=min_distance, max_distance_m=max_distance, distortion=distortion, fleet=models, family=family
+        )
         names = write_benchmark(
             out_dir, scenarios, seed=seed, frames=frames, n_agents=agents, config=cfg, workers=workers
         )

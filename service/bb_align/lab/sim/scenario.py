@@ -11,6 +11,7 @@ seeded by (seed, purpose[, frame, agent]).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -43,6 +44,12 @@ class SimConfig(BaseModel):
         "from the ego's (unsynchronised LiDARs; uniform, fixed per agent)",
     )
     same_road_prob: float = Field(0.7, ge=0, le=1, description="probability that a peer drives on the ego's road")
+    family: Literal["mixed", "street", "turn"] = Field(
+        "mixed",
+        description="mixed: the benchmark's streets and placements; street: a straight residential street, every "
+        "peer ahead of the ego in its lane (following); turn: every peer on a crossing street it has turned into, "
+        "beyond the crossing the ego drives towards",
+    )
     vehicle_range_m: float = Field(120.0, gt=0, description="vehicles listed as ground truth within this range")
     detection: DetectionModel = DetectionModel()
 
@@ -149,6 +156,59 @@ def _place(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimC
     return [a.vid for a in agents]
 
 
+def _spacing(rng, distance_m: float | None, cfg: SimConfig) -> float:
+    return distance_m if distance_m is not None else float(rng.uniform(cfg.min_distance_m, cfg.max_distance_m))
+
+
+def _numbered(world: World, agents: list[Vehicle]) -> list[int]:
+    for i, v in enumerate(world.vehicles):
+        v.vid = i
+    return [a.vid for a in agents]
+
+
+def _place_following(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimConfig) -> list[int]:
+    """The street family: the ego in a lane of the main road, every peer ahead of it in the same lane (the real far
+    pairs' case: one car following another along a street)."""
+    lane = world.roads[0].lanes()[int(rng.integers(len(world.roads[0].lanes())))]
+    spacings = [_spacing(rng, distance_m, cfg) for _ in range(n_agents - 1)]
+    s_ego = float(rng.uniform(40.0, max(41.0, lane.length - max(spacings, default=0.0) - 60.0)))
+    agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, [])]
+    taken = [s_ego]
+    for d in spacings:
+        s = min(s_ego + d, lane.length - 20.0)
+        while any(abs(s - t) < 8.0 for t in taken):  # two peers drawn at about the same spacing
+            s += 9.0
+        agents.append(_add_agent(world, lane, s, rng, cfg.stopped_prob, agents))
+        taken.append(s)
+    return _numbered(world, agents)
+
+
+def _place_turned(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimConfig) -> list[int]:
+    """The turn family: the ego drives towards a crossing 5-30 m ahead; every peer has turned into the crossing
+    street and drives away from it, at the wanted distance from the ego (nearest feasible when out of reach)."""
+    k = int(rng.integers(1, len(world.roads)))
+    cross = world.roads[k]
+    centre = cross.centre.pose_at(cross.centre.length / 2)[:2]  # where the crossing street meets the main road
+    lane = world.roads[0].lanes()[int(rng.integers(len(world.roads[0].lanes())))]
+    s_c, _ = lane.nearest_s(np.array(centre))
+    s_ego = float(np.clip(s_c - rng.uniform(5.0, 30.0), 10.0, lane.length - 10.0))
+    agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, [])]
+    ego_xy = np.array(lane.pose_at(s_ego)[:2])
+    taken: list[tuple[Path, float]] = []
+    for _ in range(n_agents - 1):
+        d = _spacing(rng, distance_m, cfg)
+        ln = cross.lanes()[int(rng.integers(len(cross.lanes())))]
+        s_x, _ = ln.nearest_s(np.array(centre))
+        ok = (ln.s > s_x + 8.0) & (ln.s < ln.length - 20.0)  # beyond the crossing: turned off
+        for tl, ts in taken:
+            ok &= ~((tl is ln) & (np.abs(ln.s - ts) < 8.0))
+        miss = np.where(ok, np.abs(np.hypot(*(ln.xy - ego_xy).T) - d), np.inf)
+        s = float(ln.s[int(np.argmin(miss))])
+        agents.append(_add_agent(world, ln, s, rng, cfg.stopped_prob, agents))
+        taken.append((ln, s))
+    return _numbered(world, agents)
+
+
 class Scenario:
     """A world with agents, ready to render frames at any time."""
 
@@ -159,9 +219,10 @@ class Scenario:
             raise ValueError(f"distance_m must be within [0, 300] m, got {distance_m}")
         self.seed = int(seed)
         self.config = cfg = config or SimConfig()
-        self.world = generate_world(np.random.default_rng([self.seed, 0]), traffic=cfg.traffic)
+        self.world = generate_world(np.random.default_rng([self.seed, 0]), traffic=cfg.traffic, family=cfg.family)
         rng = np.random.default_rng([self.seed, 1])
-        vids = _place(self.world, rng, n_agents, distance_m, cfg)
+        place = {"mixed": _place, "street": _place_following, "turn": _place_turned}[cfg.family]
+        vids = place(self.world, rng, n_agents, distance_m, cfg)
         sensors = pick_sensors(rng, n_agents, cfg.fleet)
         tilt = np.radians(cfg.tilt_sigma_deg)
         self.agents: list[_AgentSpec] = []

@@ -15,11 +15,16 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import distance_transform_edt, gaussian_filter
 
-from .paths import build_centreline, straight
+from .paths import Path, build_centreline, straight
 from .world import Road, Shapes, Terrain, Vehicle, World
 
 STYLES = ("city", "suburb", "industrial", "open")
 STYLE_WEIGHTS = (0.3, 0.3, 0.2, 0.2)
+# A residential street as on the real far pairs (KITTI 00): houses with yards, some facades, parked cars on both
+# sides; its property-line walls and hedges broken by driveways and gates more often than elsewhere.
+RESIDENTIAL_WEIGHTS = (0.3, 0.7, 0.0, 0.0)
+RESIDENTIAL_LINE_GAPS = 0.6
+FAMILIES = ("mixed", "street", "turn")
 
 
 class _Occupancy:
@@ -78,7 +83,19 @@ class _Occupancy:
 class _Side:
     """Placement helper for one side of one road: positions by arc length and lateral offset."""
 
-    def __init__(self, sh: Shapes, occ: _Occupancy, rng, road: Road, road_idx: int, side: int, parked: list):
+    def __init__(
+        self,
+        sh: Shapes,
+        occ: _Occupancy,
+        rng,
+        road: Road,
+        road_idx: int,
+        side: int,
+        parked: list,
+        weights: tuple[float, ...] = STYLE_WEIGHTS,
+        line_gaps: float = 0.25,
+    ):
+        self.weights, self.line_gaps = weights, line_gaps
         self.sh, self.occ, self.rng, self.road, self.idx, self.side, self.parked = (
             sh,
             occ,
@@ -277,7 +294,7 @@ class _Side:
         L = self.road.centre.length
         s = 0.0
         while s < L:
-            style = str(r.choice(STYLES, p=STYLE_WEIGHTS))
+            style = str(r.choice(STYLES, p=self.weights))
             styles.append(style)
             end = min(L, s + 150.0)
             if style != "open" or r.random() < 0.3:
@@ -298,7 +315,7 @@ class _Side:
                     height,
                     thick=(0.2, r.uniform(0.3, 0.8), 0.05)[kind],
                     porosity=(0.0, 0.3, 0.5)[kind],
-                    gap_prob=0.25,
+                    gap_prob=self.line_gaps,
                 )
             for _ in range(int(r.poisson((end - s) / {"city": 12, "suburb": 60}.get(style, 120)))):  # people
                 x, y, _ = self.at(r.uniform(s, end), self.edge - r.uniform(0.3, self.road.sidewalk - 0.2))
@@ -376,14 +393,34 @@ def _terrain(occ: _Occupancy, rng, res: float = 2.0) -> Terrain:
     return Terrain(occ.lo.astype(float), res, height, g)
 
 
-def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traffic: float | None = None) -> World:
+def generate_world(
+    rng: np.random.Generator, main_length_m: float = 650.0, traffic: float | None = None, family: str = "mixed"
+) -> World:
     """A street network (a curved main road and 1-3 crossing streets) with everything along it.
 
-    ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world).
+    ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world). ``family``:
+    "mixed" (the benchmark's), "street" (a straight residential main road, one lane each way, parked cars along
+    both kerbs, facades and yards on both sides: a car following another on it is the real far pairs' case) or
+    "turn" (a straight main road whose crossings meet it at 65-115 deg: for a car that has turned off ahead).
     """
-    main = build_centreline(rng, main_length_m, start_heading=float(rng.uniform(-np.pi, np.pi)))
+    if family not in FAMILIES:
+        raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")
+    if family == "mixed":
+        main = build_centreline(rng, main_length_m, start_heading=float(rng.uniform(-np.pi, np.pi)))
+    else:  # straight to the eye: a 1.5-5 km radius turns a car 1-3 deg over 80 m, as on real streets
+        h0, bend = float(rng.uniform(-np.pi, np.pi)), float(rng.choice([-1, 1]) / rng.uniform(1500.0, 5000.0))
+        s = np.arange(0.0, main_length_m + 0.25, 0.5)
+        h = h0 + bend * s
+        main = Path.from_points(np.stack([np.cumsum(np.cos(h)) * 0.5, np.cumsum(np.sin(h)) * 0.5], axis=1))
+    street = family == "street"
     roads = [
-        Road(main, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])), float(rng.uniform(2, 4)))
+        Road(
+            main,
+            1 if street else int(rng.integers(1, 3)),
+            3.5,
+            2.5 if street else float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
+            float(rng.uniform(2, 4)),
+        )
     ]
     for _ in range(int(rng.integers(1, 4))):
         s_x = float(rng.uniform(120, main.length - 120))
@@ -400,7 +437,10 @@ def generate_world(rng: np.random.Generator, main_length_m: float = 650.0, traff
     styles: list[str] = []
     for i, road in enumerate(roads):
         for side in (-1, 1):
-            styles += _Side(sh, occ, rng, road, i, side, parked).walk()
+            if street and i == 0:
+                styles += _Side(sh, occ, rng, road, i, side, parked, RESIDENTIAL_WEIGHTS, RESIDENTIAL_LINE_GAPS).walk()
+            else:
+                styles += _Side(sh, occ, rng, road, i, side, parked).walk()
     _vegetation(sh, occ, rng, roads)
     terrain = _terrain(occ, rng)
     static = sh.arrays()
