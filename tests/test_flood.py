@@ -1,0 +1,86 @@
+"""Keyless floods from several Zenoh sessions cannot starve a signed car (issue 31, F7).
+
+The cause measured: the Zenoh door's subscriber used a blocking FIFO, so each flooding session whose sample
+waited for a place held one of Zenoh's receive threads (2 by default); two flooding sessions left none to read the
+cars' links, and their frames were lost before any code of ours saw them (docs/security.md, Floods). Now each
+remote session may bring at most ``limits.zenoh_frame_rate_hz`` frames a second (Zenoh drops the rest in its
+receive thread) and the door's rings drop their oldest instead of blocking."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+
+from bb_align.lab.flood import FloodConfig, FloodProcess
+from bb_align_client import ZenohPeer, encode_frame
+from service_support import FLEET_KEY, RANGE_M, moving_pair, running_service, secure_settings, wait_for
+
+N_FRAMES = 15
+PERIOD_S = 0.2  # slower than the engine on this street once tracking: every frame can be answered
+
+
+def test_two_keyless_flood_sessions_cannot_starve_a_signed_car():
+    """Two flooders, each its own process and session, put 1-byte junk on the ego's and car1's frame keys as fast
+    as their blocking publishers go (before the fix: car1 and the ego lost most of their frames). car1 publishes
+    with the client's default publisher (congestion control DROP). Every frame it sent is accepted, and it gets
+    a result for nearly every one."""
+    settings = secure_settings(workers=2)
+    ep = settings.zenoh.listen
+    frames = moving_pair(N_FRAMES)
+    config = FloodConfig(
+        duration_s=1.0 + PERIOD_S * N_FRAMES + 1.0, small_per_cycle=200, big_per_cycle=0, replays_per_cycle=0
+    )
+    with running_service(settings) as (_, url):
+        with (
+            ZenohPeer("ego", connect=ep, key=FLEET_KEY, verify_answers=False) as ego_car,
+            ZenohPeer("car1", connect=ep, key=FLEET_KEY) as car1,
+        ):
+            poses = car1.poses("ego")
+            assert ego_car.wait_for_subscriber(10) and car1.wait_for_subscriber(10)
+            time.sleep(0.2)  # the pose subscription reaches the service
+            flooders = [FloodProcess(ep[0], settings.zenoh.prefix, {"ego": None, "car1": None}, config) for _ in "ab"]
+            try:
+                for f in flooders:
+                    f.start()
+                time.sleep(1.0)  # both floods are running before the first real frame
+                t0 = time.monotonic()
+                for k, (_, ego, peer) in enumerate(frames):
+                    t = time.time()
+                    ego_car.publish(_enc(ego, "ego", k, t))
+                    car1.publish(_enc(peer, "car1", k, t))
+                    time.sleep(max(0.0, t0 + (k + 1) * PERIOD_S - time.monotonic()))
+                flooded = [f.finish() for f in flooders]
+            finally:
+                for f in flooders:
+                    f.stop()
+            assert all(f["total_messages"] > 10_000 for f in flooded), flooded  # both floods ran at full speed
+
+            def car1_status() -> dict:
+                return httpx.get(f"{url}/v1/peers").json().get("car1", {})
+
+            wait_for(
+                lambda: car1_status().get("frames_accepted", 0) >= N_FRAMES - 1,
+                timeout=20,
+                what=f"car1's frames accepted under the flood (of {N_FRAMES})",
+            )
+            got = []
+            deadline = time.monotonic() + 30
+            while len(got) < N_FRAMES and time.monotonic() < deadline:
+                try:
+                    got.append(poses.get(timeout=max(0.1, deadline - time.monotonic())))
+                except TimeoutError:
+                    break
+                if got[-1].peer_seq == N_FRAMES - 1:
+                    break
+            status = car1_status()
+        # every accepted frame answered or counted as dropped (latest-only), and nearly all answered
+        assert status["results"] + status["frames_dropped"] == status["frames_accepted"], status
+        assert len(got) >= N_FRAMES - 3, ([r.peer_seq for r in got], status)
+        assert [r.peer_seq for r in got] == sorted(r.peer_seq for r in got)
+        stale = sum(r.reason == "stale_ego_frame" for r in got)
+        assert stale <= 1, [r.reason for r in got]  # the ego's frames got through too
+
+
+def _enc(cloud, vehicle_id: str, seq: int, stamp: float) -> bytes:
+    return encode_frame(cloud.points, cloud.boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, range_m=RANGE_M)
