@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import threading
@@ -57,7 +58,7 @@ class Streams:
         self.results: list[tuple[float, str, str]] = []
         self.sent: Counter = Counter()
         self.lock = threading.Lock()
-        self.seq = 0
+        self.seq = self.ticks = 0
 
     def on_result(self, sample) -> None:
         car = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -71,7 +72,7 @@ class Streams:
         from service_support import RANGE_M
 
         t0 = time.monotonic()
-        tick = 0
+        tick, self.ticks = 0, 0
         while time.monotonic() - t0 < seconds:
             late = time.monotonic() - (t0 + tick * 0.1)
             if late > 0.05:  # a busy machine: skip the tick as a car would, never a burst of stale frames
@@ -86,6 +87,7 @@ class Streams:
             self.car1.publish(enc(p, "car1"))
             self.car2.put(self.car2_key, enc(p, "car2"))
             self.sent.update(("car1", "car2"))
+            self.ticks += 1
             self.seq += 1
             tick += 1
             time.sleep(max(0.0, t0 + tick * 0.1 - time.monotonic()))
@@ -102,16 +104,30 @@ class Streams:
 def phase(streams: Streams, svc, seconds: float, settle_s: float) -> dict:
     """One phase: stream for ``seconds``, count the results published from its start until ``settle_s`` after its
     end (the last frames' answers), with the service's CPU and RSS over it."""
-    cpu0, w0 = svc.cpu_seconds(), time.monotonic()
+    cpu0, w0, peers0, door0 = svc.cpu_seconds(), time.monotonic(), svc.get("/v1/peers"), _door_refused(svc)
     t0, t1 = streams.run(seconds)
     cpu1, w1 = svc.cpu_seconds(), time.monotonic()
     time.sleep(settle_s)
     out = streams.count(t0, t1 + settle_s)
+    peers1 = svc.get("/v1/peers")
+    out["frames_accepted"] = {
+        c: peers1.get(c, {}).get("frames_accepted", 0) - peers0.get(c, {}).get("frames_accepted", 0) for c in CARS
+    }
+    out["frames_sent"] = streams.ticks
+    out["door_refused_per_s"] = round((_door_refused(svc) - door0) / (time.monotonic() - w0), 1)
     out["results_per_s"] = {c: round(n / seconds, 3) for c, n in out["results"].items()}
     out["stale_ego_frame"] = out["outcomes"].get("stale_ego_frame", 0)
     out["service_cores"] = round((cpu1 - cpu0) / (w1 - w0), 3)
     out["service_rss_mb"] = svc.memory_mb().get("rss_mb")
     return out
+
+
+def _door_refused(svc) -> float:
+    """Messages the service's Zenoh door refused so far (bbalign_door_refused_total, every error)."""
+    import httpx
+
+    text = httpx.get(svc.rest + "/metrics", timeout=10).text
+    return sum(float(ln.rsplit(" ", 1)[1]) for ln in text.splitlines() if ln.startswith("bbalign_door_refused_total{"))
 
 
 def run_case(streams, svc, ep: str, size: str, n: int, seconds: float) -> dict:
@@ -150,6 +166,8 @@ def run_case(streams, svc, ep: str, size: str, n: int, seconds: float) -> dict:
 
 
 def plot(out: dict, path: Path) -> None:
+    """Two panels per case: the cars' frames the service accepted during the flood (of those sent), and the
+    results during the flood over the baseline just before it."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -157,17 +175,22 @@ def plot(out: dict, path: Path) -> None:
 
     cases = out["cases"]
     labels = [f"{c['size']}\n{c['flooders']} session{'s' if c['flooders'] > 1 else ''}" for c in cases]
-    fig, ax = plt.subplots(figsize=(1.2 * len(cases) + 3, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(2.2 * len(cases) + 2, 4), sharey=True)
     width = 0.38
     for i, (car, how) in enumerate((("car1", "client publisher"), ("car2", "plain put"))):
-        vals = [c["kept"][car] or 0.0 for c in cases]
-        ax.bar([j + (i - 0.5) * width for j in range(len(cases))], vals, width, label=f"{car} ({how})")
-    ax.axhline(0.9, color="k", ls="--", lw=1, label="target 0.9")
-    ax.set_xticks(range(len(cases)), labels)
-    ax.set_ylabel("results with flood / without (same run)")
-    ax.set_ylim(0, 1.3)
-    ax.set_title("Signed cars' results under keyless Zenoh floods (1-byte or 1 MB messages)")
-    ax.legend(loc="upper right", fontsize=8)
+        xs = [j + (i - 0.5) * width for j in range(len(cases))]
+        accepted = [c["flood"]["frames_accepted"][car] / max(1, c["flood"]["frames_sent"]) for c in cases]
+        axes[0].bar(xs, accepted, width, label=f"{car} ({how})")
+        axes[1].bar(xs, [c["kept"][car] or 0.0 for c in cases], width, label=f"{car} ({how})")
+    for ax, title in zip(
+        axes, ("frames accepted during the flood / sent", "results: flood / baseline just before"), strict=True
+    ):
+        ax.axhline(0.9, color="k", ls="--", lw=1)
+        ax.set_xticks(range(len(cases)), labels, fontsize=8)
+        ax.set_title(title, fontsize=10)
+        ax.set_ylim(0, 1.15)
+    axes[0].legend(loc="lower left", fontsize=8)
+    fig.suptitle(out.get("title", "Signed cars under keyless Zenoh floods"), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -179,6 +202,7 @@ def main() -> None:
     ap.add_argument("--sizes", default="small,big", help="flood sizes: small (1 byte), big (1 MB)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--plot", type=Path, default=None)
+    ap.add_argument("--title", default="Signed cars under keyless Zenoh floods")
     a = ap.parse_args()
 
     import zenoh
@@ -190,9 +214,9 @@ def main() -> None:
     from service_support import moving_pair, secure_settings
 
     cases = [(s, int(n)) for s in a.sizes.split(",") for n in a.flooders.split(",")]
-    out: dict = {"seconds": a.seconds, "cases": []}
+    out: dict = {"title": a.title, "seconds": a.seconds, "zenoh_runtime": os.environ.get("ZENOH_RUNTIME"), "cases": []}
     with tempfile.TemporaryDirectory() as log_dir:
-        svc = start_service(secure_settings(True), KEY, Path(log_dir), timeout_s=180)
+        svc = start_service(secure_settings(True), KEY, Path(log_dir), timeout_s=600)
         ep = [svc.zenoh_endpoint]
         zcfg = lambda: ZenohSettings(listen=[], connect=ep).to_zenoh_config()  # noqa: E731
         try:

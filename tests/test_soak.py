@@ -11,15 +11,10 @@ from bb_align.cli import app
 from bb_align.lab.flood import FloodConfig
 from bb_align.lab.soak import ATTACKS, run_soak
 from bb_align.lab.soak_phases import FloodPhase
-from bb_align.protocol.limits import Limits
 
 
 def test_short_soak_accounts_for_every_message(tmp_path):
-    # Every message sent is accounted for by the service's counters: without Zenoh's per-session frame rate limit,
-    # which drops uncounted (a car's frame arriving within 1/zenoh_frame_rate_hz of its last one, as after a stall
-    # of this shared machine; measured in docs/security.md, Floods, and by test_flood.py)
     report = run_soak(
-        limits={"zenoh_frame_rate_hz": 0},
         duration_s=6.0,
         warmup_s=2.0,
         n_peers=2,
@@ -75,10 +70,7 @@ def test_a_short_keyless_flood_charges_no_signed_id_and_results_keep_flowing(tmp
     flood, baseline = report["phases"]["flood"], report["phases"]["baseline"]
     fl = flood["flooder"]
     assert fl["total_messages"] > 1000 and fl["messages"]["replay"] > 0, fl  # the flood ran, replays included
-    # ... and reached the service's door, at most zenoh_frame_rate_hz a second from its session (Zenoh drops the
-    # rest in its receive threads): 50 a second over the 4 s block and the 0.5 s lead, 1 s to spare
-    refused = sum(flood["refused_at_the_door"].values())
-    assert 0 < refused <= Limits().zenoh_frame_rate_hz * (4.0 + 0.5 + 1.0), flood["refused_at_the_door"]
+    assert sum(flood["refused_at_the_door"].values()) > 1000  # ... and reached the service: refused at its door
     assert flood["refused_at_the_door"].get("replayed", 0) > 0
     for name, phase in (("baseline", baseline), ("flood", flood)):
         # Every signed frame passed the gate; under the flood one in a few thousand occasionally never reaches the

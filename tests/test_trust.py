@@ -344,10 +344,7 @@ def test_a_keyless_flood_cannot_push_signed_frames_out(fleet, pair):
             status = httpx.get(f"{url}/v1/peers").json()["car1"]
             for w in watchers:
                 w.undeclare()
-    # the 1-byte junk reached the door, at most zenoh_frame_rate_hz a second from the flooder's one session (Zenoh
-    # drops the rest in its receive threads); the flood runs for config.duration_s, 1 s to spare
-    undecodable = _metric_value(text, "bbalign_door_refused_total", error="undecodable")
-    assert 0 < undecodable <= settings.limits.zenoh_frame_rate_hz * (config.duration_s + 1.0)
+    assert _metric_value(text, "bbalign_door_refused_total", error="undecodable") > 10 * n  # the 1-byte junk
     assert _metric_value(text, "bbalign_door_refused_total", error="unauthenticated") > 0  # the zero-MAC envelopes
     assert flooded["messages"]["byte"] > 10 * n and flooded["messages"]["zero_mac_hmac"] > 0, flooded
     assert status["intake_dropped"] == 0  # junk under car1's key is never charged to car1
@@ -570,7 +567,6 @@ def test_a_fleet_key_holder_cannot_lock_out_or_speak_as_a_certified_car(fleet, p
             t0 = time.time()
             for i in range(12):  # the forger first, with stamps ahead of everything car1 will send
                 forger.publish(_enc(peer, "car1", 10**6 + i, t0 + 1.9))
-                time.sleep(2.0 / settings.limits.zenoh_frame_rate_hz)  # one session: at most that many a second
             with pytest.raises(ServiceError) as e:  # and over REST
                 rest.post_frame(_enc(peer, "car1", 10**6 + 99, t0 + 1.9))
             assert (e.value.status, e.value.body.error) == (403, "forbidden")

@@ -60,11 +60,9 @@ PREFIX = "bbalign-soak"
 ATTACK_PHASES = ("warmup", "attacks")
 
 
-def start_soak_service(
-    workers: int, log_dir: Path, keys_dir: Path, timeout_s: float = 90.0, limits: dict | None = None
-) -> ServiceProcess:
+def start_soak_service(workers: int, log_dir: Path, keys_dir: Path, timeout_s: float = 90.0) -> ServiceProcess:
     """The service in the secure profile (its own credential, the fleet authority trusted) on free loopback
-    ports, ready to take frames; ``limits``: settings of ``limits`` other than the defaults."""
+    ports, ready to take frames."""
     from bb_align.server.settings import Settings
 
     settings = Settings(
@@ -73,7 +71,6 @@ def start_soak_service(
         workers=workers,
         zenoh={"listen": [f"tcp/127.0.0.1:{free_port()}"], "prefix": PREFIX},
         auth={"ca_cert": str(keys_dir / "ca.pub"), "credential": str(keys_dir / f"{EGO_ID}.cred")},
-        limits=limits or {},
     )
     return start_service(settings, None, log_dir, timeout_s)
 
@@ -177,11 +174,9 @@ def run_soak(
     log_dir: Path | None = None,
     plot: Path | None = None,
     progress: bool = True,
-    limits: dict | None = None,
 ) -> dict:
     """The soak run; returns the report (``report["ok"]``: every check passed). Everything on loopback.
-    ``flood``: add the baseline and flood phases; ``odd_shapes``: add the odd-shapes phase; ``limits``: the
-    started service's limits other than the defaults."""
+    ``flood``: add the baseline and flood phases; ``odd_shapes``: add the odd-shapes phase."""
     import httpx
     import zenoh
 
@@ -196,7 +191,7 @@ def run_soak(
     fleet_dir = log_dir / "fleet"
     if connect is None:
         signers = make_credentials(fleet_dir, ids)  # `bb-align keys init` + `issue` per car
-        target, prefix = start_soak_service(workers, log_dir, fleet_dir, limits=limits), PREFIX
+        target, prefix = start_soak_service(workers, log_dir, fleet_dir), PREFIX
     else:
         if rest is None or (key is None and keys_dir is None):
             raise ValueError("targeting a running service needs its REST address and its fleet's keys or fleet key")

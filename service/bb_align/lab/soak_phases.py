@@ -17,8 +17,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, Field
 
-from bb_align.protocol.limits import Limits
-
 from .flood import FloodConfig, FloodProcess
 from .soak_attacks import ATTACKS, SIGNED_BY_THE_CAR, Sender
 
@@ -113,8 +111,6 @@ class Traffic:
         self.signed_attacks: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> attacks it signed
         self.oversized_every_s = 5.0
         self._last_oversized = -1e9
-        rate = Limits().zenoh_frame_rate_hz
-        self._raw_gap_s, self._raw_last = (1.5 / rate if rate > 0 else 0.0), -1e9
 
     def run(
         self,
@@ -135,8 +131,6 @@ class Traffic:
             delay = t0 + i / self.rate_hz - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-            elif delay < -0.5 / self.rate_hz:
-                continue  # late (a busy machine): skip the tick as a car would, never a burst of stale frames
             why = crashed()
             if why:
                 ticks.close()
@@ -163,7 +157,6 @@ class Traffic:
                 if chunk == vid:  # the car's own session: arrives after its earlier frames
                     self.pubs[chunk].publish(data)
                 else:
-                    self._pace_raw()
                     self.raw.put(
                         f"{self.prefix}/frames/{chunk}", data, congestion_control=zenoh.CongestionControl.BLOCK
                     )
@@ -175,15 +168,6 @@ class Traffic:
             self.sent_at[(vid, k)] = (time.perf_counter(), phase)
             self.sent[phase]["valid"] += 1
             self.valid_per_peer[phase][vid] += 1
-
-    def _pace_raw(self) -> None:
-        """The raw session's puts at most ``Limits.zenoh_frame_rate_hz`` a second: the service's Zenoh drops a
-        faster one from a single session, uncounted, and every attack sent must be accounted for."""
-        now = time.perf_counter()
-        wait = self._raw_last + self._raw_gap_s - now
-        if wait > 0:
-            time.sleep(wait)
-        self._raw_last = time.perf_counter()
 
     def _attack_kind(self, vid: str) -> str:
         kind = ATTACKS[int(self.rng.integers(len(ATTACKS) - 1))]  # oversized: paced separately

@@ -114,22 +114,16 @@ class Limits(BaseModel):
     door_queue: int = Field(
         16,
         ge=1,
-        description="Zenoh stream messages waiting for a door thread in Zenoh's own ring (one ring for the ego's "
-        "key, one for every other car's); full, Zenoh drops the oldest without blocking its receive threads (each "
-        "message up to max_message_bytes: this bounds that memory too)",
+        description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
+        "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
     )
-    zenoh_frame_rate_hz: float = Field(
-        50.0,
-        ge=0,
-        description="stream frames one Zenoh session (one link: a car, or a router carrying several) may put on "
-        "<prefix>/frames/* per second; Zenoh drops a frame that follows that session's last one by less than "
-        "1/this, in its receive thread, before any Python (0: no limit). Bounds what each flooding session costs",
-    )
-    zenoh_query_rate_hz: float = Field(
-        20.0,
-        ge=0,
-        description="queries one Zenoh session may send to <prefix>/align/<ego> per second (Zenoh drops the rest "
-        "as it does frames; 0: no limit)",
+    zenoh_max_sessions: int = Field(
+        128,
+        ge=2,
+        le=4096,
+        description="Zenoh sessions (cars, tools, routers; one per remote process) the service's Zenoh takes at "
+        "once; Zenoh gets one receive thread more than this, so a session whose messages wait for the door's full "
+        "FIFO (it holds one thread while it waits) can never leave another session's link unread",
     )
     rest_rate_hz: float = Field(
         20.0,
@@ -141,10 +135,9 @@ class Limits(BaseModel):
     query_queue: int = Field(
         4,
         ge=1,
-        description="Zenoh queries waiting for the query thread in Zenoh's own ring; full, Zenoh drops the oldest "
-        "(its querier gets no reply) without blocking its receive threads (a Python callback is fed through an "
-        "unbounded channel: a 4 MB query flood grew the service by 1.1 GB). Bounds that memory to this many "
-        "messages of up to max_message_bytes",
+        description="Zenoh queries waiting for the query thread in Zenoh's own FIFO; full, Zenoh pushes back on the "
+        "queriers' links (a Python callback is fed through an unbounded channel: a 4 MB query flood grew the "
+        "service by 1.1 GB). Bounds that memory to this many messages of up to max_message_bytes",
     )
     door_share: float = Field(
         0.02,
@@ -154,7 +147,7 @@ class Limits(BaseModel):
         "counted against it",
     )
     door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
-    door_batch: int = Field(64, ge=1, description="messages a door thread takes from its ring per budget check")
+    door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")
     intake_recent_signatures: int = Field(
         4096,
         ge=1,
