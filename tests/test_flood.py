@@ -11,20 +11,23 @@ from __future__ import annotations
 
 import time
 
+import httpx
+
 from bb_align.lab.flood import FloodConfig, FloodProcess
 from bb_align.lab.harness import start_service
 from bb_align_client import ZenohPeer, encode_frame
 from service_support import FLEET_KEY, RANGE_M, moving_pair, secure_settings, wait_for
 
 N_FRAMES = 15
-PERIOD_S = 0.2  # slower than the engine on this street once tracking: every frame can be answered
+PERIOD_S = 0.2
 
 
 def test_two_keyless_flood_sessions_cannot_starve_a_signed_car(tmp_path):
     """Two flooders, each its own process and session, put 1-byte junk on the ego's and car1's frame keys as fast
     as their blocking publishers go (before the fix: car1 and the ego lost most of their frames). car1 publishes
-    with the client's default publisher (congestion control DROP). Every frame it sent is accepted, and it gets
-    a result for nearly every one."""
+    with the client's default publisher (congestion control DROP). Every frame it and the ego sent is accepted
+    (one may be lost on the air), and its stream is answered up to its newest frame. How many of its frames the
+    engine answers is the machine's pace, not the flood's: measured by benchmarks/stream_flood.py."""
     settings = secure_settings(workers=2)
     frames = moving_pair(N_FRAMES)
     config = FloodConfig(
@@ -71,15 +74,24 @@ def test_two_keyless_flood_sessions_cannot_starve_a_signed_car(tmp_path):
                 if got[-1].peer_seq == N_FRAMES - 1:
                     break
             status = svc.get("/v1/peers")["car1"]
+            ego_frames = _ego_frames_received(svc)
     finally:
         exit_code = svc.stop()
     assert exit_code == 0
-    # every accepted frame answered or counted as dropped (latest-only), and nearly all answered
+    # every accepted frame answered or counted as dropped (latest-only: the engine's pace is the machine's), the
+    # newest answered, and none of the answers wanted for an ego frame
     assert status["results"] + status["frames_dropped"] == status["frames_accepted"], status
-    assert len(got) >= N_FRAMES - 3, ([r.peer_seq for r in got], status)
+    assert got and got[-1].peer_seq == N_FRAMES - 1, ([r.peer_seq for r in got], status)
     assert [r.peer_seq for r in got] == sorted(r.peer_seq for r in got)
-    assert sum(r.reason == "stale_ego_frame" for r in got) <= 1, [r.reason for r in got]  # the ego's frames came
+    assert not any(r.reason == "stale_ego_frame" for r in got), [r.reason for r in got]
+    assert ego_frames >= N_FRAMES - 1, ego_frames
 
 
 def _enc(cloud, vehicle_id: str, seq: int, stamp: float) -> bytes:
     return encode_frame(cloud.points, cloud.boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, range_m=RANGE_M)
+
+
+def _ego_frames_received(svc) -> float:
+    text = httpx.get(svc.rest + "/metrics", timeout=10).text
+    want = 'bbalign_frames_received_total{door="zenoh",kind="ego"} '
+    return sum(float(ln.rsplit(" ", 1)[1]) for ln in text.splitlines() if ln.startswith(want))
