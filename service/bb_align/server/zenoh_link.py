@@ -62,7 +62,13 @@ class ZenohLink:
 
     def open(self) -> None:
         limits = self.settings.limits
-        reserve_receive_threads(limits.zenoh_max_sessions)
+        runtime = reserve_receive_threads(limits.zenoh_max_sessions)
+        if "rx" not in runtime:
+            log.warning(
+                "ZENOH_RUNTIME=%s sets no receive threads (rx): Zenoh keeps 2, and two flooding sessions can leave "
+                "the cars' links unread (docs/security.md, Floods)",
+                runtime,
+            )
         cfg = self.settings.zenoh.to_zenoh_config()
         cfg.insert_json5("transport/unicast/max_sessions", json.dumps(limits.zenoh_max_sessions))
         self.session = zenoh.open(cfg)
