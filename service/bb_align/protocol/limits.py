@@ -117,6 +117,14 @@ class Limits(BaseModel):
         description="Zenoh stream messages waiting for the door thread in Zenoh's own FIFO; full, it pushes back "
         "on the senders' links (each message up to max_message_bytes: this bounds that memory too)",
     )
+    zenoh_max_sessions: int = Field(
+        128,
+        ge=2,
+        le=4096,
+        description="Zenoh sessions (cars, tools, routers; one per remote process) the service's Zenoh takes at "
+        "once; Zenoh gets one receive thread more than this, so a session whose messages wait for the door's full "
+        "FIFO (it holds one thread while it waits) can never leave another session's link unread",
+    )
     rest_rate_hz: float = Field(
         20.0,
         gt=0,

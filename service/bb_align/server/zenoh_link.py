@@ -7,6 +7,11 @@
   thread sleeps, the FIFO fills and Zenoh pushes back on the senders' links, so junk is slowed at its source and
   can take no more than that share from the engine. A Python callback per sample could not be bounded: each one
   takes the GIL;
+- Zenoh's receive threads: a sample waiting for a place in the full FIFO holds the receive thread of its
+  session's link (that is the push-back); Zenoh has 2 by default, so two flooding sessions left no thread to read
+  the cars' links (issue 31, F7: measured, docs/security.md, Floods). The service takes at most
+  ``limits.zenoh_max_sessions`` sessions and gives Zenoh one receive thread more (``ZENOH_RUNTIME``, set before
+  the process's first Zenoh session unless the operator set it), so a link is always read;
 - publisher ``<prefix>/poses/<ego_id>/<peer_id>``: one msgpack Result per aligned peer frame, and a Refusal for a
   refused stream frame whose signature was valid for that peer (core.py, refusals.py);
 - queryable ``<prefix>/align/<ego_id>``: a query carrying a peer frame is answered with a Result (or an error
@@ -22,7 +27,9 @@ check).
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 import time
 
@@ -54,9 +61,18 @@ class ZenohLink:
         return align_key(self.prefix, self.settings.ego_id)
 
     def open(self) -> None:
-        self.session = zenoh.open(self.settings.zenoh.to_zenoh_config())
-        self.service.publishers.append(self.publish)
         limits = self.settings.limits
+        runtime = reserve_receive_threads(limits.zenoh_max_sessions)
+        if "rx" not in runtime:
+            log.warning(
+                "ZENOH_RUNTIME=%s sets no receive threads (rx): Zenoh keeps 2, and two flooding sessions can leave "
+                "the cars' links unread (docs/security.md, Floods)",
+                runtime,
+            )
+        cfg = self.settings.zenoh.to_zenoh_config()
+        cfg.insert_json5("transport/unicast/max_sessions", json.dumps(limits.zenoh_max_sessions))
+        self.session = zenoh.open(cfg)
+        self.service.publishers.append(self.publish)
         fifo = zenoh.handlers.FifoChannel(limits.door_queue)
         self._subscriber = self.session.declare_subscriber(frames_key(self.prefix, "*"), fifo)
         budget = Budget(limits.door_share, limits.door_window_s)
@@ -187,3 +203,11 @@ def _error_body(outcome: object) -> ErrorBody:
     if isinstance(outcome, Unavailable):
         return ErrorBody(error="unavailable", detail=str(outcome))
     return ErrorBody(error="unavailable", detail=f"internal error: {type(outcome).__name__}")
+
+
+def reserve_receive_threads(max_sessions: int) -> str:
+    """Give Zenoh's receive runtime one worker thread more than the sessions it may take (a session blocked on the
+    door's full FIFO holds one; with fewer threads than flooding sessions no link is read). Takes effect when set
+    before the process's first Zenoh session (the runtime starts with it); an operator's ``ZENOH_RUNTIME`` is
+    kept. Returns the value in force."""
+    return os.environ.setdefault("ZENOH_RUNTIME", f"(rx: (worker_threads: {max_sessions + 1}))")
