@@ -11,13 +11,9 @@ import pytest
 from scipy.ndimage import distance_transform_edt
 
 from bb_align import AlignConfig
-from bb_align.engine.acquire import (
-    coarse_verification,
-    covisible_fraction,
-    covisible_map,
-    ego_pairs,
-    vote,
-)
+from bb_align.engine.acquisition.hypotheses import vote
+from bb_align.engine.acquisition.kernels import VoteGrid, ego_pairs, keypoints
+from bb_align.engine.acquisition.verification import coarse_verification, covisible_fraction, covisible_map
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import distinct_pose, pose_is_distinct, se2, se2_params
@@ -35,7 +31,7 @@ from synthetic import synthetic_world, view_from
 
 
 def _covisible_numpy(mask: np.ndarray, cloud, pts: np.ndarray, T: np.ndarray) -> float:
-    """The reference for acquire.covisible_fraction, in numpy: the share of points on a pixel of the mask."""
+    """The reference for verification.covisible_fraction, in numpy: the share of points on a pixel of the mask."""
     p = pts @ T[:2, :2].T + T[:2, 2]
     r = np.floor((cloud.range_m - p[:, 0]) / cloud.resolution_m).astype(np.int64)
     c = np.floor((cloud.range_m - p[:, 1]) / cloud.resolution_m).astype(np.int64)
@@ -96,11 +92,12 @@ def test_vote_equals_the_reference_vote(threads):
     cand[::7, 0] = rng.integers(0, 120, 10)  # some keypoints without their true partner
     yaw_bin, n_yaw = 2 * np.pi / 120, 120
     args = (3.0, 4.0, yaw_bin, 3.0, 75.0, n_yaw, 50)
-    acc = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=threads, chunk=500)
+    kps, grid = keypoints(kp_src, kp_dst, cand), VoteGrid(*args[:5])
+    acc = vote(kps, ego_pairs(kps.dst), grid, n_yaw, 50, threads=threads, chunk=500)
     ref = _vote_reference(kp_src, kp_dst, cand, *args)
     assert ref.sum() > 8 * 500
     np.testing.assert_allclose(acc, ref, rtol=1e-6, atol=1e-5)
-    one_thread_one_buffer = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=1, chunk=10**6)
+    one_thread_one_buffer = vote(kps, ego_pairs(kps.dst), grid, n_yaw, 50, threads=1, chunk=10**6)
     assert np.array_equal(acc, one_thread_one_buffer)
     peak = np.unravel_index(np.argmax(acc), acc.shape)
     assert peak == np.unravel_index(np.argmax(ref), ref.shape)

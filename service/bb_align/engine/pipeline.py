@@ -21,14 +21,14 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .acquire import Acquirer, PriorWindow, SearchMemo, pose_uncertainty
+from .acquisition import Acquirer, PriorWindow, SearchMemo
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
-from .covariance import fuse_poses, left_covariance, params_covariance
+from .covariance import fuse_poses, left_covariance, params_covariance, pose_uncertainty
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
-from .geometry import ground_se2, se2, se2_params
+from .geometry import ground_se2, se2_params
 from .keypoints import detect_keypoints
 from .landscape import Fields, GaussianPrior, landscape, with_refinement, with_rivals
 from .loggabor import maximum_index_map
@@ -82,18 +82,8 @@ class Aligner:
         self.ransac = RigidRansac(cfg.ransac, cfg.seed)
         self.refiner = Refiner(cfg.refine, cfg.seed)
         self.box_stage = BoxStage(cfg.box, cfg.seed)
-        self.acquirer = Acquirer(cfg) if cfg.acquire.mode == "multi" else None
-        self.verdict = Verdict(
-            cfg.success,
-            cfg.confidence,
-            cfg.covariance,
-            cfg.acquire,
-            min_points=cfg.min_points,
-            min_keypoints=cfg.min_keypoints,
-            box_max_correction_m=cfg.box.max_correction_m,
-            box_max_correction_deg=cfg.box.max_correction_deg,
-            refine_enabled=cfg.refine.enabled,
-        )
+        self.verdict = Verdict.of(cfg)
+        self.acquirer = Acquirer(cfg, self.verdict) if cfg.acquire.mode == "multi" else None
 
     # ---- Algorithm 1, lines 6-8: per car -------------------------------------------------------------
     def prepare(
@@ -338,8 +328,8 @@ class Aligner:
                 main.T, main.covariance = r.T_bv, r.covariance  # the rivals below are weighed about the answer
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
-            if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
-                rivals = [se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]) for h in r.acquisition["all"][1:]]
+            if r.acquisition is not None and (pair.window is not None or r.acquisition.gave_way):
+                rivals = r.acquisition.rivals()
                 r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc, prior)
                 if weights and max(weights) > 1e-3:
                     r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
@@ -391,8 +381,8 @@ class Aligner:
             boxes = self.box_stage.align(pair.ego.boxes, pair.peer.boxes, r.T_bv)
         r.box_pairs, r.inliers_box = boxes.pairs, boxes.inliers
         evidence = None  # the multi path's dense evidence, when found by the search everywhere
-        if pair.multi and pair.window is None and r.acquisition and r.acquisition.get("best"):
-            evidence = r.acquisition["margin"] * r.acquisition["best"]["relative_fitness"]
+        if pair.multi and pair.window is None and r.acquisition is not None and r.acquisition.best is not None:
+            evidence = r.acquisition.evidence
         reason = self.verdict.stage2(r, boxes.T_box, densely_verified=pair.multi, evidence=evidence)
         if reason is None and self.verdict.boxes_verified(r):
             self._apply_box_correction(pair, boxes.T_box)

@@ -18,6 +18,7 @@ is not a correspondence: it is two sides of one thing (docs/acquisition.md, sess
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -46,6 +47,11 @@ class BevCloud:
         metres; (inf, -1) when there is none (as a KD-tree query with distance_upper_bound)."""
         pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
         return _nearest_on_grid(self.index, self.clearance, self.xy, pts, self.range_m, self.resolution_m, float(gate))
+
+    @property
+    def grid(self) -> EgoGrid:
+        """What the compiled loops read."""
+        return EgoGrid(self.index, self.clearance, self.xy, self.normals, float(self.range_m), float(self.resolution_m))
 
 
 def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None, seed: int = 0) -> np.ndarray:
@@ -205,10 +211,7 @@ def _icp(
     """The ICP iterations of refine_icp (compiled): (the pose they end at, False when a step matched fewer than
     cfg.min_points points)."""
     pn, min_cos = facing_args(pts, normals_peer, cfg.facing_min_cos)
-    return _icp_loop(
-        ego.index, ego.clearance, ego.xy, ego.normals, ego.range_m, ego.resolution_m, pts, pn, T, *icp_params(cfg),
-        min_cos,
-    )  # fmt: skip
+    return _icp_loop(ego.grid, pts, pn, T, icp_params(cfg, min_cos))
 
 
 def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, min_cos: float) -> tuple[np.ndarray, float]:
@@ -218,9 +221,34 @@ def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, min_cos: float
     return np.ascontiguousarray(normals_peer, dtype=np.float64).reshape(-1, 2), float(min_cos)
 
 
-def icp_params(cfg: RefineConfig) -> tuple:
-    """The refinement config as _icp_loop's arguments after T (without the facing test's min_cos, last)."""
-    return (
+class EgoGrid(NamedTuple):
+    """A BevCloud as the compiled loops read it (``BevCloud.grid``)."""
+
+    index: np.ndarray
+    clearance: np.ndarray
+    xy: np.ndarray
+    normals: np.ndarray
+    range_m: float
+    resolution_m: float
+
+
+class IcpParams(NamedTuple):
+    """The refinement config as the compiled ICP loop reads it (``icp_params``)."""
+
+    gates: np.ndarray  # metres, coarse to fine
+    iters: int
+    huber_fraction: float
+    point_weight: float
+    relaxation: float
+    converged_rad: float
+    converged_m: float
+    min_points: int
+    min_cos: float  # the facing test (``facing``); -1: off
+
+
+def icp_params(cfg: RefineConfig, min_cos: float) -> IcpParams:
+    """``cfg`` as _icp_loop's parameters, with the facing test's ``min_cos`` (``facing_args``)."""
+    return IcpParams(
         np.asarray(cfg.gates_m, dtype=np.float64),
         cfg.iters_per_gate,
         cfg.huber_fraction,
@@ -229,6 +257,7 @@ def icp_params(cfg: RefineConfig) -> tuple:
         cfg.converged_rad,
         cfg.converged_m,
         cfg.min_points,
+        min_cos,
     )
 
 
@@ -242,14 +271,14 @@ def transform_into(pts, T, out):
 
 
 @njit(cache=True, nogil=True)
-def _icp_loop(
-    index, clearance, xy, normals, range_m, resolution_m, pts, pn, T_init, gates, iters, huber_fraction, point_weight,
-    relaxation, converged_rad, converged_m, min_points, min_cos,
-):  # fmt: skip
+def _icp_loop(grid, pts, pn, T_init, params):
     """refine_icp's iterations: per gate up to ``iters`` Gauss-Newton steps (nearest ego pixel within the gate,
     point-to-line normal equations, the step lengthened by ``relaxation`` when it continues the previous one),
-    the gate left when a step is below converged_rad and converged_m. Returns (T, ok); ok False (and T_init)
-    when a step finds fewer than min_points matches facing alike (``pn``, ``min_cos``: _normal_equations)."""
+    the gate left when a step is below converged_rad and converged_m (``params``: IcpParams; ``grid``: EgoGrid).
+    Returns (T, ok); ok False (and T_init) when a step finds fewer than min_points matches facing alike (``pn``,
+    ``min_cos``: _normal_equations)."""
+    index, clearance, xy, normals, range_m, resolution_m = grid
+    gates, iters, huber_fraction, point_weight, relaxation, converged_rad, converged_m, min_points, min_cos = params
     T = T_init.copy()
     p = np.empty_like(pts)
     prev = np.zeros(3)
@@ -281,16 +310,16 @@ def _icp_loop(
 
 
 @njit(cache=True, nogil=True)
-def coarse_verification_loop(
-    index, clearance, xy, normals, range_m, resolution_m, covis, pts, pn, Ts, gates, iters, huber_fraction,
-    point_weight, relaxation, converged_rad, converged_m, min_points, min_cos, max_correction_m, max_correction_deg,
-    final_gate,
-):  # fmt: skip
-    """The acquisition's coarse verification of the poses Ts (acquire.coarse_verification): per pose the ICP
-    iterations, the correction kept when within max_correction_m and max_correction_deg of the start (as
-    refine_icp), then the overlap within final_gate (overlap_fitness: fraction of points with an ego pixel, RMS
-    distance of those) and the fraction of points on the co-visibility mask ``covis`` (acquire.covisible_fraction).
-    Here, beside the loops it calls: numba's on-disk cache is invalidated by its own file's changes only."""
+def coarse_verification_loop(grid, covis, pts, pn, Ts, params, bounds):
+    """The acquisition's coarse verification of the poses Ts (acquisition.verification.coarse_verification): per
+    pose the ICP iterations (``params``: IcpParams), the correction kept when within ``bounds`` = (max_correction_m,
+    max_correction_deg, final_gate) of the start (as refine_icp), then the overlap within final_gate
+    (overlap_fitness: fraction of points with an ego pixel, RMS distance of those) and the fraction of points on the
+    co-visibility mask ``covis`` (acquisition.verification.covisible_fraction). Here, beside the loops it calls:
+    numba's on-disk cache is invalidated by its own file's changes only."""
+    index, clearance, xy, normals, range_m, resolution_m = grid
+    max_correction_m, max_correction_deg, final_gate = bounds
+    min_points = params.min_points
     n_h, n = len(Ts), len(pts)
     out = np.empty_like(Ts)
     fitness, rmse, covisible = np.zeros(n_h), np.full(n_h, np.inf), np.zeros(n_h)
@@ -299,10 +328,7 @@ def coarse_verification_loop(
         T0 = Ts[h]
         T = T0.copy()
         if len(xy) >= min_points and n >= min_points:
-            T, ok = _icp_loop(
-                index, clearance, xy, normals, range_m, resolution_m, pts, pn, T0, gates, iters, huber_fraction,
-                point_weight, relaxation, converged_rad, converged_m, min_points, min_cos,
-            )  # fmt: skip
+            T, ok = _icp_loop(grid, pts, pn, T0, params)
             if ok:
                 rel = T @ np.linalg.inv(T0)
                 yaw = np.arctan2(rel[1, 0], rel[0, 0])
@@ -330,7 +356,7 @@ def coarse_verification_loop(
 
 @njit(cache=True, nogil=True)
 def covisible_share(covis, p, range_m, resolution_m):
-    """Fraction of the (N, 2) ego-frame points ``p`` on a pixel of the uint8 mask ``covis`` (acquire.covisible_map)."""
+    """Fraction of the (N, 2) ego-frame points ``p`` on a pixel of the uint8 mask ``covis`` (covisible_map)."""
     h_img, w_img = covis.shape
     seen = 0
     for i in range(len(p)):

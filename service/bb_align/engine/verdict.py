@@ -8,12 +8,16 @@ once (:meth:`Verdict.finish`).
 from __future__ import annotations
 
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .config import AcquireConfig, ConfidenceConfig, CovarianceConfig, SuccessRule
+from .config import AcquireConfig, AlignConfig, ConfidenceConfig, CovarianceConfig, FreeSpaceConfig, SuccessRule
 from .geometry import se2_params, se3_from_se2, worst_sigma_m
 from .result import AlignResult
+
+if TYPE_CHECKING:
+    from .acquisition.decision import Decision
 
 
 class FailureReason(str, Enum):
@@ -62,11 +66,29 @@ class Verdict:
         box_max_correction_m: float,
         box_max_correction_deg: float,
         refine_enabled: bool,
+        free_space: FreeSpaceConfig | None = None,
     ):
         self.rule, self.conf, self.cov, self.acquire = rule, confidence, covariance, acquire
         self.min_points, self.min_keypoints = min_points, min_keypoints
         self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
         self.refine_enabled = refine_enabled
+        self.free_space = free_space or FreeSpaceConfig()
+
+    @classmethod
+    def of(cls, cfg: AlignConfig) -> Verdict:
+        """The verdict of an alignment configuration."""
+        return cls(
+            cfg.success,
+            cfg.confidence,
+            cfg.covariance,
+            cfg.acquire,
+            min_points=cfg.min_points,
+            min_keypoints=cfg.min_keypoints,
+            box_max_correction_m=cfg.box.max_correction_m,
+            box_max_correction_deg=cfg.box.max_correction_deg,
+            refine_enabled=cfg.refine.enabled,
+            free_space=cfg.free_space,
+        )
 
     def inputs(self, *frames) -> FailureReason | None:
         """Nothing to match: too few points, an empty image, (almost) no keypoints."""
@@ -96,6 +118,46 @@ class Verdict:
             return FailureReason.too_few_inliers_bv
         if r.ambiguity_bv >= self.rule.max_ambiguity:
             return FailureReason.ambiguous_bv
+        return None
+
+    def candidates(self, peer_keypoints: int) -> FailureReason | None:
+        """Multi mode: a rigid pose needs at least two peer keypoints with descriptor candidates."""
+        return FailureReason.too_few_matches if peer_keypoints < 2 else None
+
+    def hypotheses(self, hyps: list) -> FailureReason | None:
+        """Multi mode: no hypothesis with enough keypoint inliers survived verification."""
+        return FailureReason.too_few_inliers_bv if not hyps else None
+
+    def acquisition(self, d: Decision, notes: list[str]) -> FailureReason | None:
+        """Multi mode: the best hypothesis (``d``: acquisition.decision.Decision) stands when the images single it
+        out (margin and evidence; inside a prior's window the landscape weighs the rivals instead) or, failing that,
+        the boxes do (never for a pose chosen after better-scoring ones gave way to the free space); when no rival
+        beyond stage 2's reach has the boxes' vote instead; when it overlaps enough; and when the free space does not
+        rule it out. Remarks go to ``notes``."""
+        a, fs, best = self.acquire, self.free_space, d.best
+        if not d.dense_ok and d.weighed:
+            # Inside a prior's window the rivals are weighed in the answer's covariance instead (pipeline._judge): a
+            # street's repeated structure then widens the uncertainty along it rather than refusing the pose.
+            notes.append(f"margin {d.margin:.2f} inside the prior's window: the rivals are weighed instead")
+        elif not d.dense_ok and d.gave_way:
+            # Chosen because better-scoring poses gave way: the images misled once already, and the boxes pair at
+            # many poses along rows of parked cars, so the images' own evidence must carry it.
+            notes.append("chosen after better-scoring poses gave way: box evidence alone does not carry it")
+            return FailureReason.ambiguous_bv
+        elif not d.dense_ok and not d.box_confirmed:
+            return FailureReason.ambiguous_bv
+        if d.contradicting is not None:
+            notes.append(
+                f"the boxes vouch for another pose: {d.contradicting.box_pairs} cars on cars, {best.box_pairs} here"
+            )
+            return FailureReason.ambiguous_bv
+        if not d.dense_ok and not d.weighed:
+            notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
+        if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
+            return FailureReason.inconsistent_overlap
+        if fs.enabled and best.conflict > (fs.gave_way_max_conflict if d.gave_way else fs.max_conflict):
+            notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
+            return FailureReason.free_space_conflict
         return None
 
     def refined(self, r: AlignResult) -> FailureReason | None:
