@@ -29,7 +29,7 @@ from multiprocessing import get_context
 import numpy as np
 from tqdm import tqdm
 
-from bb_align.engine.acquire import topk_candidates
+from bb_align.engine.acquisition.candidates import topk_candidates
 from bb_align.engine.config import AlignConfig, BevConfig
 from bb_align.engine.descriptors import (
     _cell_histograms,
@@ -122,7 +122,7 @@ def _acquire(group, peer_frame, name: str, T_true: np.ndarray) -> tuple[bool, bo
     yaw_t, tx_t, ty_t = se2_params(T_true)
     near = [  # the hypotheses verified, best first: where is one within NEAR_TRUTH of the truth?
         i
-        for i, h in enumerate((r.acquisition or {}).get("all", []))
+        for i, h in enumerate([] if r.acquisition is None else r.acquisition.to_dict()["all"])
         if np.hypot(h["tx"] - tx_t, h["ty"] - ty_t) < NEAR_TRUTH[0]
         and abs((np.degrees(yaw_t) - h["yaw_deg"] + 180.0) % 360.0 - 180.0) < NEAR_TRUTH[1]
     ]

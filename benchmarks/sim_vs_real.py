@@ -42,7 +42,7 @@ def measure(aligner: Aligner, pts_ego, pts_peer, T_true) -> dict:
     truth_fit, _ = overlap_fitness(ego_cloud, sample[0], G, cfg.refine.gates_m[-1])
     result = aligner.align(ego, peer)
     alias = 0.0
-    for h in (result.acquisition or {}).get("all", []):
+    for h in [] if result.acquisition is None else result.acquisition.to_dict()["all"]:
         t_err, r_err = pose_error(se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]), G)
         if t_err > 3 or r_err > 3:
             alias = max(alias, h["fitness"])
