@@ -277,7 +277,7 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
     (merge_checks 0) the neighbour is the runner-up."""
     from bb_align.engine.acquisition.decision import margin, rivals
     from bb_align.engine.acquisition.model import Hypothesis
-    from bb_align.engine.acquisition.verification import covisible_map, verify
+    from bb_align.engine.acquisition.verification import COARSE_POINTS, covisible_map, verify
     from bb_align.engine.refine import bev_points
 
     pts_w, _ = world
@@ -292,7 +292,7 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
         a, rf = cfg.acquire, cfg.refine
         cloud = ego.cloud(rf)
         covis = covisible_map(ego.bev.image, rf.min_pixel_value, 5)
-        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=0)
+        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, COARSE_POINTS, seed=0)
         full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=0)
         hyps = [Hypothesis(T=T.copy(), inliers=10) for T in (T_true, T_true, neighbour, wrong)]
         # A coarse stage too short-sighted to converge the neighbour (one step at a 0.3 m gate).

@@ -13,11 +13,22 @@ from scipy.ndimage import distance_transform_edt
 from bb_align import AlignConfig
 from bb_align.engine.acquisition.hypotheses import vote
 from bb_align.engine.acquisition.kernels import VoteGrid, ego_pairs, keypoints
-from bb_align.engine.acquisition.verification import coarse_verification, covisible_fraction, covisible_map
+from bb_align.engine.acquisition.verification import (
+    COARSE_POINTS,
+    coarse_config,
+    coarse_verification,
+    covisible_fraction,
+    covisible_map,
+)
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from bb_align.engine.refine import (
+    CONVERGED_M,
+    CONVERGED_RAD,
+    HUBER_FRACTION,
+    POINT_WEIGHT,
+    STEP_RELAXATION,
     Refinement,
     _normal_equations,
     bev_cloud,
@@ -169,14 +180,14 @@ def _refine_icp_reference(ego, pts_peer, T_init, cfg, normals=None):
                 T0 = np.array(T_init, dtype=float)
                 return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
             H, g, _ = _normal_equations(
-                p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight, none, 1.0, 0.0, -1.0
+                p, ego.xy, ego.normals, j, HUBER_FRACTION * gate, POINT_WEIGHT, none, 1.0, 0.0, -1.0
             )
             delta = np.linalg.solve(H, -g)
             if prev is not None and float(delta @ prev) > 0:
-                delta = delta * cfg.step_relaxation
+                delta = delta * STEP_RELAXATION
             prev = delta
             T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
+            if np.abs(delta[0]) < CONVERGED_RAD and np.abs(delta[1:]).max() < CONVERGED_M:
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
@@ -211,11 +222,10 @@ def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points,
     """min_points 100: some far starts match fewer pixels at some step (the start pose kept). threads 3: the poses
     verified in three groups at once, the same answers in the same order. facing: with the peer normals' test."""
     cfg, cloud, covis, peer_bev, starts = sim_pair
-    a = cfg.acquire
-    coarse = cfg.refine.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
+    coarse = coarse_config(cfg.refine)
     if min_points is not None:
         coarse = coarse.model_copy(update={"min_points": min_points})
-    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, a.coarse_points, seed=cfg.seed)
+    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, COARSE_POINTS, seed=cfg.seed)
     normals = peer_normals(peer_bev, pts, cfg.refine) if facing else None
     Ts, fitness, rmse, covisible = coarse_verification(
         cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1], threads, normals

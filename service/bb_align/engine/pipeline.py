@@ -39,6 +39,13 @@ from .refine import Refiner
 from .result import AlignResult
 from .verdict import FailureReason, Verdict
 
+# box.apply "auto": a box correction beyond RECHECK_M or RECHECK_DEG is refined again on the images, and kept when
+# its overlap fitness beats the refined stage-1 pose's by more than RECHECK_MIN_GAIN.
+RECHECK_M, RECHECK_DEG, RECHECK_MIN_GAIN = 0.5, 0.5, 0.01
+# box.fuse: at least FUSE_MIN_PAIRS box pairs (two fix the yaw), fused only when the two measurements agree within
+# FUSE_CHI2 (squared Mahalanobis distance, chi2(3) 99 %).
+FUSE_MIN_PAIRS, FUSE_CHI2 = 2, 11.345
+
 
 @lru_cache(maxsize=1)
 def _blas_controller() -> ThreadpoolController:
@@ -407,12 +414,12 @@ class Aligner:
                 T,
                 box.fuse_sigma_m,
                 pair_gate_m=box.pair_gate_m,
-                min_pairs=box.fuse_min_pairs,
+                min_pairs=FUSE_MIN_PAIRS,
                 min_inliers=self.config.success.min_inliers_box + 1,
                 cfg=box,
                 seed=self.config.seed,
             )
-            fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, box.fuse_chi2)
+            fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, FUSE_CHI2)
         if meas is None:
             r.notes.append("box measurement not formed")
             return None
@@ -435,14 +442,14 @@ class Aligner:
             r.T_box, r.stage2_applied = T_box, True
             return
         yaw, tx, ty = se2_params(T_box)
-        if box.apply == "unrefined" or (np.hypot(tx, ty) <= box.recheck_m and abs(np.degrees(yaw)) <= box.recheck_deg):
+        if np.hypot(tx, ty) <= RECHECK_M and abs(np.degrees(yaw)) <= RECHECK_DEG:
             r.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
             return
         # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
         # Refine again from the box-corrected pose and keep whichever pose the BV images agree with more.
         with _timed(r.timings_ms, "refine"):
             alt = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_sample, T_box @ r.T_bv)
-        if alt.accepted and alt.fitness > r.refine_fitness + box.recheck_min_gain:
+        if alt.accepted and alt.fitness > r.refine_fitness + RECHECK_MIN_GAIN:
             r.notes.append(
                 f"stage 2 moved the pose to a better BV overlap ({r.refine_fitness:.2f} -> "
                 f"{alt.fitness:.2f}), refined again"

@@ -29,6 +29,16 @@ from .bev import BevImage
 from .config import RefineConfig
 from .geometry import se2_params
 
+# The ICP's fixed numbers (the verification's margins and the covariance's inflation were calibrated with them):
+NORMAL_NEIGHBOURS = 8  # ego pixels in each ego pixel's PCA normal
+PEER_NORMAL_PX = 2  # half window (pixels) of the peer pixels' PCA normals
+HUBER_FRACTION = 0.25  # Huber threshold of the point-to-line residual, as a fraction of the current gate
+POINT_WEIGHT = 0.1  # weight of the point-to-point terms beside the point-to-line ones: pins motion along a line
+# A Gauss-Newton step continuing the previous one is lengthened this much: ICP creeps along shallow valleys in small
+# steps of one direction (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24).
+STEP_RELAXATION = 2.0
+CONVERGED_RAD, CONVERGED_M = 2e-5, 0.002  # a step under both (yaw, translation) ends a gate
+
 
 @dataclass
 class BevCloud:
@@ -72,9 +82,9 @@ def bev_samples(bev: BevImage, min_value: int, sizes: list[int | None], seed: in
 
 def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
     """The ego side of the refinement: lit pixels (>= cfg.min_pixel_value) with PCA normals of their
-    cfg.normal_neighbours nearest pixels."""
+    NORMAL_NEIGHBOURS nearest pixels."""
     cfg = cfg or RefineConfig()
-    k = cfg.normal_neighbours
+    k = NORMAL_NEIGHBOURS
     rc = np.argwhere(bev.image >= cfg.min_pixel_value)
     xy = bev.pixel_to_metre(rc)
     index = np.full(bev.shape, -1, dtype=np.int32)
@@ -100,11 +110,11 @@ def facing_sensor(xy: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 def peer_normals(bev: BevImage, pts: np.ndarray, cfg: RefineConfig) -> np.ndarray:
     """(N, 2) unit normals at the peer points ``pts`` (pixel centres of ``bev``), facing the peer's sensor: the PCA
-    of the lit pixels within ``cfg.peer_normal_px`` of each (a compiled window scan: the peer pays no KD-tree). A
+    of the lit pixels within ``PEER_NORMAL_PX`` of each (a compiled window scan: the peer pays no KD-tree). A
     pixel with no line around it (alone, or in a round blob) gets the direction to the sensor: the face it shows."""
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     lit = np.ascontiguousarray(bev.image >= cfg.min_pixel_value)
-    n = _window_normals(lit, pts, float(bev.range_m), float(bev.resolution_m), cfg.peer_normal_px)
+    n = _window_normals(lit, pts, float(bev.range_m), float(bev.resolution_m), PEER_NORMAL_PX)
     return facing_sensor(pts, n)
 
 
@@ -188,7 +198,7 @@ def refine_icp(
     ``normals_peer`` (``peer_normals``): pairs whose faces disagree are left out (module doc); None: all pair.
 
     ICP creeps along shallow valleys in small steps of the same direction; a step that continues the previous
-    one is lengthened by ``cfg.step_relaxation`` (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24)."""
+    one is lengthened by ``STEP_RELAXATION``."""
     cfg = cfg or RefineConfig()
     gates = cfg.gates_m
     T = np.array(T_init, dtype=float)
@@ -251,11 +261,11 @@ def icp_params(cfg: RefineConfig, min_cos: float) -> IcpParams:
     return IcpParams(
         np.asarray(cfg.gates_m, dtype=np.float64),
         cfg.iters_per_gate,
-        cfg.huber_fraction,
-        cfg.point_weight,
-        cfg.step_relaxation,
-        cfg.converged_rad,
-        cfg.converged_m,
+        HUBER_FRACTION,
+        POINT_WEIGHT,
+        STEP_RELAXATION,
+        CONVERGED_RAD,
+        CONVERGED_M,
         cfg.min_points,
         min_cos,
     )

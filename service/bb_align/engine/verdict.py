@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .config import AcquireConfig, AlignConfig, ConfidenceConfig, CovarianceConfig, FreeSpaceConfig, SuccessRule
+from .config import AcquireConfig, AlignConfig, CovarianceConfig, FreeSpaceConfig, SuccessRule
 from .geometry import se2_params, se3_from_se2, worst_sigma_m
 from .result import AlignResult
 
@@ -44,7 +44,15 @@ class FailureReason(str, Enum):
     disagrees_with_prior = "disagrees_with_prior"  # the acquired pose is far from the reported one (alias or lie)
 
 
-# Stage 1 stands but stage 2 could not confirm it (confidence capped at cap_stage2_failed, not cap_stage1_failed).
+# Evidence -> confidence (Verdict.confidence): each stage's share saturates exponentially in its inliers above the
+# success rule's minimum (the paper's Fig. 9 puts > 90 % of pairs under 1 m / 1 deg beyond 100 BV or 20 box inliers).
+BV_INLIER_SCALE = 40.0  # BV inliers above the minimum giving 63 % of stage 1's share
+BOX_INLIER_SCALE = 8.0  # likewise for box inliers
+FITNESS_SPAN = 0.2  # stage 1's share grows linearly over this much refinement fitness above min_refine_fitness
+CAP_STAGE1_FAILED = 0.1  # the most confidence a failure before stage 2 gets
+CAP_STAGE2_FAILED = 0.5  # the most confidence when only stage 2 failed
+
+# Stage 1 stands but stage 2 could not confirm it (confidence capped at CAP_STAGE2_FAILED, not CAP_STAGE1_FAILED).
 UNCONFIRMED_BY_BOXES = frozenset(
     {FailureReason.no_boxes, FailureReason.no_box_overlap, FailureReason.too_few_inliers_box}
 )
@@ -57,7 +65,6 @@ class Verdict:
     def __init__(
         self,
         rule: SuccessRule,
-        confidence: ConfidenceConfig,
         covariance: CovarianceConfig,
         acquire: AcquireConfig,
         *,
@@ -68,7 +75,7 @@ class Verdict:
         refine_enabled: bool,
         free_space: FreeSpaceConfig | None = None,
     ):
-        self.rule, self.conf, self.cov, self.acquire = rule, confidence, covariance, acquire
+        self.rule, self.cov, self.acquire = rule, covariance, acquire
         self.min_points, self.min_keypoints = min_points, min_keypoints
         self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
         self.refine_enabled = refine_enabled
@@ -79,7 +86,6 @@ class Verdict:
         """The verdict of an alignment configuration."""
         return cls(
             cfg.success,
-            cfg.confidence,
             cfg.covariance,
             cfg.acquire,
             min_points=cfg.min_points,
@@ -183,10 +189,9 @@ class Verdict:
     def stage2(
         self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False, evidence: float | None = None
     ) -> FailureReason | None:
-        """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone, or a densely
-        verified multi-hypothesis pose when acquire.stage2_required is off, or when some boxes pair under it but
-        too few corners agree and its ``evidence`` reaches acquire.stage2_waiver_evidence), and a correction within
-        bounds."""
+        """Inliers_box above the rule's minimum (or a densely verified multi-hypothesis pose when
+        acquire.stage2_required is off, or when some boxes pair under it but too few corners agree and its
+        ``evidence`` reaches acquire.stage2_waiver_evidence), and a correction within bounds."""
         failure = (
             FailureReason.no_box_overlap
             if r.box_pairs == 0
@@ -211,12 +216,6 @@ class Verdict:
             )
             return None
         if failure is not None:
-            strong = self.rule.strong_inliers_bv
-            if strong is not None and r.inliers_bv > strong:
-                r.notes.append(
-                    f"stage 2 could not verify ({failure.value}); accepted on stage-1 evidence (inliers_bv > {strong})"
-                )
-                return None
             return failure
         yaw, tx, ty = se2_params(T_box)
         if np.hypot(tx, ty) > self.box_max_m or abs(np.degrees(yaw)) > self.box_max_deg:
@@ -241,13 +240,13 @@ class Verdict:
     def confidence(self, r: AlignResult, reason: FailureReason | None) -> float:
         """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9), shrinks with the RANSAC
         ambiguity and a low refinement fitness; capped when failed."""
-        s, c = self.rule, self.conf
-        c_bv = 1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / c.bv_inlier_scale)
+        s = self.rule
+        c_bv = 1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / BV_INLIER_SCALE)
         c_bv *= 1.0 - min(1.0, r.ambiguity_bv)
         if self.refine_enabled and r.refine_fitness > 0:
-            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / c.fitness_span, 0.0, 1.0))
-        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / c.box_inlier_scale)
+            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / FITNESS_SPAN, 0.0, 1.0))
+        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / BOX_INLIER_SCALE)
         out = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
         if reason is not None:
-            out = min(out, c.cap_stage2_failed if reason in UNCONFIRMED_BY_BOXES else c.cap_stage1_failed)
+            out = min(out, CAP_STAGE2_FAILED if reason in UNCONFIRMED_BY_BOXES else CAP_STAGE1_FAILED)
         return float(np.clip(out, 0.0, 1.0))

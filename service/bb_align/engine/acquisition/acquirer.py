@@ -19,7 +19,7 @@ from .decision import Decision, decide, margin, runner_up_of
 from .hypotheses import box_hypotheses, pose_hypotheses, with_keypoint_inliers
 from .kernels import ego_pairs
 from .model import Acquisition, Hypothesis, PriorWindow, SearchMemo
-from .verification import Sample, covisible, verify
+from .verification import COARSE_POINTS, Sample, coarse_config, covisible, verify
 
 
 @dataclass
@@ -56,8 +56,7 @@ class Acquirer:
             )
         self.config = config
         self.verdict = verdict or Verdict.of(config)
-        a, rf = config.acquire, config.refine
-        self.coarse = rf.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
+        self.coarse = coarse_config(config.refine)
 
     def __call__(
         self,
@@ -100,9 +99,7 @@ class Acquirer:
         """What every search pass of this frame pair reads: the peer's pixels sampled once (seeded) for every
         verification, the ego's cloud and mask, and the poses the boxes (and the prior) propose."""
         cfg, a, rf = self.config, self.config.acquire, self.config.refine
-        coarse_pts, full_pts = bev_samples(
-            peer.bev, rf.min_pixel_value, [a.coarse_points, rf.max_peer_points], cfg.seed
-        )
+        coarse_pts, full_pts = bev_samples(peer.bev, rf.min_pixel_value, [COARSE_POINTS, rf.max_peer_points], cfg.seed)
         coarse_sample, full_sample = ((p, peer_normals(peer.bev, p, rf)) for p in (coarse_pts, full_pts))
         with timed("hypotheses"):
             if memo.proposed is None:

@@ -11,10 +11,9 @@ from .model import Hypothesis, distinct
 
 
 def dense_score(h: Hypothesis, cfg: AcquireConfig) -> float:
-    """The images' evidence for a hypothesis: dense overlap (optionally normalised by the co-visible fraction)."""
-    if cfg.score == "fitness":
-        return h.fitness
-    return h.relative_fitness * h.fitness**0.5 if cfg.score == "blend" else h.relative_fitness
+    """The images' evidence for a hypothesis: its dense overlap (the relative fitness is judged apart, as the
+    evidence margin x relative fitness)."""
+    return h.fitness
 
 
 def score(h: Hypothesis, cfg: AcquireConfig) -> float:

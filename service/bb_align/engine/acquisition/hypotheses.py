@@ -19,6 +19,13 @@ from .model import Hypothesis, PriorWindow, distinct
 
 VOTE_CHUNK = 65536  # votes per buffer: a peer pair is cast whole into one buffer (see vote)
 
+# The pose accumulator's cells (degrees, metres): coarse, and every vote is split over its 2x2x2 nearest cells.
+VOTE_YAW_DEG, VOTE_T_M = 3.0, 3.0
+MIN_VOTES = 2.0  # cells with fewer (soft) votes are not examined
+LENGTH_TOLERANCE_M = 1.5  # a candidate pair votes only if its length and the peer pair's differ less
+MIN_HYPOTHESIS_INLIERS = 6  # hypotheses with fewer distinct inlier keypoints are not verified
+REFITS = 4  # Kabsch refits of a peak on its candidate inliers
+
 
 def _even_rows(q: int, parts: int) -> list[tuple[int, int]]:
     """Row ranges [a0, a1) of the peer pairs (a, b > a) holding about equal numbers of pairs, in order."""
@@ -62,34 +69,34 @@ def vote(
 def _accumulator(kps: Keypoints, pairs, cfg: AcquireConfig, t_half: float, window, votes) -> tuple[np.ndarray, float]:
     """The vote accumulator (read from / kept in ``votes`` by candidates per keypoint; masked to ``window``) and its
     yaw cell (radians, a whole number of cells per turn)."""
-    yaw_bin = np.radians(cfg.vote_yaw_deg)
+    yaw_bin = np.radians(VOTE_YAW_DEG)
     n_yaw = int(np.ceil(2 * np.pi / yaw_bin))
     yaw_bin = 2 * np.pi / n_yaw
-    n_t = int(np.ceil(2 * t_half / cfg.vote_t_m))
+    n_t = int(np.ceil(2 * t_half / VOTE_T_M))
     k = kps.cand.shape[1]
     acc = None if votes is None else votes.get(k)
     if acc is None:
-        grid = VoteGrid(cfg.min_sample_dist_m, cfg.length_tolerance_m, yaw_bin, cfg.vote_t_m, t_half)
+        grid = VoteGrid(cfg.min_sample_dist_m, LENGTH_TOLERANCE_M, yaw_bin, VOTE_T_M, t_half)
         acc = vote(kps, pairs, grid, n_yaw, n_t, cfg.threads)
         if votes is not None:
             votes[k] = acc
     if window is not None:
         acc = acc.copy() if votes is not None else acc
-        window.mask_accumulator(acc, yaw_bin, cfg.vote_t_m, t_half)
+        window.mask_accumulator(acc, yaw_bin, VOTE_T_M, t_half)
     return acc, yaw_bin
 
 
 def _peaks(acc: np.ndarray, yaw_bin: float, cfg: AcquireConfig, t_half: float):
-    """The strongest ``cfg.peaks`` cells above ``cfg.min_votes``: (their votes, yaw, tx, ty at the cell centres), or
+    """The strongest ``cfg.peaks`` cells above ``MIN_VOTES``: (their votes, yaw, tx, ty at the cell centres), or
     None."""
     flat = acc.ravel()
-    idx = cells_above(flat, cfg.min_votes)
+    idx = cells_above(flat, MIN_VOTES)
     if len(idx) == 0:
         return None
     idx = idx[np.argsort(-flat[idx], kind="stable")[: cfg.peaks]]
     iy, ix, iz = np.unravel_index(idx, acc.shape)
     yaw = (iy + 0.5) * yaw_bin - np.pi  # cell centres, all in (-pi, pi)
-    tx, ty = (ix + 0.5) * cfg.vote_t_m - t_half, (iz + 0.5) * cfg.vote_t_m - t_half
+    tx, ty = (ix + 0.5) * VOTE_T_M - t_half, (iz + 0.5) * VOTE_T_M - t_half
     return flat[idx], yaw, tx, ty
 
 
@@ -129,24 +136,20 @@ def _refit_peaks(kps: Keypoints, peaks, cfg: AcquireConfig, threshold: float, wi
     found = np.empty((cfg.max_hypotheses, 3))  # se2_params of out's poses
     attempts = 0
     for h in np.argsort(-n_wide, kind="stable"):
-        if (
-            len(out) >= cfg.max_hypotheses
-            or n_wide[h] < cfg.min_hypothesis_inliers
-            or attempts >= cfg.max_refit_attempts
-        ):
+        if len(out) >= cfg.max_hypotheses or n_wide[h] < MIN_HYPOTHESIS_INLIERS or attempts >= cfg.max_refit_attempts:
             break
-        near = (cfg.distinct_m + cfg.vote_t_m, cfg.distinct_deg + cfg.vote_yaw_deg)
+        near = (cfg.distinct_m + VOTE_T_M, cfg.distinct_deg + VOTE_YAW_DEG)
         if not pose_is_distinct(found[: len(out)], (yaw[h], tx[h], ty[h]), *near):
             continue  # a neighbouring cell of a pose already found
         attempts += 1
         y, x, z, n, mask = refit(
-            kps, float(yaw[h]), float(tx[h]), float(ty[h]), (2 * threshold) ** 2, threshold * threshold, cfg.refits
+            kps, float(yaw[h]), float(tx[h]), float(ty[h]), (2 * threshold) ** 2, threshold * threshold, REFITS
         )
         T = se2(y, x, z)
         params = se2_params(T)
         if window is not None and not window.holds(T):
             continue
-        if n < cfg.min_hypothesis_inliers or not pose_is_distinct(
+        if n < MIN_HYPOTHESIS_INLIERS or not pose_is_distinct(
             found[: len(out)], params, cfg.distinct_m, cfg.distinct_deg
         ):
             continue

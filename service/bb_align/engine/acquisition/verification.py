@@ -14,6 +14,19 @@ from ..refine import BevCloud, coarse_verification_loop, covisible_share, facing
 from .decision import dense_score, rivals, score
 from .model import Hypothesis, PriorWindow, distinct
 
+# The coarse verification: every hypothesis refined on COARSE_POINTS peer pixels through these gates (metres),
+# COARSE_ITERS_PER_GATE steps each; the finalists are then refined with the full refinement config.
+COARSE_POINTS = 400
+COARSE_GATES_M = (2.0, 1.0)
+COARSE_ITERS_PER_GATE = 2
+# A rival this close to the best (metres, degrees) may be the best's own basin, not yet converged: refined fully.
+MERGE_WITHIN_M, MERGE_WITHIN_DEG = 4.0, 4.0
+
+
+def coarse_config(refine: RefineConfig) -> RefineConfig:
+    """The refinement config of the coarse verification."""
+    return refine.model_copy(update={"gates_m": COARSE_GATES_M, "iters_per_gate": COARSE_ITERS_PER_GATE})
+
 
 def covisible_map(ego_image: np.ndarray, min_value: int, radius_px: int) -> np.ndarray:
     """uint8 mask of the ego image's pixels within ``radius_px`` of a lit one: where the ego car saw structure."""
@@ -123,7 +136,7 @@ def take_refinement(h: Hypothesis, ref, ego_cloud, covis, pts, boxes, a: Acquire
 
 
 def merge_neighbours(hyps: list[Hypothesis], ego_cloud: BevCloud, full_sample: Sample, config: AlignConfig) -> None:
-    """A rival close to the best (within merge_within_m and merge_within_deg) may be the same basin, only not yet
+    """A rival close to the best (within MERGE_WITHIN_M and MERGE_WITHIN_DEG) may be the same basin, only not yet
     converged by the coarse stage. Refine it fully: if it meets the best it is the same pose and no longer a rival;
     if not, it keeps its coarse values (the margin's calibration). Rivals only ever go away, so margins only grow
     when a 'rival' was the best pose itself."""
@@ -131,7 +144,7 @@ def merge_neighbours(hyps: list[Hypothesis], ego_cloud: BevCloud, full_sample: S
     for _ in range(a.merge_checks):
         best = hyps[0]
         rival = max(rivals(hyps, a), key=lambda h: dense_score(h, a), default=None)  # the one the margin is over
-        if rival is None or rival.refined or distinct(rival.T, [best], a.merge_within_m, a.merge_within_deg):
+        if rival is None or rival.refined or distinct(rival.T, [best], MERGE_WITHIN_M, MERGE_WITHIN_DEG):
             return
         T = refine_icp(ego_cloud, full_sample[0], rival.T, config.refine, full_sample[1]).T
         if distinct(T, [best], a.distinct_m, a.distinct_deg):
