@@ -234,17 +234,13 @@ class Aligner:
         stands when it lies inside the prior's window, and is refused when it lies outside (the images and the
         report disagree: an alias, or a wrong or lying report). If it failed, the search again inside the window
         alone. There fewer rivals stand against the best pose, so the margin says less; the pose must then also be
-        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md, "Session 10"). The second search reuses
+        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md). The second search reuses
         the first's descriptor candidates, box poses and (unmasked) votes: only the window is new."""
         memo = SearchMemo()
         pair, reason = self._solve(ego, peer, memo=memo)
         r = pair.result
         if reason is None:
-            if window.holds(r.T_box @ r.T_bv):
-                r.notes.append("the pose lies inside the prior's window")
-                return pair, None
-            r.notes.append("the pose found everywhere lies outside the prior's window: refused")
-            return pair, FailureReason.disagrees_with_prior
+            return pair, self.verdict.within_prior(r, window.holds(r.T_box @ r.T_bv))
         if self.verdict.inputs(ego, peer) is not None:  # the inputs were refused: a window does not change that
             return pair, reason
         bounded, bounded_reason = self._solve(ego, peer, window=window, memo=memo)
@@ -304,7 +300,7 @@ class Aligner:
         with _timed(t, "ransac"):
             fit = self.ransac.fit(pts_peer, pts_ego) if len(pts_peer) >= 2 else None
         if fit is None:
-            return FailureReason.too_few_matches
+            return self.verdict.candidates(0)
         r.T_bv, r.inliers_bv, r.ambiguity_bv = fit.T_dst_src, fit.num_inliers, fit.ambiguity
         r.inlier_xy_peer, r.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         return self.verdict.stage1(r)
@@ -424,11 +420,7 @@ class Aligner:
             r.notes.append("box measurement not formed")
             return None
         if fused is None:
-            if box.fuse_disagreement_fails:
-                r.notes.append("box measurement disagrees with the refined pose: refused")
-                return FailureReason.box_correction_too_large
-            r.notes.append("box measurement left out: disagrees")
-            return None
+            return self.verdict.boxes_disagree(r, refuse=box.fuse_disagreement_fails)
         T_fused, C_fused = fused
         r.T_box = T_fused @ np.linalg.inv(r.T_bv)
         r.covariance = params_covariance(C_fused, T_fused)

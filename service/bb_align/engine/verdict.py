@@ -127,7 +127,8 @@ class Verdict:
         return None
 
     def candidates(self, peer_keypoints: int) -> FailureReason | None:
-        """Multi mode: a rigid pose needs at least two peer keypoints with descriptor candidates."""
+        """A rigid pose needs at least two peer keypoints with descriptor candidates (paper mode: 0 when RANSAC had
+        fewer than two matches to fit)."""
         return FailureReason.too_few_matches if peer_keypoints < 2 else None
 
     def hypotheses(self, hyps: list) -> FailureReason | None:
@@ -220,6 +221,24 @@ class Verdict:
         yaw, tx, ty = se2_params(T_box)
         if np.hypot(tx, ty) > self.box_max_m or abs(np.degrees(yaw)) > self.box_max_deg:
             return FailureReason.box_correction_too_large
+        return None
+
+    def within_prior(self, r: AlignResult, holds: bool) -> FailureReason | None:
+        """Multi mode with a prior: the pose the search everywhere found must lie inside the prior's window (else
+        the images and the report disagree: an alias, or a wrong or lying report)."""
+        if holds:
+            r.notes.append("the pose lies inside the prior's window")
+            return None
+        r.notes.append("the pose found everywhere lies outside the prior's window: refused")
+        return FailureReason.disagrees_with_prior
+
+    def boxes_disagree(self, r: AlignResult, refuse: bool) -> FailureReason | None:
+        """The boxes' measurement and the refined pose disagree: two independent measurements contradict each
+        other; refused when ``refuse`` (box.fuse_disagreement_fails), else the boxes are left out."""
+        if refuse:
+            r.notes.append("box measurement disagrees with the refined pose: refused")
+            return FailureReason.box_correction_too_large
+        r.notes.append("box measurement left out: disagrees")
         return None
 
     def boxes_verified(self, r: AlignResult) -> bool:
