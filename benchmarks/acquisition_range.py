@@ -105,7 +105,7 @@ def _run(group) -> list[dict]:
                     "inliers_bv": r.inliers_bv,
                     "fitness": r.refine_fitness,
                     "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
-                    "acquisition": r.acquisition,
+                    "acquisition": None if r.acquisition is None else r.acquisition.to_dict(),
                     "timings_ms": r.timings_ms,
                     "notes": r.notes,
                 }

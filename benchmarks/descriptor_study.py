@@ -29,7 +29,7 @@ from multiprocessing import get_context
 import numpy as np
 from tqdm import tqdm
 
-from bb_align.engine.acquire import topk_candidates
+from bb_align.engine.acquisition.candidates import topk_candidates
 from bb_align.engine.config import AlignConfig, BevConfig
 from bb_align.engine.descriptors import (
     _cell_histograms,
@@ -38,6 +38,7 @@ from bb_align.engine.descriptors import (
     descriptor_radius,
     flip_180,
 )
+from bb_align.engine.frame import REFERENCE_ORIENTATION_OFFSETS
 from bb_align.engine.geometry import pose_error, se2_params
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.dataset import iter_frames
@@ -113,7 +114,7 @@ def _acquire(group, peer_frame, name: str, T_true: np.ndarray) -> tuple[bool, bo
         _load_agent(f, prep, _state["eval"], group.scenario, group.timestamp).prepared for f in (group.ego, peer_frame)
     )
     if name != "mim":
-        ref = variant_blocks(e, cfg, name, cfg.features.reference_orientation_offsets)
+        ref = variant_blocks(e, cfg, name, REFERENCE_ORIENTATION_OFFSETS)
         e.descriptors, e.descriptors_flipped, e._reference = ref[0], ref[1], np.concatenate(ref)
         p.descriptors, p.descriptors_flipped = variant_blocks(p, cfg, name, (0,))
     r = prep.align(e, p)
@@ -122,7 +123,7 @@ def _acquire(group, peer_frame, name: str, T_true: np.ndarray) -> tuple[bool, bo
     yaw_t, tx_t, ty_t = se2_params(T_true)
     near = [  # the hypotheses verified, best first: where is one within NEAR_TRUTH of the truth?
         i
-        for i, h in enumerate((r.acquisition or {}).get("all", []))
+        for i, h in enumerate([] if r.acquisition is None else r.acquisition.to_dict()["all"])
         if np.hypot(h["tx"] - tx_t, h["ty"] - ty_t) < NEAR_TRUTH[0]
         and abs((np.degrees(yaw_t) - h["yaw_deg"] + 180.0) % 360.0 - 180.0) < NEAR_TRUTH[1]
     ]
@@ -155,7 +156,7 @@ def _run(group) -> list[dict]:
         }
         p_partner = partner.mean(axis=1)  # what k ego keypoints drawn at random would hit, per peer keypoint
         row["chance"] = {k: float((1.0 - (1.0 - p_partner) ** k).sum()) for k in KS}
-        offsets = cfg.features.reference_orientation_offsets
+        offsets = REFERENCE_ORIENTATION_OFFSETS
         for name in _state["names"]:
             ref = np.concatenate(variant_blocks(e, cfg, name, offsets))
             desc_peer = variant_blocks(p, cfg, name, (0,))[0]

@@ -57,7 +57,7 @@ def main() -> None:
             r = al.align(al.prepare(ego), al.prepare(peer))
             err = "" if T is None else "t err {:.3f} m, r err {:.3f} deg".format(*pose_error(r.T_ego_peer, T))
             sig = "" if r.covariance is None else f", worst 1-sigma {worst_sigma_m(r.covariance):.3f} m"
-            m = "" if r.acquisition is None else f", margin {r.acquisition['margin']:.2f}"
+            m = "" if r.acquisition is None else f", margin {r.acquisition.margin:.2f}"
             print(
                 f"{mode:5s} range {cfg.bev.range_m:.0f} | {name:28s} | success {r.success} ({r.reason}) | {err}"
                 f"{sig}{m} | inliers_bv {r.inliers_bv} fitness {r.refine_fitness:.2f}"

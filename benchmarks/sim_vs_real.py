@@ -59,7 +59,7 @@ def measure(aligner: Aligner, pair: RealPair, pts_ego, pts_peer) -> dict:
     truth_fit, _ = overlap_fitness(ego_cloud, sample[0], G, cfg.refine.gates_m[-1])
     plain = aligner.align(ego, peer)
     alias = 0.0
-    for h in (plain.acquisition or {}).get("all", []):
+    for h in [] if plain.acquisition is None else plain.acquisition.to_dict()["all"]:
         t_err, r_err = pose_error(se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]), G)
         if t_err > 3 or r_err > 3:
             alias = max(alias, h["fitness"])

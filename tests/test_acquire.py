@@ -1,5 +1,6 @@
-"""Multi-hypothesis acquisition (bb_align.acquire): top-k candidates against brute force, pose hypotheses against
-a known transform hidden among wrong candidates, and the engine's multi path end to end on known transforms."""
+"""Multi-hypothesis acquisition (bb_align.engine.acquisition): top-k candidates against brute force, pose
+hypotheses against a known transform hidden among wrong candidates, and the engine's multi path end to end on known
+transforms."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import numpy as np
 import pytest
 
 from bb_align import AlignConfig, Aligner
-from bb_align.engine.acquire import PriorWindow, pose_hypotheses, topk_candidates
+from bb_align.engine.acquisition.candidates import topk_candidates
+from bb_align.engine.acquisition.hypotheses import pose_hypotheses
+from bb_align.engine.acquisition.model import PriorWindow
 from bb_align.engine.config import AcquireConfig
 from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2
 from synthetic import synthetic_world, view_from
@@ -96,11 +99,11 @@ def test_multi_path_recovers_known_pose_with_covariance(world, yaw_deg, t_xy):
     assert res.success, (res.reason, res.acquisition)
     t_err, r_err = pose_error(res.T_ego_peer, T_true)
     assert t_err < 0.5 and r_err < 0.5
-    assert res.acquisition["hypotheses"] >= 1 and res.acquisition["margin"] >= aligner.config.acquire.min_margin
+    assert len(res.acquisition.hypotheses) >= 1 and res.acquisition.margin >= aligner.config.acquire.min_margin
     assert res.covariance is not None and res.covariance.shape == (3, 3)
     assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
     d = res.to_dict()
-    assert len(d["covariance"]) == 3 and d["acquisition"]["margin"] == res.acquisition["margin"]
+    assert len(d["covariance"]) == 3 and d["acquisition"]["margin"] == res.acquisition.margin
 
 
 def test_a_prior_must_hold_the_pose_found_everywhere(world):
@@ -183,7 +186,7 @@ def _boxes_seen_from(boxes_world: np.ndarray, T_world_sensor: np.ndarray, rng, n
 def test_box_hypotheses_recover_a_known_pose_despite_heading_flips_and_strangers():
     """Eight cars seen by both, a detector that reports some headings 180 degrees off, and cars only one car sees:
     the first box hypothesis is the true pose."""
-    from bb_align.engine.acquire import box_hypotheses
+    from bb_align.engine.acquisition.hypotheses import box_hypotheses
 
     rng = np.random.default_rng(4)
     T_world_peer = se3_from_se2(se2(np.radians(-72.0), 83.0, 12.0))
@@ -247,7 +250,8 @@ def test_boxes_pin_a_pose_the_images_cannot():
 
 
 def test_box_confirmation_needs_a_clear_lead_over_every_distinct_pose():
-    from bb_align.engine.acquire import Hypothesis, _box_confirmed
+    from bb_align.engine.acquisition.decision import box_confirmed
+    from bb_align.engine.acquisition.model import Hypothesis
 
     cfg = AcquireConfig()  # at least 3 pairs, 2 more and 1.5 x as many as any distinct pose
 
@@ -255,15 +259,15 @@ def test_box_confirmation_needs_a_clear_lead_over_every_distinct_pose():
         return [Hypothesis(T=se2(0.0, dx, 0.0), inliers=0, box_pairs=b) for b, dx in pairs_and_shift]
 
     h = hyps((6, 0.0), (3, 10.0))
-    assert _box_confirmed(h, cfg)
+    assert box_confirmed(h, cfg)
     h = hyps((6, 0.0), (5, 0.5), (3, 10.0))  # the 5 is the same pose (closer than distinct_m): not a rival
-    assert _box_confirmed(h, cfg)
+    assert box_confirmed(h, cfg)
     h = hyps((16, 0.0), (11, 30.0))  # a lead of 5 but not 1.5 x: a row of cars seen from both ends
-    assert not _box_confirmed(h, cfg)
+    assert not box_confirmed(h, cfg)
     h = hyps((4, 0.0), (3, 12.0))  # 1 more only
-    assert not _box_confirmed(h, cfg)
+    assert not box_confirmed(h, cfg)
     h = hyps((2, 0.0))  # too few, even alone
-    assert not _box_confirmed(h, cfg)
+    assert not box_confirmed(h, cfg)
 
 
 def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(world):
@@ -271,7 +275,9 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
     basin (1.2 m, 2.5 deg off: distinct, not yet converged) and a wrong pose far away. The neighbour is refined fully,
     meets the truth and stops being a rival: the margin is taken over the wrong pose only. Without the merge check
     (merge_checks 0) the neighbour is the runner-up."""
-    from bb_align.engine.acquire import Hypothesis, _margin, _rivals, covisible_map, verify
+    from bb_align.engine.acquisition.decision import margin, rivals
+    from bb_align.engine.acquisition.model import Hypothesis
+    from bb_align.engine.acquisition.verification import COARSE_POINTS, covisible_map, verify
     from bb_align.engine.refine import bev_points
 
     pts_w, _ = world
@@ -286,17 +292,17 @@ def test_a_rival_in_the_basin_of_the_best_is_refined_and_merged_not_counted(worl
         a, rf = cfg.acquire, cfg.refine
         cloud = ego.cloud(rf)
         covis = covisible_map(ego.bev.image, rf.min_pixel_value, 5)
-        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, a.coarse_points, seed=0)
+        coarse_pts = bev_points(peer.bev, rf.min_pixel_value, COARSE_POINTS, seed=0)
         full_pts = bev_points(peer.bev, rf.min_pixel_value, rf.max_peer_points, seed=0)
         hyps = [Hypothesis(T=T.copy(), inliers=10) for T in (T_true, T_true, neighbour, wrong)]
         # A coarse stage too short-sighted to converge the neighbour (one step at a 0.3 m gate).
         coarse = rf.model_copy(update={"gates_m": (0.3,), "iters_per_gate": 1})
         verify(hyps, cloud, covis, (coarse_pts, None), (full_pts, None), cfg, coarse)
         assert pose_error(se3_from_se2(hyps[0].T), se3_from_se2(T_true))[0] < 0.1
-        near_wrong = [pose_error(se3_from_se2(h.T), se3_from_se2(wrong))[0] < 20 for h in _rivals(hyps, a)]
+        near_wrong = [pose_error(se3_from_se2(h.T), se3_from_se2(wrong))[0] < 20 for h in rivals(hyps, a)]
         if checks:
             assert near_wrong == [True]  # the neighbour met the truth
-            assert _margin(hyps, a) == pytest.approx(hyps[0].fitness / max(hyps[-1].fitness, a.runner_up_floor))
+            assert margin(hyps, a) == pytest.approx(hyps[0].fitness / max(hyps[-1].fitness, a.runner_up_floor))
         else:
             assert near_wrong == [False, True]  # the unconverged neighbour is the runner-up
 
@@ -306,7 +312,8 @@ def test_boxes_that_single_out_a_far_rival_refuse_the_images_pose():
     (>= box_confirm_pairs 3, two more and 1.5 times as many). The boxes then vouch for another pose: refused.
     Not so for a rival within stage 2's reach (stage 2 judges it), one where the images share nothing (fitness under
     runner_up_floor), one the free space rules out, or a lead the boxes do not make clear."""
-    from bb_align.engine.acquire import Hypothesis, _box_contradicted
+    from bb_align.engine.acquisition.decision import box_contradicted
+    from bb_align.engine.acquisition.model import Hypothesis
 
     cfg, reach = AcquireConfig(), (4.0, 6.0)
 
@@ -315,10 +322,10 @@ def test_boxes_that_single_out_a_far_rival_refuse_the_images_pose():
 
     best = hyp(50.0, fitness=0.3, box_pairs=1)
     far = hyp(5.0, fitness=0.08, box_pairs=4)
-    assert _box_contradicted([best, far], cfg, 1.0, reach) is far
-    assert _box_contradicted([best, hyp(47.0, box_pairs=9)], cfg, 1.0, reach) is None  # 3 m: stage 2's to judge
-    assert _box_contradicted([best, hyp(50.0, yaw_deg=8.0, box_pairs=9)], cfg, 1.0, reach) is not None  # 8 deg
-    assert _box_contradicted([best, hyp(5.0, fitness=0.01, box_pairs=9)], cfg, 1.0, reach) is None
-    assert _box_contradicted([best, hyp(5.0, box_pairs=9, conflict=0.3)], cfg, 0.15, reach) is None
-    assert _box_contradicted([hyp(50.0, fitness=0.3, box_pairs=3), far], cfg, 1.0, reach) is None  # 4 vs 3
-    assert _box_contradicted([best, hyp(5.0, box_pairs=2)], cfg, 1.0, reach) is None  # 2: under box_confirm_pairs
+    assert box_contradicted([best, far], cfg, 1.0, reach) is far
+    assert box_contradicted([best, hyp(47.0, box_pairs=9)], cfg, 1.0, reach) is None  # 3 m: stage 2's to judge
+    assert box_contradicted([best, hyp(50.0, yaw_deg=8.0, box_pairs=9)], cfg, 1.0, reach) is not None  # 8 deg
+    assert box_contradicted([best, hyp(5.0, fitness=0.01, box_pairs=9)], cfg, 1.0, reach) is None
+    assert box_contradicted([best, hyp(5.0, box_pairs=9, conflict=0.3)], cfg, 0.15, reach) is None
+    assert box_contradicted([hyp(50.0, fitness=0.3, box_pairs=3), far], cfg, 1.0, reach) is None  # 4 vs 3
+    assert box_contradicted([best, hyp(5.0, box_pairs=2)], cfg, 1.0, reach) is None  # 2: under box_confirm_pairs

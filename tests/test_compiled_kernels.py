@@ -11,17 +11,24 @@ import pytest
 from scipy.ndimage import distance_transform_edt
 
 from bb_align import AlignConfig
-from bb_align.engine.acquire import (
+from bb_align.engine.acquisition.hypotheses import vote
+from bb_align.engine.acquisition.kernels import VoteGrid, ego_pairs, keypoints
+from bb_align.engine.acquisition.verification import (
+    COARSE_POINTS,
+    coarse_config,
     coarse_verification,
     covisible_fraction,
     covisible_map,
-    ego_pairs,
-    vote,
 )
 from bb_align.engine.bev import make_bev
 from bb_align.engine.config import BevConfig
 from bb_align.engine.geometry import distinct_pose, pose_is_distinct, se2, se2_params
 from bb_align.engine.refine import (
+    CONVERGED_M,
+    CONVERGED_RAD,
+    HUBER_FRACTION,
+    POINT_WEIGHT,
+    STEP_RELAXATION,
     Refinement,
     _normal_equations,
     bev_cloud,
@@ -35,7 +42,7 @@ from synthetic import synthetic_world, view_from
 
 
 def _covisible_numpy(mask: np.ndarray, cloud, pts: np.ndarray, T: np.ndarray) -> float:
-    """The reference for acquire.covisible_fraction, in numpy: the share of points on a pixel of the mask."""
+    """The reference for verification.covisible_fraction, in numpy: the share of points on a pixel of the mask."""
     p = pts @ T[:2, :2].T + T[:2, 2]
     r = np.floor((cloud.range_m - p[:, 0]) / cloud.resolution_m).astype(np.int64)
     c = np.floor((cloud.range_m - p[:, 1]) / cloud.resolution_m).astype(np.int64)
@@ -96,11 +103,12 @@ def test_vote_equals_the_reference_vote(threads):
     cand[::7, 0] = rng.integers(0, 120, 10)  # some keypoints without their true partner
     yaw_bin, n_yaw = 2 * np.pi / 120, 120
     args = (3.0, 4.0, yaw_bin, 3.0, 75.0, n_yaw, 50)
-    acc = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=threads, chunk=500)
+    kps, grid = keypoints(kp_src, kp_dst, cand), VoteGrid(*args[:5])
+    acc = vote(kps, ego_pairs(kps.dst), grid, n_yaw, 50, threads=threads, chunk=500)
     ref = _vote_reference(kp_src, kp_dst, cand, *args)
     assert ref.sum() > 8 * 500
     np.testing.assert_allclose(acc, ref, rtol=1e-6, atol=1e-5)
-    one_thread_one_buffer = vote(kp_src, kp_dst, cand, ego_pairs(kp_dst), *args, threads=1, chunk=10**6)
+    one_thread_one_buffer = vote(kps, ego_pairs(kps.dst), grid, n_yaw, 50, threads=1, chunk=10**6)
     assert np.array_equal(acc, one_thread_one_buffer)
     peak = np.unravel_index(np.argmax(acc), acc.shape)
     assert peak == np.unravel_index(np.argmax(ref), ref.shape)
@@ -172,14 +180,14 @@ def _refine_icp_reference(ego, pts_peer, T_init, cfg, normals=None):
                 T0 = np.array(T_init, dtype=float)
                 return Refinement(T0, *overlap_fitness(ego, pts_peer, T0, gates[-1]), False)
             H, g, _ = _normal_equations(
-                p, ego.xy, ego.normals, j, cfg.huber_fraction * gate, cfg.point_weight, none, 1.0, 0.0, -1.0
+                p, ego.xy, ego.normals, j, HUBER_FRACTION * gate, POINT_WEIGHT, none, 1.0, 0.0, -1.0
             )
             delta = np.linalg.solve(H, -g)
             if prev is not None and float(delta @ prev) > 0:
-                delta = delta * cfg.step_relaxation
+                delta = delta * STEP_RELAXATION
             prev = delta
             T = se2(delta[0], delta[1], delta[2]) @ T
-            if np.abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
+            if np.abs(delta[0]) < CONVERGED_RAD and np.abs(delta[1:]).max() < CONVERGED_M:
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
@@ -214,11 +222,10 @@ def test_coarse_verification_equals_refine_icp_and_overlap(sim_pair, min_points,
     """min_points 100: some far starts match fewer pixels at some step (the start pose kept). threads 3: the poses
     verified in three groups at once, the same answers in the same order. facing: with the peer normals' test."""
     cfg, cloud, covis, peer_bev, starts = sim_pair
-    a = cfg.acquire
-    coarse = cfg.refine.model_copy(update={"gates_m": a.coarse_gates_m, "iters_per_gate": a.coarse_iters_per_gate})
+    coarse = coarse_config(cfg.refine)
     if min_points is not None:
         coarse = coarse.model_copy(update={"min_points": min_points})
-    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, a.coarse_points, seed=cfg.seed)
+    pts = bev_points(peer_bev, cfg.refine.min_pixel_value, COARSE_POINTS, seed=cfg.seed)
     normals = peer_normals(peer_bev, pts, cfg.refine) if facing else None
     Ts, fitness, rmse, covisible = coarse_verification(
         cloud, covis, pts, starts, coarse, cfg.refine.gates_m[-1], threads, normals

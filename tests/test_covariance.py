@@ -45,7 +45,7 @@ def test_corridor_has_large_variance_along_it_and_is_refused():
     assert np.sqrt(cov[1, 1]) > 100 * np.sqrt(cov[2, 2])  # x unconstrained, y well pinned
     assert worst_sigma_m(cov) > 1.0
     # The success rule refuses such a pose.
-    from bb_align.engine.acquire import pose_uncertainty
+    from bb_align.engine.covariance import pose_uncertainty
 
     aligner = Aligner(AlignConfig(bev=BevConfig(range_m=RANGE, resolution_m=RES)))
     prepared = aligner.prepare(ego)

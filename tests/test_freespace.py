@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bb_align.engine import acquire
-from bb_align.engine.acquire import covisible_map
+from bb_align.engine.acquisition import acquirer, free_space, hypotheses
+from bb_align.engine.acquisition.model import Hypothesis
+from bb_align.engine.acquisition.verification import covisible, covisible_map
 from bb_align.engine.bev import BevImage
 from bb_align.engine.config import FreeSpaceConfig, with_overrides
 from bb_align.engine.freespace import conflict, free_space_map, tall_points
@@ -118,8 +119,8 @@ def test_a_pose_whose_conflict_exceeds_the_bound_is_refused_and_says_why(monkeyp
     T_true = se2(np.radians(8.0), 45.0, 2.0)
     aligner, ego, peer = _street_pair(T_true)
     res = aligner.align(ego, peer)
-    assert res.success and res.acquisition["best"]["conflict"] <= aligner.config.free_space.max_conflict
-    monkeypatch.setattr(acquire, "conflict", lambda *args: 0.5)
+    assert res.success and res.acquisition.best.conflict <= aligner.config.free_space.max_conflict
+    monkeypatch.setattr(free_space, "conflict", lambda *args: 0.5)
     refused = aligner.align(ego, peer)
     assert not refused.success and refused.reason == "free_space_conflict"
     assert any("free-space conflict 0.50" in n for n in refused.notes)
@@ -132,28 +133,27 @@ def test_a_best_pose_the_free_space_rules_out_gives_way_to_the_next():
     the truth 1.5 m / 2 deg off, unrefined (what the coarse stage leaves of a hypothesis it ranked lower). The alias
     is dropped, the next is refined fully, onto the truth, and its conflict measured again there; with the alias
     alone nothing is left."""
-    from bb_align.engine.acquire import Acquirer, Hypothesis, bev_samples, peer_normals
     from bb_align.engine.box_poses import BoxSet
+    from bb_align.engine.refine import bev_samples, peer_normals
 
     T_true = se2(np.radians(8.0), 45.0, 2.0)
     aligner, ego, peer = _street_pair(T_true)
     cfg = aligner.config
     rf, fs = cfg.refine, cfg.free_space
-    acquirer = Acquirer(cfg)
     (pts,) = bev_samples(peer.bev, rf.min_pixel_value, [rf.max_peer_points], cfg.seed)
     sample = (pts, peer_normals(peer.bev, pts, rf))
     boxes = (BoxSet.of(ego.boxes), BoxSet.of(peer.boxes))
-    args = (ego.cloud(rf), acquirer._covisible(ego), sample, boxes, fs.rival_conflict)
+    args = (ego.cloud(rf), covisible(ego, cfg), sample, boxes, fs.rival_conflict, cfg)
 
     alias = Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10, fitness=0.3, refined=True)
     off = Hypothesis(se2(np.radians(2.0), 1.5, 0.0) @ T_true, 8, fitness=0.1)
     hyps = [alias, off]
-    acquirer._conflicts(ego, peer, hyps)
+    free_space.conflicts(ego, peer, hyps, cfg)
     assert alias.conflict > fs.rival_conflict  # what the half turn's conflict is (measured, not set)
-    kept = acquirer._without_ruled_out(ego, peer, hyps, *args)
+    kept = free_space.without_ruled_out(ego, peer, hyps, *args)
     assert kept == [off] and off.refined and off.conflict <= fs.max_conflict
     assert pose_error(se3_from_se2(off.T), se3_from_se2(T_true))[0] < 0.3
-    assert acquirer._without_ruled_out(ego, peer, [alias], *args) == []
+    assert free_space.without_ruled_out(ego, peer, [alias], *args) == []
 
 
 def test_a_pose_chosen_because_the_best_gave_way_must_be_clear_of_the_free_space(monkeypatch):
@@ -169,11 +169,11 @@ def test_a_pose_chosen_because_the_best_gave_way_must_be_clear_of_the_free_space
         return 0.5 if any(t < 3.0 and r < 3.0 for t, r in errors) else 0.05
 
     def with_half_turn(*args, **kwargs):  # the street offers one clear hypothesis: add its alias, turned round
-        return [*hypotheses(*args, **kwargs), acquire.Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
+        return [*hypotheses_of(*args, **kwargs), Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
 
-    hypotheses = acquire.pose_hypotheses
-    monkeypatch.setattr(acquire, "pose_hypotheses", with_half_turn)
-    monkeypatch.setattr(acquire, "conflict", fake_conflict)
+    hypotheses_of = hypotheses.pose_hypotheses
+    monkeypatch.setattr(acquirer, "pose_hypotheses", with_half_turn)
+    monkeypatch.setattr(free_space, "conflict", fake_conflict)
     # Every other gate open (the calibration's multi_open): only the free space decides here.
     cfg = with_overrides(aligner.config, ["acquire.min_margin=1.0", "acquire.min_evidence=0.0", "acquire.first_k=0"])
     aligner = Aligner(cfg)
@@ -199,11 +199,11 @@ def test_a_pose_chosen_after_others_gave_way_needs_the_images_own_evidence(monke
         return 0.5 if any(t < 3.0 and r < 3.0 for t, r in errors) else 0.05
 
     def with_half_turn(*args, **kwargs):
-        return [*hypotheses(*args, **kwargs), acquire.Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
+        return [*hypotheses_of(*args, **kwargs), Hypothesis(T_true @ se2(np.pi, 0.0, 0.0), 10)]
 
-    hypotheses = acquire.pose_hypotheses
-    monkeypatch.setattr(acquire, "pose_hypotheses", with_half_turn)
-    monkeypatch.setattr(acquire, "conflict", fake_conflict)
+    hypotheses_of = hypotheses.pose_hypotheses
+    monkeypatch.setattr(acquirer, "pose_hypotheses", with_half_turn)
+    monkeypatch.setattr(free_space, "conflict", fake_conflict)
     overrides = ["acquire.min_margin=1.0", "acquire.first_k=0", "free_space.gave_way_max_conflict=0.10"]
     res = Aligner(with_overrides(aligner.config, [*overrides, "acquire.min_evidence=100.0"])).align(ego, peer)
     assert not res.success and res.reason == "ambiguous_bv"

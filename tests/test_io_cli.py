@@ -216,6 +216,51 @@ def test_cli_bad_input_file_exits_2_with_one_line_and_no_traceback(tmp_path):
         assert "Traceback" not in out.output and out.stdout == ""
 
 
+def test_config_dump_shows_the_users_knobs_and_advanced_shows_every_setting():
+    from bb_align.engine.config import USER_FACING, AlignConfig
+
+    runner = CliRunner()
+    small = json.loads(runner.invoke(app, ["config", "--dump"]).stdout)
+    full = json.loads(runner.invoke(app, ["config", "--dump", "--advanced"]).stdout)
+
+    def leaves(d, prefix=""):
+        return [
+            k for key, v in d.items() for k in (leaves(v, f"{prefix}{key}.") if isinstance(v, dict) else [prefix + key])
+        ]
+
+    assert sorted(leaves(small)) == sorted(USER_FACING) and 15 <= len(USER_FACING) <= 25
+    assert set(leaves(small)) < set(leaves(full)) and full == AlignConfig().model_dump(mode="json")
+    assert small["bev"]["range_m"] == 100.0 and "coarse_stride" not in small.get("mim", {})
+    described = {name: f.description for name, f in type(AlignConfig().bev).model_fields.items()}
+    assert "metres" in described["range_m"] and "seed" not in described["range_m"]
+
+
+def test_a_saved_config_naming_retired_settings_loads_at_their_value_else_names_them(tmp_path):
+    """A full dump saved before settings became constants still loads when it holds their values (the engine's
+    constants); a retired setting at another value is refused in one line naming it."""
+    from bb_align.engine.config import RETIRED, AlignConfig
+
+    old = AlignConfig().model_dump(mode="json")
+    for path, value in RETIRED.items():
+        *sections, name = path.split(".")
+        node = old
+        for sec in sections:
+            node = node.setdefault(sec, {})
+        node[name] = list(value) if isinstance(value, tuple) else value
+    old["acquire"]["top_k"] = 8
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    runner = CliRunner()
+    out = runner.invoke(app, ["config", "--check", str(tmp_path / "old.json"), "--advanced"])
+    assert out.exit_code == 0, out.output
+    assert json.loads(out.stdout)["acquire"]["top_k"] == 8 and "score" not in json.loads(out.stdout)["acquire"]
+    for section, name, value in (("acquire", "score", "blend"), ("refine", "point_weight", 0.2)):
+        (tmp_path / "moved.json").write_text(json.dumps({section: {name: value}}))
+        out = runner.invoke(app, ["config", "--check", str(tmp_path / "moved.json")])
+        lines = out.stderr.strip().splitlines()
+        assert out.exit_code == 2 and f"{section}.{name} is no longer a setting" in out.stderr, out.output
+        assert "Traceback" not in out.output and sum("no longer a setting" in line for line in lines) == 1
+
+
 def test_config_check_blames_check_with_the_field_and_its_limit(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"bev": {"range_m": -5}}))
     (tmp_path / "typo.yaml").write_text("bev: {rang_m: 80}\n")

@@ -159,3 +159,38 @@ def test_the_engine_imports_only_the_engine_extra():
         top: top_to_dist.get(top) for top in third_party if not {norm(d) for d in top_to_dist.get(top, [top])} & allowed
     }
     assert not outside, f"the engine imports packages outside the `engine` extra: {outside}"
+
+
+MAX_FUNCTION_LINES = 60
+PRODUCT_ROOMS = [
+    *(PACKAGES["bb_align"] / room for room in ("engine", "protocol", "server", "io")),
+    PACKAGES["bb_align_client"],
+]
+
+
+def long_functions(path: Path, limit: int = MAX_FUNCTION_LINES) -> list[str]:
+    """Every function (nested ones and methods too) of the file longer than ``limit`` lines, counted from its
+    ``def`` line to its last line."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            lines = node.end_lineno - node.lineno + 1
+            if lines > limit:
+                out.append(f"{path}:{node.lineno} {node.name} ({lines} lines)")
+    return out
+
+
+def test_no_function_in_the_product_rooms_is_over_60_lines():
+    bad = [f for room in PRODUCT_ROOMS for path in sorted(room.rglob("*.py")) for f in long_functions(path)]
+    assert not bad, "functions over 60 lines:\n" + "\n".join(bad)
+
+
+def test_the_length_check_counts_def_to_end(tmp_path):
+    """The check above is not vacuous: a method of 61 lines is flagged, a function of 60 lines is not."""
+    statements = [f"x{i} = {i}" for i in range(59)]
+    fits = "def fits():\n" + "".join(f"    {st}\n" for st in statements)  # def + 59 lines
+    over = "class C:\n    def over(self):\n" + "".join(f"        {st}\n" for st in [*statements, "y = 1"])
+    path = tmp_path / "probe.py"
+    path.write_text(fits + "\n\n" + over)
+    found = long_functions(path)
+    assert len(found) == 1 and found[0].endswith(" over (61 lines)")

@@ -77,7 +77,7 @@ def test_strong_dense_evidence_stands_with_too_few_box_corners(world):
     one_box[1:, :2] += 500.0  # only the first pairs: its four corners are below min_inliers_box (6)
     ego, peer = aligner.prepare(pts_ego, boxes_ego), aligner.prepare(pts_peer, one_box)
     res = aligner.align(ego, peer)
-    evidence = res.acquisition["margin"] * res.acquisition["best"]["relative_fitness"]
+    evidence = res.acquisition.margin * res.acquisition.best.relative_fitness
     assert evidence >= AlignConfig().acquire.stage2_waiver_evidence
     assert res.success and any(
         n.startswith("stage 2 could not verify (too_few_inliers_box); accepted") for n in res.notes

@@ -201,15 +201,19 @@ def _load_config(path: Path | None, option: str = "--config"):
 
 @app.command("config")
 def config_cmd(
-    dump: bool = typer.Option(False, "--dump", help="print the engine's default AlignConfig as JSON"),
+    dump: bool = typer.Option(
+        False, "--dump", help="print the engine's default AlignConfig as JSON (the user's knobs)"
+    ),
+    advanced: bool = typer.Option(False, "--advanced", help="with --dump or --check: every setting"),
     check: Path | None = typer.Option(
         None, exists=True, dir_okay=False, help="validate a saved config file and print it with defaults filled in"
     ),
 ) -> None:
-    """The engine's configuration: every tunable number, with its default (service: BBALIGN_ALIGN__*)."""
+    """The engine's configuration and its defaults (service: BBALIGN_ALIGN__<SECTION>__<NAME>). --dump shows the
+    settings a user tunes; --advanced adds the calibrated ones (docs/configuration.md)."""
     if not dump and check is None:
         raise typer.BadParameter("give --dump or --check FILE")
-    typer.echo(_load_config(check, option="--check").model_dump_json(indent=2))
+    typer.echo(json.dumps(_load_config(check, option="--check").dump(advanced=advanced), indent=2))
 
 
 def _register_feature_commands() -> None:

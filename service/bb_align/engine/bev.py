@@ -20,6 +20,11 @@ from scipy.ndimage import minimum_filter
 
 from .config import BevConfig
 
+# The ground under each pixel: the lowest return in a GROUND_CELL_M grid, min-filtered over GROUND_WINDOW_CELLS
+# cells (a car's roof in one cell is no ground); the heights are measured from it.
+GROUND_CELL_M = 2.0
+GROUND_WINDOW_CELLS = 3
+
 
 @dataclass(frozen=True)
 class BevImage:
@@ -88,8 +93,8 @@ def image_size_px(config: BevConfig) -> int:
 
 
 def ground_height_map(pts_sensor: np.ndarray, config: BevConfig) -> tuple[np.ndarray, float]:
-    """Coarse local ground height (grid of ``ground_cell_m``): min z per cell, min-filtered; and the cell size."""
-    g = config.ground_cell_m
+    """Coarse local ground height (grid of ``GROUND_CELL_M``): min z per cell, min-filtered; and the cell size."""
+    g = GROUND_CELL_M
     n = int(np.ceil(2 * config.range_m / g))
     gi = np.clip(((config.range_m - pts_sensor[:, 0]) / g).astype(np.int64), 0, n - 1)
     gj = np.clip(((config.range_m - pts_sensor[:, 1]) / g).astype(np.int64), 0, n - 1)
@@ -98,7 +103,7 @@ def ground_height_map(pts_sensor: np.ndarray, config: BevConfig) -> tuple[np.nda
     cell_min = cell_min.reshape(n, n)
     finite = np.isfinite(cell_min)
     fallback = float(np.percentile(cell_min[finite], 10)) if finite.any() else 0.0
-    ground = minimum_filter(np.where(finite, cell_min, np.inf), size=config.ground_window_cells, mode="nearest")
+    ground = minimum_filter(np.where(finite, cell_min, np.inf), size=GROUND_WINDOW_CELLS, mode="nearest")
     ground[~np.isfinite(ground)] = fallback
     return ground, g
 

@@ -1,9 +1,13 @@
-"""Every tunable number of the engine, in one place (pydantic models).
+"""The engine's settings (pydantic models), one section per step of the pipeline.
 
-Defaults follow ../shared/reference/ALGORITHM.md (the numbers the paper leaves out) unless a measurement in
-docs/ says otherwise. Each step of the pipeline is built once from its section (``Aligner.__init__``). The
-service's own settings (ports, Zenoh, limits) live in ``bb_align.server.settings`` and embed an :class:`AlignConfig`;
-``bb-align config --dump`` prints these defaults, ``bb-align align --config FILE`` loads a saved one.
+``USER_FACING`` lists the few a user tunes (image range and resolution, the acquisition mode, the prior's
+tolerances, the success rule, the pose's uncertainty bounds, tracking, threads, seed): ``bb-align config --dump``
+prints those, ``--dump --advanced`` every setting. The rest are calibrated together (docs/acquisition.md explains
+each check and its threshold): change them only to re-run that calibration. Fixed numbers that are not settings
+live as constants beside the code that uses them (``RETIRED`` lists the ones that used to be settings).
+Each step of the pipeline is built once from its section (``Aligner.__init__``). The service's own settings (ports,
+Zenoh, limits) live in ``bb_align.server.settings`` and embed an :class:`AlignConfig` (environment:
+``BBALIGN_ALIGN__<SECTION>__<NAME>``); ``bb-align align --config FILE`` loads a saved one.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from __future__ import annotations
 import json
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Frozen(BaseModel):
@@ -25,10 +29,8 @@ class BevConfig(_Frozen):
         100.0,
         gt=0,
         le=250,
-        description="half width R of the square image, metres (100: 500 x 500 "
-        "px; measured against 80 and 120 on the 200-pair simulated benchmark, docs/acquisition.md: "
-        "80 -> 100 raises 40-70 m pairs under 1 m & 1 deg from 20 % to 31 % (paper) and the multi "
-        "path's from 48 % to 66 % (gates open); 120 adds nothing over 100 at 2.25x the MIM cost)",
+        description="half width R of the square image, metres (100 at 0.4 m: 500 x 500 px); pairs farther apart "
+        "than about R share too little of their images; the MIM's cost grows with R squared",
     )
     resolution_m: float = Field(0.4, gt=0.01, le=5, description="cell size c, metres per pixel")
     mode: Literal["max_height", "slices"] = Field(
@@ -37,20 +39,12 @@ class BevConfig(_Frozen):
     ground_clearance_m: float = Field(0.3, ge=0, description="heights below this above the local ground map to 0")
     max_height_m: float = Field(12.0, gt=0, description="heights above the ground are clipped here")
     slice_m: float = Field(0.2, gt=0, description="slice thickness for mode='slices'")
-    ground_cell_m: float = Field(2.0, gt=0, description="cell of the coarse ground-height grid")
-    ground_window_cells: int = Field(3, ge=1, description="min-filter window over the coarse ground grid")
 
 
 class MimConfig(_Frozen):
     """Log-Gabor bank and Maximum Index Map (Eqs. 5-10)."""
 
-    n_scales: int = Field(4, ge=1, le=8)
     n_orient: int = Field(12, ge=4, le=36)
-    min_wavelength_px: float = Field(3.0, gt=1)
-    mult: float = Field(1.6, gt=1)
-    sigma_on_f: float = Field(0.75, gt=0, lt=1)
-    lowpass_cutoff: float = Field(0.45, gt=0, le=0.5)
-    lowpass_order: int = Field(15, ge=1)
     min_amplitude: float = Field(0.1, ge=0, description="MIM = 0 where max_o A_o <= this (image in 0..255)")
     fft_margin_px: int = Field(
         16,
@@ -78,25 +72,18 @@ class MimConfig(_Frozen):
 class FeatureConfig(_Frozen):
     """FAST keypoints and BVFT descriptors."""
 
-    fast_threshold: int = Field(10, ge=1, le=255)
-    max_keypoints: int = Field(400, ge=10, le=5000, description="strongest FAST responses kept")
+    max_keypoints: int = Field(400, ge=10, le=5000, description="strongest FAST responses kept per image")
     patch_px: int = Field(96, ge=24, description="descriptor window J")
     grid: int = Field(6, ge=2, description="cells per side l")
     merge_bins: bool = Field(True, description="True: 216-D (bins merged in pairs); False: 432-D")
-    reference_orientation_offsets: tuple[int, ...] = Field(
-        (0, -1, 1),
-        description="the matched-against (ego) side also describes each keypoint as if its dominant "
-        "orientation were these neighbouring bins: a peer whose orientation estimate is one bin off still finds "
-        "its match (measured: +35% correct matches at 40-70 m; docs/engine.md)",
-    )
     window_stride: int = Field(1, ge=1, le=4, description="sample every n-th pixel each way of the J x J window")
     threads: int = Field(2, ge=1, le=16, description="keypoint groups described in parallel (same result)")
     orientation_stride: int = Field(
         2,
         ge=1,
         le=4,
-        description="sample every n-th pixel each way of the dominant-orientation disc (2: a "
-        "quarter of the work, same accuracy on the simulated pairs; docs/engine.md)",
+        description="sample every n-th pixel each way of the dominant-orientation disc (2: a quarter of the "
+        "work, the same accuracy)",
     )
 
 
@@ -118,10 +105,6 @@ class RansacConfig(_Frozen):
     min_iterations: int = Field(200, ge=1, description="hypotheses scored at least, whatever the adaptive count")
     confidence: float = Field(0.9999, gt=0, lt=1, description="adaptive stop: P(an all-inlier sample was drawn)")
     batch: int = Field(256, ge=1, description="samples scored together (vectorised)")
-    refits: int = Field(3, ge=0, description="Kabsch refits on the inliers after the best hypothesis")
-    ambiguity_hypotheses: int = Field(
-        1024, ge=1, description="best-scoring hypotheses searched for a distinct runner-up (RansacResult.ambiguity)"
-    )
 
 
 class PriorConfig(_Frozen):
@@ -131,7 +114,9 @@ class PriorConfig(_Frozen):
     precise (max_sigma_m). In paper mode it gates the descriptor matches. Without a prior the engine searches every
     yaw and shift (the paper's setting)."""
 
-    max_translation_m: float = Field(10.0, gt=0, description="how far the true pose may be from the prior")
+    max_translation_m: float = Field(
+        10.0, gt=0, description="how far the true pose may be from the prior, metres (x and y)"
+    )
     sigma_m: float = Field(
         2.0,
         gt=0,
@@ -139,16 +124,14 @@ class PriorConfig(_Frozen):
         "density weighs each rival of the answer inside the prior's window",
     )
     sigma_deg: float = Field(2.0, gt=0, description="the prior's 1-sigma in yaw, degrees")
-    max_yaw_deg: float = Field(10.0, gt=0, le=180)
+    max_yaw_deg: float = Field(10.0, gt=0, le=180, description="how far its yaw may be from the prior's, degrees")
     top_k: int = Field(4, ge=1, le=32, description="paper mode: descriptor candidates per peer keypoint gated")
     verify_prior_pose: bool = Field(True, description="multi mode: the prior pose is also verified as a hypothesis")
     max_sigma_m: float = Field(
         0.3,
         gt=0,
-        description="multi mode: a pose found inside the window alone is refused when its 1-sigma along its worst "
-        "translation direction exceeds this (fewer rivals there, so the pose must be precise): the largest value "
-        "with no wrong success on seeds 2024 and 777, checked on 4242, 9001, 31337 and 55555 (docs/acquisition.md, "
-        "Session 10)",
+        description="multi mode, metres: a pose found inside the window alone is refused when its 1-sigma along its "
+        "worst translation direction exceeds this (fewer rivals there, so the pose must be precise)",
     )
 
 
@@ -158,78 +141,50 @@ class RefineConfig(_Frozen):
     enabled: bool = True
     gates_m: tuple[float, ...] = Field((2.0, 1.0, 0.5, 0.4), description="correspondence gates, coarse to fine")
     iters_per_gate: int = Field(3, ge=1, le=50)
-    step_relaxation: float = Field(
-        2.0, ge=1.0, le=3.0, description="a Gauss-Newton step continuing the previous one is lengthened so"
-    )
     min_pixel_value: int = Field(1, ge=1, le=255, description="pixels at or above this value take part")
     max_peer_points: int = Field(2000, ge=100, description="seeded random subset of the peer's lit pixels")
-    max_correction_m: float = Field(2.0, gt=0)
-    max_correction_deg: float = Field(3.0, gt=0)
-    point_weight: float = Field(
-        0.1,
-        ge=0,
-        description="weight of the point-to-point terms beside the point-to-line ones: pins the motion along a line",
-    )
-    huber_fraction: float = Field(
-        0.25, gt=0, description="Huber threshold of the point-to-line residual, as a fraction of the current gate"
-    )
-    normal_neighbours: int = Field(8, ge=3, le=64, description="ego pixels in each pixel's PCA normal")
+    max_correction_m: float = Field(2.0, gt=0, description="a refinement moving the pose farther (metres) is discarded")
+    max_correction_deg: float = Field(3.0, gt=0, description="... or turning it more (degrees)")
     facing_min_cos: float = Field(
         0.5,
         ge=-1,
         le=1,
         description="a peer pixel pairs with an ego pixel only if their normals, each turned towards its own "
-        "sensor, agree this well (cosine): two faces of one object between the cars are not one surface; -1: off "
-        "(refined from the truth at 85-100 m, within 1 m & 1 deg: 54 % off, 83 % at 0.5; benchmarks/facing_study.py)",
+        "sensor, agree this well (cosine): two faces of one object between the cars are not one surface; -1: off",
     )
-    peer_normal_px: int = Field(2, ge=1, le=6, description="half window (pixels) of the peer pixels' PCA normals")
     min_points: int = Field(10, ge=3, description="fewer ego pixels, peer points or matches: no refinement")
-    converged_rad: float = Field(2e-5, gt=0, description="a step under this yaw and converged_m ends a gate")
-    converged_m: float = Field(0.002, gt=0)
 
 
 class BoxConfig(_Frozen):
     """Stage 2: box-corner alignment."""
 
-    apply: Literal["always", "unrefined", "auto"] = Field(
+    apply: Literal["always", "auto"] = Field(
         "auto",
-        description="always: T_2D = T_box @ T_bv (the paper). unrefined: stage 2 estimates T_box and counts "
-        "Inliers_box for the success rule, but applies its correction only when the dense BV refinement did not "
-        "run or was rejected (box corners from a noisy detector are less precise than the refined images). auto: "
-        "as unrefined, but a box correction over recheck_m / recheck_deg is refined again on the BV images and "
-        "kept when the images agree with it better (a refinement stuck in a local optimum); docs/engine.md",
-    )
-    recheck_m: float = Field(0.5, ge=0, description="auto: box corrections beyond this are re-refined and compared")
-    recheck_deg: float = Field(0.5, ge=0, description="auto: likewise for the yaw correction")
-    recheck_min_gain: float = Field(
-        0.01,
-        ge=0,
-        description="auto: the re-refined box-corrected pose is kept when "
-        "its overlap fitness beats the refined stage-1 pose's by more than this",
+        description="always: T_2D = T_box @ T_bv (the paper). auto: stage 2 estimates T_box and counts Inliers_box "
+        "for the success rule, but applies its correction only when the dense BV refinement did not run or was "
+        "rejected (box corners from a noisy detector are less precise than the refined images), or when a correction "
+        "over 0.5 m / 0.5 deg, refined again on the BV images, makes them agree better (a refinement stuck in a "
+        "local optimum)",
     )
     pair_gate_m: float = Field(3.0, gt=0, description="peer/ego box centres closer than this may pair")
     ransac: RansacConfig = RansacConfig(
         inlier_threshold_m=0.8, min_sample_dist_m=1.0, max_iterations=500, min_iterations=256
     )
-    max_correction_m: float = Field(4.0, gt=0, description="stage 2 may move stage 1 by at most this")
-    max_correction_deg: float = Field(6.0, gt=0)
+    max_correction_m: float = Field(4.0, gt=0, description="stage 2 may move stage 1 by at most this, metres")
+    max_correction_deg: float = Field(6.0, gt=0, description="... and turn it by at most this, degrees")
     fuse: bool = Field(
         True,
         description="after stage 2 verified the pose, fuse the paired boxes as a second measurement "
-        "of it, by information with the refined pose's covariance (not in the paper; docs/acquisition.md)",
+        "of it, by information with the refined pose's covariance (not in the paper)",
     )
     fuse_sigma_m: float = Field(
-        1.3, gt=0, description="1-sigma of one paired box centre (the tracker's track.box_sigma_m, docs/tracking.md)"
-    )
-    fuse_min_pairs: int = Field(2, ge=2, description="box pairs needed for the fused measurement (two fix the yaw)")
-    fuse_chi2: float = Field(
-        11.345, gt=0, description="fused only when the two measurements agree (squared Mahalanobis, chi2(3) 99 %)"
+        1.3, gt=0, description="1-sigma of one paired box centre, metres (as the tracker's track.box_sigma_m)"
     )
     fuse_disagreement_fails: bool = Field(
         True,
-        description="when the boxes' measurement and the refined pose disagree (beyond fuse_chi2) the alignment fails "
+        description="when the boxes' measurement and the refined pose disagree (chi2(3) 99 %) the alignment fails "
         "(box_correction_too_large) instead of keeping the refined pose: two independent measurements contradict each "
-        "other (measured: every such success on four simulated seeds was wrong, 1.7-1.8 m off at 77-78 m)",
+        "other",
     )
 
 
@@ -238,13 +193,6 @@ class SuccessRule(_Frozen):
 
     min_inliers_bv: int = Field(25, ge=0, description="success needs inliers_bv > this")
     min_inliers_box: int = Field(6, ge=0, description="success needs inliers_box > this (when boxes are given)")
-    strong_inliers_bv: int | None = Field(
-        None,
-        ge=0,
-        description="if set, a pair whose stage 2 cannot verify it (no box overlap, too few box "
-        "inliers) still succeeds when inliers_bv exceeds this (the paper's Fig. 9: > 100 puts > 90% of pairs "
-        "under 1 m / 1 deg); None keeps the paper's rule",
-    )
     require_boxes: bool = Field(
         False, description="True: a pair without boxes fails; False: stage 1 alone decides (said in the reason)"
     )
@@ -256,27 +204,8 @@ class SuccessRule(_Frozen):
         ge=0,
         le=1,
         description="fail when, after the dense refinement, fewer than this fraction of the peer's lit BV pixels lie "
-        "within the finest gate of an ego pixel (catches keypoint aliases along repetitive streets; measured: "
-        "correct sim pairs >= 0.19, wrong ones <= 0.17, real KITTI 16 m pair 0.51)",
+        "within the finest gate of an ego pixel (catches keypoint aliases along repetitive streets; paper mode)",
     )
-
-
-class ConfidenceConfig(_Frozen):
-    """Evidence -> confidence in [0, 1] (bb_align.engine.verdict): each stage's share saturates exponentially in its
-    inliers above the success rule's minimum; the paper's Fig. 9 puts > 90 % of pairs under 1 m / 1 deg beyond
-    100 BV or 20 box inliers."""
-
-    bv_inlier_scale: float = Field(
-        40.0, gt=0, description="BV inliers above the minimum giving 63 % of stage 1's share"
-    )
-    box_inlier_scale: float = Field(8.0, gt=0, description="likewise for box inliers")
-    fitness_span: float = Field(
-        0.2,
-        gt=0,
-        description="stage 1's share grows linearly over this much refinement fitness above success.min_refine_fitness",
-    )
-    cap_stage1_failed: float = Field(0.1, ge=0, le=1, description="most confidence a failure before stage 2 gets")
-    cap_stage2_failed: float = Field(0.5, ge=0, le=1, description="most confidence when only stage 2 failed")
 
 
 class AcquireConfig(_Frozen):
@@ -284,7 +213,11 @@ class AcquireConfig(_Frozen):
     paper's Algorithm 1). multi: top-k descriptor candidates, distinct pose hypotheses by pairwise voting, each
     verified by the dense refinement, chosen with a margin over the runner-up."""
 
-    mode: Literal["paper", "multi"] = Field("multi", description="paper: single hypothesis; multi: see above")
+    mode: Literal["paper", "multi"] = Field(
+        "multi",
+        description="paper: one RANSAC fit on nearest-neighbour descriptor matches (the paper's Algorithm 1); multi: "
+        "many pose hypotheses, each verified densely (engine.acquisition), for pairs up to about bev.range_m apart",
+    )
     top_k: int = Field(12, ge=1, le=32, description="nearest distinct ego keypoints kept per peer descriptor")
     threads: int = Field(
         2, ge=1, le=16, description="the pose vote and the dense verification run on this many threads (same result)"
@@ -297,24 +230,16 @@ class AcquireConfig(_Frozen):
         "min_evidence; wrong poses on the simulated benchmark stay below 0.7); else the full top_k search runs",
     )
     min_sample_dist_m: float = Field(3.0, ge=0, description="candidate pairs shorter than this do not vote")
-    length_tolerance_m: float = Field(1.5, gt=0, description="a pair votes only if its two lengths differ less")
-    vote_yaw_deg: float = Field(3.0, gt=0, le=30, description="yaw cell of the pose accumulator")
-    vote_t_m: float = Field(3.0, gt=0, le=20, description="translation cell of the pose accumulator")
     peaks: int = Field(200, ge=1, le=5000, description="strongest accumulator cells examined (before deduplication)")
-    min_votes: float = Field(2.0, ge=0, description="accumulator cells with fewer (soft) votes are not examined")
     max_refit_attempts: int = Field(
         40,
         ge=1,
         le=1000,
         description="accumulator peaks refitted at most (bounds the time when many peaks collapse onto the same poses)",
     )
-    refits: int = Field(4, ge=0, le=20, description="Kabsch refits of a peak on its candidate inliers")
     max_hypotheses: int = Field(32, ge=1, le=64, description="distinct hypotheses verified densely")
     distinct_m: float = Field(2.0, gt=0, description="hypotheses closer than this and distinct_deg are one")
     distinct_deg: float = Field(2.0, gt=0, description="see distinct_m")
-    min_hypothesis_inliers: int = Field(
-        6, ge=2, description="hypotheses with fewer distinct inlier keypoints are not verified"
-    )
     box_hypotheses: int = Field(
         8,
         ge=0,
@@ -357,28 +282,15 @@ class AcquireConfig(_Frozen):
     box_confirm_ratio: float = Field(
         1.5,
         ge=1,
-        description="... and this many times as many (calibrated on the simulated seeds 2024 and 777: no "
-        "wrong success; benchmarks/acquisition_range.py, docs/acquisition.md)",
+        description="... and this many times as many",
     )
-    merge_within_m: float = Field(
-        4.0,
-        gt=0,
-        description="a rival this close to the best (and merge_within_deg) is refined fully: it may be the same pose",
-    )
-    merge_within_deg: float = Field(4.0, gt=0, description="see merge_within_m")
     merge_checks: int = Field(2, ge=0, le=8, description="such rivals refined at most per frame (0: off)")
-    coarse_points: int = Field(400, ge=50, description="peer pixels of the coarse verification refinement")
-    coarse_gates_m: tuple[float, ...] = Field((2.0, 1.0), description="gates of the coarse verification")
-    coarse_iters_per_gate: int = Field(2, ge=1, le=20)
     finalists: int = Field(2, ge=1, le=64, description="best coarse hypotheses refined fully (refine config)")
     covisible_m: float = Field(
         2.0,
         gt=0,
         description="a peer pixel is co-visible when it lands within this of an "
         "ego lit pixel; relative fitness = fitness / co-visible fraction",
-    )
-    score: Literal["fitness", "relative", "blend"] = Field(
-        "fitness", description="ranks hypotheses: dense overlap, relative fitness, or relative x sqrt(fitness)"
     )
     min_margin: float = Field(1.1, ge=1, description="the best score must exceed the runner-up's by this factor")
     runner_up_floor: float = Field(
@@ -393,8 +305,7 @@ class AcquireConfig(_Frozen):
         0.65,
         ge=0,
         description="success needs margin x relative fitness >= this: a pose must both stand out from "
-        "the runner-up and explain the structure the two images can share (calibrated on the 200-pair simulated "
-        "benchmark, seed 2024: no wrong success; benchmarks/acquisition_range.py)",
+        "the runner-up and explain the structure the two images can share",
     )
     min_relative_fitness: float = Field(
         0.0,
@@ -415,9 +326,8 @@ class AcquireConfig(_Frozen):
         description="multi mode, the search everywhere (not inside a prior's window, whose fewer rivals inflate the "
         "margin): a pose whose dense evidence (margin x relative fitness) reaches this succeeds when some boxes "
         "pair under it but too few of their corners agree for stage 2 (too_few_inliers_box); no_box_overlap is "
-        "never waived (two wrong successes, one 42 m off, on seeds 9001 and 55555: docs/acquisition.md, Sessions "
-        "11-12); a box correction beyond box.max_correction_* still fails. 1.0 = first_pass_evidence. "
-        "None: stage 2 always vetoes",
+        "never waived (a pose with no box pairing has no support beside the images); a box correction beyond "
+        "box.max_correction_* still fails. 1.0 = first_pass_evidence. None: stage 2 always vetoes",
     )
 
 
@@ -429,16 +339,16 @@ class CovarianceConfig(_Frozen):
     inflation: float = Field(
         450.0,
         gt=0,
-        description="variance factor for correlated neighbouring pixels and model "
-        "error, calibrated on seeded simulated pairs (benchmarks/acquisition_range.py)",
+        description="variance factor for correlated neighbouring pixels and model error (calibrated so the true "
+        "pose lies within the covariance's chi2(3) 99 % bound for almost every correct pair)",
     )
     max_sigma_m: float = Field(
         1.0,
         gt=0,
-        description="refuse a pose whose 1-sigma translation along its worst "
-        "direction exceeds this (degenerate scene, e.g. a straight corridor)",
+        description="refuse a pose whose 1-sigma translation along its worst direction exceeds this, metres "
+        "(degenerate scene, e.g. a straight corridor): the success bound",
     )
-    max_sigma_deg: float = Field(1.0, gt=0, description="refuse a pose whose 1-sigma yaw exceeds this")
+    max_sigma_deg: float = Field(1.0, gt=0, description="refuse a pose whose 1-sigma yaw exceeds this, degrees")
     min_residual_sigma_m: float = Field(
         0.1,
         gt=0,
@@ -513,9 +423,9 @@ class FreeSpaceConfig(_Frozen):
         0.10,
         ge=0,
         le=1,
-        description="an acquired pose whose conflict exceeds this is refused (free_space_conflict); 1: never. Right "
-        "poses on thirteen simulated seeds: at most 0.067 (99 % under 0.045); the aliases that won the margin once "
-        "their rivals were ruled out: 0.074-0.146 (docs/acquisition.md)",
+        description="an acquired pose whose conflict (a share of tall structure, 0-1) exceeds this is refused "
+        "(free_space_conflict); 1: never. Right poses stay under about 0.07, aliases that won the margin once their "
+        "rivals were ruled out lie above",
     )
     rival_conflict: float = Field(
         0.15,
@@ -536,17 +446,15 @@ class FreeSpaceConfig(_Frozen):
         ge=0,
         le=1,
         description="a best hypothesis above this conflict is ruled out as an alias (as above rival_conflict) when a "
-        "distinct one with some overlap lies within gave_way_max_conflict: the free space prefers that one. Right "
-        "poses: 99 % of the simulated ones under 0.045, the real ones at most 0.03; the overlays of two cars' near "
-        "fields on real streets 0.05-0.15. None: off",
+        "distinct one with some overlap lies within gave_way_max_conflict: the free space prefers that one (right "
+        "poses lie under it, overlays of two cars' near fields on real streets at 0.05-0.15). None: off",
     )
     gave_way_max_conflict: float = Field(
         0.03,
         ge=0,
         le=1,
         description="a pose chosen because better-scoring ones were ruled out must itself be this clear of the free "
-        "space (else free_space_conflict). Measured on 22 simulated sets: right such poses at most 0.008, a gross "
-        "alias 0.064",
+        "space (else free_space_conflict)",
     )
 
 
@@ -686,7 +594,6 @@ class AlignConfig(_Frozen):
     refine: RefineConfig = RefineConfig()
     box: BoxConfig = BoxConfig()
     success: SuccessRule = SuccessRule()
-    confidence: ConfidenceConfig = ConfidenceConfig()
     acquire: AcquireConfig = AcquireConfig()
     covariance: CovarianceConfig = CovarianceConfig()
     free_space: FreeSpaceConfig = FreeSpaceConfig()
@@ -695,6 +602,135 @@ class AlignConfig(_Frozen):
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
     min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
     seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _without_retired(cls, data):
+        return without_retired(data)
+
+    def dump(self, advanced: bool = False) -> dict:
+        """The settings as a JSON-able dict: the ``USER_FACING`` ones (``advanced``: all of them)."""
+        data = self.model_dump(mode="json")
+        if advanced:
+            return data
+        out: dict = {}
+        for path in USER_FACING:
+            *sections, name = path.split(".")
+            src, dst = data, out
+            for sec in sections:
+                src, dst = src[sec], dst.setdefault(sec, {})
+            dst[name] = src[name]
+        return out
+
+
+# The settings a user tunes; the others are calibrated together (module docstring). Units are in each description.
+USER_FACING = (
+    "bev.range_m",
+    "bev.resolution_m",
+    "features.max_keypoints",
+    "acquire.mode",
+    "acquire.top_k",
+    "prior.max_translation_m",
+    "prior.max_yaw_deg",
+    "prior.sigma_m",
+    "prior.sigma_deg",
+    "success.min_inliers_bv",
+    "success.min_inliers_box",
+    "success.require_boxes",
+    "covariance.max_sigma_m",
+    "covariance.max_sigma_deg",
+    "track.enabled",
+    "acquire.threads",
+    "mim.threads",
+    "features.threads",
+    "match.threads",
+    "seed",
+)
+
+# Former settings, with the value the engine now uses (a constant beside its code, or the only option left). A saved
+# config naming one with that value still loads; any other value is refused, naming the setting.
+RETIRED: dict[str, object] = {
+    "bev.ground_cell_m": 2.0,  # bev.GROUND_CELL_M
+    "bev.ground_window_cells": 3,  # bev.GROUND_WINDOW_CELLS
+    "mim.n_scales": 4,  # loggabor.N_SCALES (and the bank's shape below)
+    "mim.min_wavelength_px": 3.0,
+    "mim.mult": 1.6,
+    "mim.sigma_on_f": 0.75,
+    "mim.lowpass_cutoff": 0.45,
+    "mim.lowpass_order": 15,
+    "features.fast_threshold": 10,  # keypoints.FAST_THRESHOLD
+    "features.reference_orientation_offsets": (0, -1, 1),  # frame.REFERENCE_ORIENTATION_OFFSETS
+    "ransac.refits": 3,  # ransac.REFITS
+    "ransac.ambiguity_hypotheses": 1024,  # ransac.AMBIGUITY_HYPOTHESES
+    "box.ransac.refits": 3,
+    "box.ransac.ambiguity_hypotheses": 1024,
+    "refine.step_relaxation": 2.0,  # refine.STEP_RELAXATION and the ICP's other constants
+    "refine.point_weight": 0.1,
+    "refine.huber_fraction": 0.25,
+    "refine.normal_neighbours": 8,
+    "refine.peer_normal_px": 2,
+    "refine.converged_rad": 2e-5,
+    "refine.converged_m": 0.002,
+    "box.recheck_m": 0.5,  # pipeline.RECHECK_M, RECHECK_DEG, RECHECK_MIN_GAIN, FUSE_MIN_PAIRS, FUSE_CHI2
+    "box.recheck_deg": 0.5,
+    "box.recheck_min_gain": 0.01,
+    "box.fuse_min_pairs": 2,
+    "box.fuse_chi2": 11.345,
+    "success.strong_inliers_bv": None,  # removed: never used
+    "confidence.bv_inlier_scale": 40.0,  # verdict.BV_INLIER_SCALE and the confidence's other constants
+    "confidence.box_inlier_scale": 8.0,
+    "confidence.fitness_span": 0.2,
+    "confidence.cap_stage1_failed": 0.1,
+    "confidence.cap_stage2_failed": 0.5,
+    "acquire.score": "fitness",  # removed: the dense score is the overlap fitness
+    "acquire.vote_yaw_deg": 3.0,  # acquisition.hypotheses.VOTE_YAW_DEG and the vote's other constants
+    "acquire.vote_t_m": 3.0,
+    "acquire.min_votes": 2.0,
+    "acquire.length_tolerance_m": 1.5,
+    "acquire.refits": 4,
+    "acquire.min_hypothesis_inliers": 6,
+    "acquire.coarse_points": 400,  # acquisition.verification.COARSE_POINTS, COARSE_GATES_M, ...
+    "acquire.coarse_gates_m": (2.0, 1.0),
+    "acquire.coarse_iters_per_gate": 2,
+    "acquire.merge_within_m": 4.0,  # acquisition.verification.MERGE_WITHIN_M, MERGE_WITHIN_DEG
+    "acquire.merge_within_deg": 4.0,
+}
+
+
+def _same(given, value) -> bool:
+    if isinstance(given, list | tuple) and isinstance(value, tuple):
+        return len(given) == len(value) and all(_same(g, v) for g, v in zip(given, value, strict=True))
+    return given == value and type(given) is not bool
+
+
+def without_retired(data):
+    """``data`` (a config as a dict) without the ``RETIRED`` settings it names at their value; a retired setting at
+    another value raises ValueError naming it (one line). Sections given as models are left as they are."""
+    if not isinstance(data, dict):
+        return data
+    data = dict(data)
+    for path, value in RETIRED.items():
+        *sections, name = path.split(".")
+        parents, node = [], data
+        for sec in sections:
+            parents.append((node, sec))
+            node = node.get(sec) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or name not in node:
+            continue
+        if not _same(node[name], value):
+            raise ValueError(
+                f"{path} is no longer a setting (the engine uses {value!r}, a constant); remove it from the config"
+            )
+        # Copy the dicts on the path (the caller's stay as they were), then drop the setting.
+        for parent, sec in parents:
+            parent[sec] = dict(parent[sec])
+        node = data
+        for sec in sections:
+            node = node[sec]
+        del node[name]
+    if data.get("confidence") == {}:  # a section whose settings all retired
+        del data["confidence"]
+    return data
 
 
 def with_overrides(cfg: AlignConfig, overrides: list[str] | tuple[str, ...]) -> AlignConfig:

@@ -21,6 +21,7 @@ from math import erf, exp, radians, sqrt
 import numpy as np
 from numba import njit
 
+from .config import CovarianceConfig
 from .geometry import log_left, se2
 from .refine import BevCloud, facing, facing_args
 
@@ -111,6 +112,21 @@ def params_covariance(cov_left: np.ndarray, T: np.ndarray) -> np.ndarray:
     J = _params_jacobian(T)
     cov = J @ np.asarray(cov_left, dtype=float) @ J.T
     return 0.5 * (cov + cov.T)
+
+
+def pose_uncertainty(
+    ego_cloud: BevCloud,
+    peer_sample: tuple[np.ndarray, np.ndarray | None],
+    T: np.ndarray,
+    gate: float,
+    cfg: CovarianceConfig,
+    min_cos: float = -1.0,
+) -> np.ndarray:
+    """3x3 covariance of (yaw, tx, ty) of the pose T (3x3 ego <- peer), from the refinement's normal equations
+    (``peer_sample``: the peer points and their normals; ``min_cos``: the refinement's facing test)."""
+    pts, normals = peer_sample
+    cov_left = pose_covariance(ego_cloud, pts, T, gate, cfg.inflation, cfg.min_residual_sigma_m, normals, min_cos)
+    return params_covariance(cov_left, T)
 
 
 def fuse_poses(

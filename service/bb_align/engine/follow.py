@@ -31,7 +31,7 @@ from .geometry import ground_se2, pose_error, se3_from_se2
 from .pipeline import Aligner
 from .result import AlignResult
 from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
-from .verdict import FailureReason
+from .verdict import CAP_STAGE1_FAILED, FailureReason
 
 
 def ground_pose(T: np.ndarray | None) -> np.ndarray | None:
@@ -170,7 +170,7 @@ class Follower:
         tol = self.aligner.config.prior
         if t_err > tol.max_translation_m or r_err > tol.max_yaw_deg:
             r.success, r.reason = False, FailureReason.disagrees_with_prior.value
-            r.confidence = min(r.confidence, self.aligner.config.confidence.cap_stage1_failed)
+            r.confidence = min(r.confidence, CAP_STAGE1_FAILED)
             r.notes.append(
                 f"the acquired pose is {t_err:.1f} m / {r_err:.1f} deg from the reported pose (prior tolerance "
                 f"{tol.max_translation_m:g} m / {tol.max_yaw_deg:g} deg)"
@@ -195,7 +195,7 @@ class Follower:
             r.notes.append(f"not valid on this frame's evidence: {a.why_not}")
         if not own:
             p = 0.0 if r.covariance is None else probability_within(r.covariance, 1.0, 1.0)
-            cap = self.aligner.config.confidence.cap_stage1_failed
+            cap = CAP_STAGE1_FAILED
             r.confidence = float(p if a.valid else min(p, cap))
         return r
 

@@ -14,6 +14,10 @@ from .descriptors import bvft_descriptors, flip_180
 from .parallel import run_parts
 from .refine import BevCloud, bev_cloud
 
+# The matched-against (ego) side also describes each keypoint as if its dominant orientation were the neighbouring
+# bins: a peer whose orientation estimate is one bin off still finds its match (+35 % correct matches at 40-70 m).
+REFERENCE_ORIENTATION_OFFSETS = (0, -1, 1)
+
 
 def _no_features() -> np.ndarray:
     return np.zeros((0, 2))
@@ -61,7 +65,7 @@ class PreparedFrame:
 
     def reference_descriptors(self, features: FeatureConfig, n_orient: int) -> np.ndarray:
         """What this frame offers when it is the side matched against (the ego frame): for each orientation
-        offset in ``features.reference_orientation_offsets`` the descriptors and their 180-degree copies,
+        offset in ``REFERENCE_ORIENTATION_OFFSETS`` the descriptors and their 180-degree copies,
         (2 x offsets x K, D); row i describes keypoint i % K. Built on first use (an ego frame pays it once)."""
         if self._reference is None:
 
@@ -78,7 +82,7 @@ class PreparedFrame:
                 )
                 return [d, flip_180(d, features)]
 
-            self._reference = np.concatenate(sum(run_parts(describe, features.reference_orientation_offsets), []))
+            self._reference = np.concatenate(sum(run_parts(describe, REFERENCE_ORIENTATION_OFFSETS), []))
         return self._reference
 
     def cloud(self, cfg: RefineConfig) -> BevCloud:

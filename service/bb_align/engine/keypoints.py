@@ -7,12 +7,14 @@ import numpy as np
 
 from .config import FeatureConfig
 
+FAST_THRESHOLD = 10  # FAST intensity threshold on the 0-255 height image: ~0.5 m of height step at 12 m / 255
+
 
 def detect_keypoints(image: np.ndarray, cfg: FeatureConfig | None = None) -> np.ndarray:
     """uint8 BV image -> (K, 2) int32 pixel coordinates (row, col), at most ``cfg.max_keypoints``, by response."""
     cfg = cfg or FeatureConfig()
     fast = cv2.FastFeatureDetector_create(
-        threshold=cfg.fast_threshold, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
+        threshold=FAST_THRESHOLD, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
     )
     kps = fast.detect(image, None)
     if not kps:

@@ -27,6 +27,16 @@ from numba import njit
 from .config import MimConfig
 from .parallel import run_parts
 
+# The log-Gabor bank's shape (paper Eqs. 5-7; the values ALGORITHM.md gives): scales, smallest wavelength, scale
+# factor, bandwidth sigma/f0 and the Butterworth low-pass that keeps the corners of the spectrum out. Fixed: the
+# descriptors' calibration (matching thresholds, the acquisition's) was measured with this bank.
+N_SCALES = 4
+MIN_WAVELENGTH_PX = 3.0
+MULT = 1.6
+SIGMA_ON_F = 0.75
+LOWPASS_CUTOFF = 0.45
+LOWPASS_ORDER = 15
+
 
 def frequency_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Radius r and angle theta of each FFT bin, in the unshifted (FFT) order; r[0, 0] = 1 (DC guard)."""
@@ -42,11 +52,11 @@ def frequency_grid(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
 
 def radial_filters(r: np.ndarray, cfg: MimConfig) -> np.ndarray:
     """(Ns, H, W) radial log-Gabor components times the Butterworth low-pass, zero at DC."""
-    lowpass = 1.0 / (1.0 + (r / cfg.lowpass_cutoff) ** (2 * cfg.lowpass_order))
-    out = np.empty((cfg.n_scales,) + r.shape)
-    denom = 2.0 * np.log(cfg.sigma_on_f) ** 2
-    for s in range(cfg.n_scales):
-        f0 = 1.0 / (cfg.min_wavelength_px * cfg.mult**s)
+    lowpass = 1.0 / (1.0 + (r / LOWPASS_CUTOFF) ** (2 * LOWPASS_ORDER))
+    out = np.empty((N_SCALES,) + r.shape)
+    denom = 2.0 * np.log(SIGMA_ON_F) ** 2
+    for s in range(N_SCALES):
+        f0 = 1.0 / (MIN_WAVELENGTH_PX * MULT**s)
         g = np.exp(-(np.log(r / f0) ** 2) / denom) * lowpass
         g[0, 0] = 0.0
         out[s] = g
@@ -200,9 +210,9 @@ def _blocks(
     """[orientation][scale] boxed filters for an FFT of ``shape``, the 1/(H W) of the inverse DFT folded in; the
     decimated (coarse) ones sample at ``shift`` (:func:`lattice_shift`)."""
     bank = filter_bank.__wrapped__(shape, cfg) / np.float32(shape[0] * shape[1])  # the full bank is not kept
-    first_coarse = cfg.n_scales - cfg.coarse_scales
-    stride = [cfg.coarse_stride if s >= first_coarse else 1 for s in range(cfg.n_scales)]
-    return tuple(tuple(_block(bank[o, s], stride[s], shift) for s in range(cfg.n_scales)) for o in range(cfg.n_orient))
+    first_coarse = N_SCALES - cfg.coarse_scales
+    stride = [cfg.coarse_stride if s >= first_coarse else 1 for s in range(N_SCALES)]
+    return tuple(tuple(_block(bank[o, s], stride[s], shift) for s in range(N_SCALES)) for o in range(cfg.n_orient))
 
 
 def fft_size(n: int) -> int:

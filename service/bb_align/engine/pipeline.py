@@ -21,14 +21,14 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .acquire import Acquirer, PriorWindow, SearchMemo, pose_uncertainty
+from .acquisition import Acquirer, PriorWindow, SearchMemo
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
-from .covariance import fuse_poses, left_covariance, params_covariance
+from .covariance import fuse_poses, left_covariance, params_covariance, pose_uncertainty
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
-from .geometry import ground_se2, se2, se2_params
+from .geometry import ground_se2, se2_params
 from .keypoints import detect_keypoints
 from .landscape import Fields, GaussianPrior, landscape, with_refinement, with_rivals
 from .loggabor import maximum_index_map
@@ -38,6 +38,13 @@ from .ransac import RigidRansac
 from .refine import Refiner
 from .result import AlignResult
 from .verdict import FailureReason, Verdict
+
+# box.apply "auto": a box correction beyond RECHECK_M or RECHECK_DEG is refined again on the images, and kept when
+# its overlap fitness beats the refined stage-1 pose's by more than RECHECK_MIN_GAIN.
+RECHECK_M, RECHECK_DEG, RECHECK_MIN_GAIN = 0.5, 0.5, 0.01
+# box.fuse: at least FUSE_MIN_PAIRS box pairs (two fix the yaw), fused only when the two measurements agree within
+# FUSE_CHI2 (squared Mahalanobis distance, chi2(3) 99 %).
+FUSE_MIN_PAIRS, FUSE_CHI2 = 2, 11.345
 
 
 @lru_cache(maxsize=1)
@@ -82,18 +89,8 @@ class Aligner:
         self.ransac = RigidRansac(cfg.ransac, cfg.seed)
         self.refiner = Refiner(cfg.refine, cfg.seed)
         self.box_stage = BoxStage(cfg.box, cfg.seed)
-        self.acquirer = Acquirer(cfg) if cfg.acquire.mode == "multi" else None
-        self.verdict = Verdict(
-            cfg.success,
-            cfg.confidence,
-            cfg.covariance,
-            cfg.acquire,
-            min_points=cfg.min_points,
-            min_keypoints=cfg.min_keypoints,
-            box_max_correction_m=cfg.box.max_correction_m,
-            box_max_correction_deg=cfg.box.max_correction_deg,
-            refine_enabled=cfg.refine.enabled,
-        )
+        self.verdict = Verdict.of(cfg)
+        self.acquirer = Acquirer(cfg, self.verdict) if cfg.acquire.mode == "multi" else None
 
     # ---- Algorithm 1, lines 6-8: per car -------------------------------------------------------------
     def prepare(
@@ -237,17 +234,13 @@ class Aligner:
         stands when it lies inside the prior's window, and is refused when it lies outside (the images and the
         report disagree: an alias, or a wrong or lying report). If it failed, the search again inside the window
         alone. There fewer rivals stand against the best pose, so the margin says less; the pose must then also be
-        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md, "Session 10"). The second search reuses
+        precise: 1-sigma within prior.max_sigma_m (docs/acquisition.md). The second search reuses
         the first's descriptor candidates, box poses and (unmasked) votes: only the window is new."""
         memo = SearchMemo()
         pair, reason = self._solve(ego, peer, memo=memo)
         r = pair.result
         if reason is None:
-            if window.holds(r.T_box @ r.T_bv):
-                r.notes.append("the pose lies inside the prior's window")
-                return pair, None
-            r.notes.append("the pose found everywhere lies outside the prior's window: refused")
-            return pair, FailureReason.disagrees_with_prior
+            return pair, self.verdict.within_prior(r, window.holds(r.T_box @ r.T_bv))
         if self.verdict.inputs(ego, peer) is not None:  # the inputs were refused: a window does not change that
             return pair, reason
         bounded, bounded_reason = self._solve(ego, peer, window=window, memo=memo)
@@ -307,7 +300,7 @@ class Aligner:
         with _timed(t, "ransac"):
             fit = self.ransac.fit(pts_peer, pts_ego) if len(pts_peer) >= 2 else None
         if fit is None:
-            return FailureReason.too_few_matches
+            return self.verdict.candidates(0)
         r.T_bv, r.inliers_bv, r.ambiguity_bv = fit.T_dst_src, fit.num_inliers, fit.ambiguity
         r.inlier_xy_peer, r.inlier_xy_ego = pts_peer[fit.inliers], pts_ego[fit.inliers]
         return self.verdict.stage1(r)
@@ -338,8 +331,8 @@ class Aligner:
                 main.T, main.covariance = r.T_bv, r.covariance  # the rivals below are weighed about the answer
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
-            if r.acquisition and (pair.window is not None or r.acquisition.get("gave_way")):
-                rivals = [se2(np.radians(h["yaw_deg"]), h["tx"], h["ty"]) for h in r.acquisition["all"][1:]]
+            if r.acquisition is not None and (pair.window is not None or r.acquisition.gave_way):
+                rivals = r.acquisition.rivals()
                 r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc, prior)
                 if weights and max(weights) > 1e-3:
                     r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
@@ -391,8 +384,8 @@ class Aligner:
             boxes = self.box_stage.align(pair.ego.boxes, pair.peer.boxes, r.T_bv)
         r.box_pairs, r.inliers_box = boxes.pairs, boxes.inliers
         evidence = None  # the multi path's dense evidence, when found by the search everywhere
-        if pair.multi and pair.window is None and r.acquisition and r.acquisition.get("best"):
-            evidence = r.acquisition["margin"] * r.acquisition["best"]["relative_fitness"]
+        if pair.multi and pair.window is None and r.acquisition is not None and r.acquisition.best is not None:
+            evidence = r.acquisition.evidence
         reason = self.verdict.stage2(r, boxes.T_box, densely_verified=pair.multi, evidence=evidence)
         if reason is None and self.verdict.boxes_verified(r):
             self._apply_box_correction(pair, boxes.T_box)
@@ -417,21 +410,17 @@ class Aligner:
                 T,
                 box.fuse_sigma_m,
                 pair_gate_m=box.pair_gate_m,
-                min_pairs=box.fuse_min_pairs,
+                min_pairs=FUSE_MIN_PAIRS,
                 min_inliers=self.config.success.min_inliers_box + 1,
                 cfg=box,
                 seed=self.config.seed,
             )
-            fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, box.fuse_chi2)
+            fused = None if meas is None else fuse_poses(T, left_covariance(r.covariance, T), *meas, FUSE_CHI2)
         if meas is None:
             r.notes.append("box measurement not formed")
             return None
         if fused is None:
-            if box.fuse_disagreement_fails:
-                r.notes.append("box measurement disagrees with the refined pose: refused")
-                return FailureReason.box_correction_too_large
-            r.notes.append("box measurement left out: disagrees")
-            return None
+            return self.verdict.boxes_disagree(r, refuse=box.fuse_disagreement_fails)
         T_fused, C_fused = fused
         r.T_box = T_fused @ np.linalg.inv(r.T_bv)
         r.covariance = params_covariance(C_fused, T_fused)
@@ -445,14 +434,14 @@ class Aligner:
             r.T_box, r.stage2_applied = T_box, True
             return
         yaw, tx, ty = se2_params(T_box)
-        if box.apply == "unrefined" or (np.hypot(tx, ty) <= box.recheck_m and abs(np.degrees(yaw)) <= box.recheck_deg):
+        if np.hypot(tx, ty) <= RECHECK_M and abs(np.degrees(yaw)) <= RECHECK_DEG:
             r.notes.append("stage 2 verified the refined stage-1 pose; its correction was not applied")
             return
         # auto: a large, well-supported box correction may mean the refinement settled in a local optimum.
         # Refine again from the box-corrected pose and keep whichever pose the BV images agree with more.
         with _timed(r.timings_ms, "refine"):
             alt = self.refiner.refine(pair.ego.cloud(self.config.refine), pair.peer_sample, T_box @ r.T_bv)
-        if alt.accepted and alt.fitness > r.refine_fitness + box.recheck_min_gain:
+        if alt.accepted and alt.fitness > r.refine_fitness + RECHECK_MIN_GAIN:
             r.notes.append(
                 f"stage 2 moved the pose to a better BV overlap ({r.refine_fitness:.2f} -> "
                 f"{alt.fitness:.2f}), refined again"

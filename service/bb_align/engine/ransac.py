@@ -14,6 +14,9 @@ import numpy as np
 from .config import RansacConfig
 from .geometry import kabsch_2d, se2
 
+REFITS = 3  # Kabsch refits on the inliers after the best hypothesis (stops when the inliers no longer grow)
+AMBIGUITY_HYPOTHESES = 1024  # best-scoring hypotheses searched for a distinct runner-up (RansacResult.ambiguity)
+
 
 @dataclass
 class RansacResult:
@@ -105,7 +108,7 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, cfg: RansacConfig, seed: int 
 
     T = se2(*best_params)
     inliers = _inliers_of(T, src, dst, thr2)
-    for _ in range(cfg.refits):
+    for _ in range(REFITS):
         if inliers.sum() < 2:
             break
         T_new = kabsch_2d(src[inliers], dst[inliers])
@@ -114,7 +117,7 @@ def rigid_ransac(src: np.ndarray, dst: np.ndarray, cfg: RansacConfig, seed: int 
             break
         T, inliers = T_new, new_inliers
 
-    ambiguity = _ambiguity(np.concatenate(kept), src, dst, inliers, thr2, cfg.ambiguity_hypotheses)
+    ambiguity = _ambiguity(np.concatenate(kept), src, dst, inliers, thr2, AMBIGUITY_HYPOTHESES)
     return RansacResult(T_dst_src=T, inliers=inliers, iterations=it, ambiguity=ambiguity)
 
 

@@ -18,6 +18,7 @@ is not a correspondence: it is two sides of one thing (docs/acquisition.md, sess
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -27,6 +28,16 @@ from scipy.spatial import cKDTree
 from .bev import BevImage
 from .config import RefineConfig
 from .geometry import se2_params
+
+# The ICP's fixed numbers (the verification's margins and the covariance's inflation were calibrated with them):
+NORMAL_NEIGHBOURS = 8  # ego pixels in each ego pixel's PCA normal
+PEER_NORMAL_PX = 2  # half window (pixels) of the peer pixels' PCA normals
+HUBER_FRACTION = 0.25  # Huber threshold of the point-to-line residual, as a fraction of the current gate
+POINT_WEIGHT = 0.1  # weight of the point-to-point terms beside the point-to-line ones: pins motion along a line
+# A Gauss-Newton step continuing the previous one is lengthened this much: ICP creeps along shallow valleys in small
+# steps of one direction (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24).
+STEP_RELAXATION = 2.0
+CONVERGED_RAD, CONVERGED_M = 2e-5, 0.002  # a step under both (yaw, translation) ends a gate
 
 
 @dataclass
@@ -47,6 +58,11 @@ class BevCloud:
         pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
         return _nearest_on_grid(self.index, self.clearance, self.xy, pts, self.range_m, self.resolution_m, float(gate))
 
+    @property
+    def grid(self) -> EgoGrid:
+        """What the compiled loops read."""
+        return EgoGrid(self.index, self.clearance, self.xy, self.normals, float(self.range_m), float(self.resolution_m))
+
 
 def bev_points(bev: BevImage, min_value: int = 1, max_points: int | None = None, seed: int = 0) -> np.ndarray:
     """(N, 2) metres of the pixels with value >= min_value (optionally a seeded random subset)."""
@@ -66,9 +82,9 @@ def bev_samples(bev: BevImage, min_value: int, sizes: list[int | None], seed: in
 
 def bev_cloud(bev: BevImage, cfg: RefineConfig | None = None) -> BevCloud:
     """The ego side of the refinement: lit pixels (>= cfg.min_pixel_value) with PCA normals of their
-    cfg.normal_neighbours nearest pixels."""
+    NORMAL_NEIGHBOURS nearest pixels."""
     cfg = cfg or RefineConfig()
-    k = cfg.normal_neighbours
+    k = NORMAL_NEIGHBOURS
     rc = np.argwhere(bev.image >= cfg.min_pixel_value)
     xy = bev.pixel_to_metre(rc)
     index = np.full(bev.shape, -1, dtype=np.int32)
@@ -94,11 +110,11 @@ def facing_sensor(xy: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 def peer_normals(bev: BevImage, pts: np.ndarray, cfg: RefineConfig) -> np.ndarray:
     """(N, 2) unit normals at the peer points ``pts`` (pixel centres of ``bev``), facing the peer's sensor: the PCA
-    of the lit pixels within ``cfg.peer_normal_px`` of each (a compiled window scan: the peer pays no KD-tree). A
+    of the lit pixels within ``PEER_NORMAL_PX`` of each (a compiled window scan: the peer pays no KD-tree). A
     pixel with no line around it (alone, or in a round blob) gets the direction to the sensor: the face it shows."""
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     lit = np.ascontiguousarray(bev.image >= cfg.min_pixel_value)
-    n = _window_normals(lit, pts, float(bev.range_m), float(bev.resolution_m), cfg.peer_normal_px)
+    n = _window_normals(lit, pts, float(bev.range_m), float(bev.resolution_m), PEER_NORMAL_PX)
     return facing_sensor(pts, n)
 
 
@@ -182,7 +198,7 @@ def refine_icp(
     ``normals_peer`` (``peer_normals``): pairs whose faces disagree are left out (module doc); None: all pair.
 
     ICP creeps along shallow valleys in small steps of the same direction; a step that continues the previous
-    one is lengthened by ``cfg.step_relaxation`` (2: KITTI 0.04 m / 0.07 deg in 12 steps instead of 24)."""
+    one is lengthened by ``STEP_RELAXATION``."""
     cfg = cfg or RefineConfig()
     gates = cfg.gates_m
     T = np.array(T_init, dtype=float)
@@ -205,10 +221,7 @@ def _icp(
     """The ICP iterations of refine_icp (compiled): (the pose they end at, False when a step matched fewer than
     cfg.min_points points)."""
     pn, min_cos = facing_args(pts, normals_peer, cfg.facing_min_cos)
-    return _icp_loop(
-        ego.index, ego.clearance, ego.xy, ego.normals, ego.range_m, ego.resolution_m, pts, pn, T, *icp_params(cfg),
-        min_cos,
-    )  # fmt: skip
+    return _icp_loop(ego.grid, pts, pn, T, icp_params(cfg, min_cos))
 
 
 def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, min_cos: float) -> tuple[np.ndarray, float]:
@@ -218,17 +231,43 @@ def facing_args(pts: np.ndarray, normals_peer: np.ndarray | None, min_cos: float
     return np.ascontiguousarray(normals_peer, dtype=np.float64).reshape(-1, 2), float(min_cos)
 
 
-def icp_params(cfg: RefineConfig) -> tuple:
-    """The refinement config as _icp_loop's arguments after T (without the facing test's min_cos, last)."""
-    return (
+class EgoGrid(NamedTuple):
+    """A BevCloud as the compiled loops read it (``BevCloud.grid``)."""
+
+    index: np.ndarray
+    clearance: np.ndarray
+    xy: np.ndarray
+    normals: np.ndarray
+    range_m: float
+    resolution_m: float
+
+
+class IcpParams(NamedTuple):
+    """The refinement config as the compiled ICP loop reads it (``icp_params``)."""
+
+    gates: np.ndarray  # metres, coarse to fine
+    iters: int
+    huber_fraction: float
+    point_weight: float
+    relaxation: float
+    converged_rad: float
+    converged_m: float
+    min_points: int
+    min_cos: float  # the facing test (``facing``); -1: off
+
+
+def icp_params(cfg: RefineConfig, min_cos: float) -> IcpParams:
+    """``cfg`` as _icp_loop's parameters, with the facing test's ``min_cos`` (``facing_args``)."""
+    return IcpParams(
         np.asarray(cfg.gates_m, dtype=np.float64),
         cfg.iters_per_gate,
-        cfg.huber_fraction,
-        cfg.point_weight,
-        cfg.step_relaxation,
-        cfg.converged_rad,
-        cfg.converged_m,
+        HUBER_FRACTION,
+        POINT_WEIGHT,
+        STEP_RELAXATION,
+        CONVERGED_RAD,
+        CONVERGED_M,
         cfg.min_points,
+        min_cos,
     )
 
 
@@ -242,14 +281,14 @@ def transform_into(pts, T, out):
 
 
 @njit(cache=True, nogil=True)
-def _icp_loop(
-    index, clearance, xy, normals, range_m, resolution_m, pts, pn, T_init, gates, iters, huber_fraction, point_weight,
-    relaxation, converged_rad, converged_m, min_points, min_cos,
-):  # fmt: skip
+def _icp_loop(grid, pts, pn, T_init, params):
     """refine_icp's iterations: per gate up to ``iters`` Gauss-Newton steps (nearest ego pixel within the gate,
     point-to-line normal equations, the step lengthened by ``relaxation`` when it continues the previous one),
-    the gate left when a step is below converged_rad and converged_m. Returns (T, ok); ok False (and T_init)
-    when a step finds fewer than min_points matches facing alike (``pn``, ``min_cos``: _normal_equations)."""
+    the gate left when a step is below converged_rad and converged_m (``params``: IcpParams; ``grid``: EgoGrid).
+    Returns (T, ok); ok False (and T_init) when a step finds fewer than min_points matches facing alike (``pn``,
+    ``min_cos``: _normal_equations)."""
+    index, clearance, xy, normals, range_m, resolution_m = grid
+    gates, iters, huber_fraction, point_weight, relaxation, converged_rad, converged_m, min_points, min_cos = params
     T = T_init.copy()
     p = np.empty_like(pts)
     prev = np.zeros(3)
@@ -281,16 +320,16 @@ def _icp_loop(
 
 
 @njit(cache=True, nogil=True)
-def coarse_verification_loop(
-    index, clearance, xy, normals, range_m, resolution_m, covis, pts, pn, Ts, gates, iters, huber_fraction,
-    point_weight, relaxation, converged_rad, converged_m, min_points, min_cos, max_correction_m, max_correction_deg,
-    final_gate,
-):  # fmt: skip
-    """The acquisition's coarse verification of the poses Ts (acquire.coarse_verification): per pose the ICP
-    iterations, the correction kept when within max_correction_m and max_correction_deg of the start (as
-    refine_icp), then the overlap within final_gate (overlap_fitness: fraction of points with an ego pixel, RMS
-    distance of those) and the fraction of points on the co-visibility mask ``covis`` (acquire.covisible_fraction).
-    Here, beside the loops it calls: numba's on-disk cache is invalidated by its own file's changes only."""
+def coarse_verification_loop(grid, covis, pts, pn, Ts, params, bounds):
+    """The acquisition's coarse verification of the poses Ts (acquisition.verification.coarse_verification): per
+    pose the ICP iterations (``params``: IcpParams), the correction kept when within ``bounds`` = (max_correction_m,
+    max_correction_deg, final_gate) of the start (as refine_icp), then the overlap within final_gate
+    (overlap_fitness: fraction of points with an ego pixel, RMS distance of those) and the fraction of points on the
+    co-visibility mask ``covis`` (acquisition.verification.covisible_fraction). Here, beside the loops it calls:
+    numba's on-disk cache is invalidated by its own file's changes only."""
+    index, clearance, xy, normals, range_m, resolution_m = grid
+    max_correction_m, max_correction_deg, final_gate = bounds
+    min_points = params.min_points
     n_h, n = len(Ts), len(pts)
     out = np.empty_like(Ts)
     fitness, rmse, covisible = np.zeros(n_h), np.full(n_h, np.inf), np.zeros(n_h)
@@ -299,10 +338,7 @@ def coarse_verification_loop(
         T0 = Ts[h]
         T = T0.copy()
         if len(xy) >= min_points and n >= min_points:
-            T, ok = _icp_loop(
-                index, clearance, xy, normals, range_m, resolution_m, pts, pn, T0, gates, iters, huber_fraction,
-                point_weight, relaxation, converged_rad, converged_m, min_points, min_cos,
-            )  # fmt: skip
+            T, ok = _icp_loop(grid, pts, pn, T0, params)
             if ok:
                 rel = T @ np.linalg.inv(T0)
                 yaw = np.arctan2(rel[1, 0], rel[0, 0])
@@ -330,7 +366,7 @@ def coarse_verification_loop(
 
 @njit(cache=True, nogil=True)
 def covisible_share(covis, p, range_m, resolution_m):
-    """Fraction of the (N, 2) ego-frame points ``p`` on a pixel of the uint8 mask ``covis`` (acquire.covisible_map)."""
+    """Fraction of the (N, 2) ego-frame points ``p`` on a pixel of the uint8 mask ``covis`` (covisible_map)."""
     h_img, w_img = covis.shape
     seen = 0
     for i in range(len(p)):

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .geometry import se2_params
+
+if TYPE_CHECKING:
+    from .acquisition import Acquisition
 
 
 @dataclass
@@ -36,8 +40,8 @@ class AlignResult:
     source: str = "acquisition"
     track_state: str | None = None
     track_event: str | None = None
-    # Multi-hypothesis acquisition: margin over the runner-up, relative fitness, hypotheses (engine.acquire).
-    acquisition: dict | None = field(default=None, repr=False)
+    # Multi-hypothesis acquisition: margin over the runner-up, relative fitness, hypotheses (engine.acquisition).
+    acquisition: Acquisition | None = field(default=None, repr=False)
     # Stage-1 inlier correspondences (metres, each car's sensor frame), for plots and diagnostics.
     inlier_xy_peer: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
     inlier_xy_ego: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
@@ -79,7 +83,5 @@ class AlignResult:
             "track_state": self.track_state,
             "track_event": self.track_event,
             "covariance": None if self.covariance is None else np.asarray(self.covariance, dtype=float).tolist(),
-            "acquisition": None
-            if self.acquisition is None
-            else {k: v for k, v in self.acquisition.items() if k in ("candidates", "hypotheses", "margin", "best")},
+            "acquisition": None if self.acquisition is None else self.acquisition.to_dict(full=False),
         }

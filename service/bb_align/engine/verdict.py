@@ -8,12 +8,16 @@ once (:meth:`Verdict.finish`).
 from __future__ import annotations
 
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .config import AcquireConfig, ConfidenceConfig, CovarianceConfig, SuccessRule
+from .config import AcquireConfig, AlignConfig, CovarianceConfig, FreeSpaceConfig, SuccessRule
 from .geometry import se2_params, se3_from_se2, worst_sigma_m
 from .result import AlignResult
+
+if TYPE_CHECKING:
+    from .acquisition.decision import Decision
 
 
 class FailureReason(str, Enum):
@@ -40,7 +44,15 @@ class FailureReason(str, Enum):
     disagrees_with_prior = "disagrees_with_prior"  # the acquired pose is far from the reported one (alias or lie)
 
 
-# Stage 1 stands but stage 2 could not confirm it (confidence capped at cap_stage2_failed, not cap_stage1_failed).
+# Evidence -> confidence (Verdict.confidence): each stage's share saturates exponentially in its inliers above the
+# success rule's minimum (the paper's Fig. 9 puts > 90 % of pairs under 1 m / 1 deg beyond 100 BV or 20 box inliers).
+BV_INLIER_SCALE = 40.0  # BV inliers above the minimum giving 63 % of stage 1's share
+BOX_INLIER_SCALE = 8.0  # likewise for box inliers
+FITNESS_SPAN = 0.2  # stage 1's share grows linearly over this much refinement fitness above min_refine_fitness
+CAP_STAGE1_FAILED = 0.1  # the most confidence a failure before stage 2 gets
+CAP_STAGE2_FAILED = 0.5  # the most confidence when only stage 2 failed
+
+# Stage 1 stands but stage 2 could not confirm it (confidence capped at CAP_STAGE2_FAILED, not CAP_STAGE1_FAILED).
 UNCONFIRMED_BY_BOXES = frozenset(
     {FailureReason.no_boxes, FailureReason.no_box_overlap, FailureReason.too_few_inliers_box}
 )
@@ -53,7 +65,6 @@ class Verdict:
     def __init__(
         self,
         rule: SuccessRule,
-        confidence: ConfidenceConfig,
         covariance: CovarianceConfig,
         acquire: AcquireConfig,
         *,
@@ -62,11 +73,28 @@ class Verdict:
         box_max_correction_m: float,
         box_max_correction_deg: float,
         refine_enabled: bool,
+        free_space: FreeSpaceConfig | None = None,
     ):
-        self.rule, self.conf, self.cov, self.acquire = rule, confidence, covariance, acquire
+        self.rule, self.cov, self.acquire = rule, covariance, acquire
         self.min_points, self.min_keypoints = min_points, min_keypoints
         self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
         self.refine_enabled = refine_enabled
+        self.free_space = free_space or FreeSpaceConfig()
+
+    @classmethod
+    def of(cls, cfg: AlignConfig) -> Verdict:
+        """The verdict of an alignment configuration."""
+        return cls(
+            cfg.success,
+            cfg.covariance,
+            cfg.acquire,
+            min_points=cfg.min_points,
+            min_keypoints=cfg.min_keypoints,
+            box_max_correction_m=cfg.box.max_correction_m,
+            box_max_correction_deg=cfg.box.max_correction_deg,
+            refine_enabled=cfg.refine.enabled,
+            free_space=cfg.free_space,
+        )
 
     def inputs(self, *frames) -> FailureReason | None:
         """Nothing to match: too few points, an empty image, (almost) no keypoints."""
@@ -98,6 +126,47 @@ class Verdict:
             return FailureReason.ambiguous_bv
         return None
 
+    def candidates(self, peer_keypoints: int) -> FailureReason | None:
+        """A rigid pose needs at least two peer keypoints with descriptor candidates (paper mode: 0 when RANSAC had
+        fewer than two matches to fit)."""
+        return FailureReason.too_few_matches if peer_keypoints < 2 else None
+
+    def hypotheses(self, hyps: list) -> FailureReason | None:
+        """Multi mode: no hypothesis with enough keypoint inliers survived verification."""
+        return FailureReason.too_few_inliers_bv if not hyps else None
+
+    def acquisition(self, d: Decision, notes: list[str]) -> FailureReason | None:
+        """Multi mode: the best hypothesis (``d``: acquisition.decision.Decision) stands when the images single it
+        out (margin and evidence; inside a prior's window the landscape weighs the rivals instead) or, failing that,
+        the boxes do (never for a pose chosen after better-scoring ones gave way to the free space); when no rival
+        beyond stage 2's reach has the boxes' vote instead; when it overlaps enough; and when the free space does not
+        rule it out. Remarks go to ``notes``."""
+        a, fs, best = self.acquire, self.free_space, d.best
+        if not d.dense_ok and d.weighed:
+            # Inside a prior's window the rivals are weighed in the answer's covariance instead (pipeline._judge): a
+            # street's repeated structure then widens the uncertainty along it rather than refusing the pose.
+            notes.append(f"margin {d.margin:.2f} inside the prior's window: the rivals are weighed instead")
+        elif not d.dense_ok and d.gave_way:
+            # Chosen because better-scoring poses gave way: the images misled once already, and the boxes pair at
+            # many poses along rows of parked cars, so the images' own evidence must carry it.
+            notes.append("chosen after better-scoring poses gave way: box evidence alone does not carry it")
+            return FailureReason.ambiguous_bv
+        elif not d.dense_ok and not d.box_confirmed:
+            return FailureReason.ambiguous_bv
+        if d.contradicting is not None:
+            notes.append(
+                f"the boxes vouch for another pose: {d.contradicting.box_pairs} cars on cars, {best.box_pairs} here"
+            )
+            return FailureReason.ambiguous_bv
+        if not d.dense_ok and not d.weighed:
+            notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
+        if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
+            return FailureReason.inconsistent_overlap
+        if fs.enabled and best.conflict > (fs.gave_way_max_conflict if d.gave_way else fs.max_conflict):
+            notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
+            return FailureReason.free_space_conflict
+        return None
+
     def refined(self, r: AlignResult) -> FailureReason | None:
         """After the dense refinement, enough of the peer's lit pixels must land on ego pixels."""
         return FailureReason.inconsistent_overlap if r.refine_fitness < self.rule.min_refine_fitness else None
@@ -121,10 +190,9 @@ class Verdict:
     def stage2(
         self, r: AlignResult, T_box: np.ndarray, densely_verified: bool = False, evidence: float | None = None
     ) -> FailureReason | None:
-        """Inliers_box above the rule's minimum (or, when configured, a strong stage 1 standing alone, or a densely
-        verified multi-hypothesis pose when acquire.stage2_required is off, or when some boxes pair under it but
-        too few corners agree and its ``evidence`` reaches acquire.stage2_waiver_evidence), and a correction within
-        bounds."""
+        """Inliers_box above the rule's minimum (or a densely verified multi-hypothesis pose when
+        acquire.stage2_required is off, or when some boxes pair under it but too few corners agree and its
+        ``evidence`` reaches acquire.stage2_waiver_evidence), and a correction within bounds."""
         failure = (
             FailureReason.no_box_overlap
             if r.box_pairs == 0
@@ -149,16 +217,28 @@ class Verdict:
             )
             return None
         if failure is not None:
-            strong = self.rule.strong_inliers_bv
-            if strong is not None and r.inliers_bv > strong:
-                r.notes.append(
-                    f"stage 2 could not verify ({failure.value}); accepted on stage-1 evidence (inliers_bv > {strong})"
-                )
-                return None
             return failure
         yaw, tx, ty = se2_params(T_box)
         if np.hypot(tx, ty) > self.box_max_m or abs(np.degrees(yaw)) > self.box_max_deg:
             return FailureReason.box_correction_too_large
+        return None
+
+    def within_prior(self, r: AlignResult, holds: bool) -> FailureReason | None:
+        """Multi mode with a prior: the pose the search everywhere found must lie inside the prior's window (else
+        the images and the report disagree: an alias, or a wrong or lying report)."""
+        if holds:
+            r.notes.append("the pose lies inside the prior's window")
+            return None
+        r.notes.append("the pose found everywhere lies outside the prior's window: refused")
+        return FailureReason.disagrees_with_prior
+
+    def boxes_disagree(self, r: AlignResult, refuse: bool) -> FailureReason | None:
+        """The boxes' measurement and the refined pose disagree: two independent measurements contradict each
+        other; refused when ``refuse`` (box.fuse_disagreement_fails), else the boxes are left out."""
+        if refuse:
+            r.notes.append("box measurement disagrees with the refined pose: refused")
+            return FailureReason.box_correction_too_large
+        r.notes.append("box measurement left out: disagrees")
         return None
 
     def boxes_verified(self, r: AlignResult) -> bool:
@@ -179,13 +259,13 @@ class Verdict:
     def confidence(self, r: AlignResult, reason: FailureReason | None) -> float:
         """Evidence -> [0, 1]. Grows with Inliers_bv and Inliers_box (the paper's Fig. 9), shrinks with the RANSAC
         ambiguity and a low refinement fitness; capped when failed."""
-        s, c = self.rule, self.conf
-        c_bv = 1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / c.bv_inlier_scale)
+        s = self.rule
+        c_bv = 1.0 - np.exp(-max(0, r.inliers_bv - s.min_inliers_bv) / BV_INLIER_SCALE)
         c_bv *= 1.0 - min(1.0, r.ambiguity_bv)
         if self.refine_enabled and r.refine_fitness > 0:
-            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / c.fitness_span, 0.0, 1.0))
-        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / c.box_inlier_scale)
+            c_bv *= float(np.clip((r.refine_fitness - s.min_refine_fitness) / FITNESS_SPAN, 0.0, 1.0))
+        c_box = 1.0 - np.exp(-max(0, r.inliers_box - s.min_inliers_box) / BOX_INLIER_SCALE)
         out = 1.0 - (1.0 - c_bv) * (1.0 - c_box)
         if reason is not None:
-            out = min(out, c.cap_stage2_failed if reason in UNCONFIRMED_BY_BOXES else c.cap_stage1_failed)
+            out = min(out, CAP_STAGE2_FAILED if reason in UNCONFIRMED_BY_BOXES else CAP_STAGE1_FAILED)
         return float(np.clip(out, 0.0, 1.0))

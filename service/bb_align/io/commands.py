@@ -66,63 +66,76 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
         On a DAIR-V2X-C root (cooperative-vehicle-infrastructure or its parent) the vehicle is the ego, the
         roadside unit the peer, the boxes are the labels, and OUT's cooperative/calib/lidar_i2v/<id>.json holds
         the recovered transform (x, y, yaw recovered; z, roll, pitch kept)."""
-        from .config_file import load_align_config
-        from .dataset import is_dair_root
-        from .recover import (
-            JSONL_NAME,
-            SUMMARY_NAME,
-            FolderDetections,
-            RecoverConfig,
-            YamlDetections,
-            recover_dataset,
-        )
+        _recover(
+            root, out, prior, track, detections, simulate_detections, pose_noise, seed, copy, limit, config, quiet,
+            simulated_detections,
+        )  # fmt: skip
 
-        if detections is not None and simulate_detections:
-            raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")
-        if simulate_detections:
-            if simulated_detections is None:
-                raise typer.BadParameter("--simulate-detections is not available in this build")
-            source = simulated_detections(seed)
-        elif detections is not None:
-            source = FolderDetections(detections)
-        else:
-            source = YamlDetections()
-        sigma_t, sigma_deg = parse_pose_noise(pose_noise) if pose_noise is not None else (0.0, 0.0)
-        try:
-            align_cfg = load_align_config(config)
-        except ValueError as exc:
-            raise typer.BadParameter(str(exc), param_hint="--config") from None
-        cfg = RecoverConfig(
-            align=align_cfg,
-            use_prior=prior,
-            track=track,
-            pose_noise_t_m=sigma_t,
-            pose_noise_deg=sigma_deg,
-            seed=seed,
-            link=not copy,
-        )
-        dair = is_dair_root(root)
-        typer.echo(f"detections: {'labels' if dair and isinstance(source, YamlDetections) else source.name}")
-        try:
-            summary = recover_dataset(root, out, cfg, source, limit=limit, progress=not quiet)
-        except (ValueError, FileNotFoundError) as exc:
-            raise typer.BadParameter(str(exc)) from exc
+
+def _recover(
+    root, out, prior, track, detections, simulate_detections, pose_noise, seed, copy, limit, config, quiet, simulated
+) -> None:
+    """The ``recover`` command's work (its options as named there; ``simulated``: register's factory)."""
+    from .config_file import load_align_config
+    from .dataset import is_dair_root
+    from .recover import RecoverConfig, YamlDetections, recover_dataset
+
+    source = _detection_source(detections, simulate_detections, seed, simulated)
+    sigma_t, sigma_deg = parse_pose_noise(pose_noise) if pose_noise is not None else (0.0, 0.0)
+    try:
+        align_cfg = load_align_config(config)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--config") from None
+    cfg = RecoverConfig(
+        align=align_cfg,
+        use_prior=prior,
+        track=track,
+        pose_noise_t_m=sigma_t,
+        pose_noise_deg=sigma_deg,
+        seed=seed,
+        link=not copy,
+    )
+    dair = is_dair_root(root)
+    typer.echo(f"detections: {'labels' if dair and isinstance(source, YamlDetections) else source.name}")
+    try:
+        summary = recover_dataset(root, out, cfg, source, limit=limit, progress=not quiet)
+    except (ValueError, FileNotFoundError) as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    _echo_summary(summary, out)
+
+
+def _detection_source(detections: Path | None, simulate: bool, seed: int, simulated):
+    """Where the boxes come from: a folder of detection files, the simulated detector, or the yaml's."""
+    from .recover import FolderDetections, YamlDetections
+
+    if detections is not None and simulate:
+        raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")
+    if simulate:
+        if simulated is None:
+            raise typer.BadParameter("--simulate-detections is not available in this build")
+        return simulated(seed)
+    return FolderDetections(detections) if detections is not None else YamlDetections()
+
+
+def _echo_summary(summary: dict, out: Path) -> None:
+    from .recover import JSONL_NAME, SUMMARY_NAME
+
+    typer.echo(
+        f"frames {summary['frames_done']}/{summary['frames']}, agent frames {summary['agent_frames']}: "
+        f"recovered {summary['recovered']}, kept the reported pose {summary['kept_reported']}"
+    )
+    typer.echo("outcomes: " + json.dumps(summary["outcomes"]))
+    if summary.get("frames_left_out"):
+        left = summary["frames_left_out"]
+        typer.echo(f"note: {len(left)} cooperative frames left out (files missing), e.g. {left[0]}")
+    boxes = summary["agent_frames_with_boxes"]
+    if boxes["ego"] < summary["agent_frames"] or boxes["peer"] < summary["agent_frames"]:
         typer.echo(
-            f"frames {summary['frames_done']}/{summary['frames']}, agent frames {summary['agent_frames']}: "
-            f"recovered {summary['recovered']}, kept the reported pose {summary['kept_reported']}"
+            f"note: boxes for {boxes['ego']} ego and {boxes['peer']} peer of {summary['agent_frames']} agent "
+            "frames; without boxes stage 2 is skipped (--detections DIR, or --simulate-detections)"
         )
-        typer.echo("outcomes: " + json.dumps(summary["outcomes"]))
-        if summary.get("frames_left_out"):
-            left = summary["frames_left_out"]
-            typer.echo(f"note: {len(left)} cooperative frames left out (files missing), e.g. {left[0]}")
-        boxes = summary["agent_frames_with_boxes"]
-        if boxes["ego"] < summary["agent_frames"] or boxes["peer"] < summary["agent_frames"]:
-            typer.echo(
-                f"note: boxes for {boxes['ego']} ego and {boxes['peer']} peer of {summary['agent_frames']} agent "
-                "frames; without boxes stage 2 is skipped (--detections DIR, or --simulate-detections)"
-            )
-        typer.echo(f"poses: {Path(out) / JSONL_NAME}")
-        if summary["complete"]:
-            typer.echo(f"summary: {Path(out) / SUMMARY_NAME}")
-        else:
-            typer.echo("stopped before the end (--limit): run the same command again to continue")
+    typer.echo(f"poses: {Path(out) / JSONL_NAME}")
+    if summary["complete"]:
+        typer.echo(f"summary: {Path(out) / SUMMARY_NAME}")
+    else:
+        typer.echo("stopped before the end (--limit): run the same command again to continue")

@@ -35,8 +35,11 @@ def _one_line(error: ValidationError) -> str:
     """Each wrong field with what it must be, e.g. 'bev.range_m: Input should be greater than 0 (got -5)'."""
     parts = []
     for err in error.errors():
-        field = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        field = ".".join(str(p) for p in err["loc"])
+        if not field and err["type"] == "value_error":  # a retired setting (engine.config.RETIRED): names itself
+            parts.append(err["msg"].removeprefix("Value error, "))
+            continue
         quiet = err["type"] in ("missing", "extra_forbidden", "json_invalid")
         got = "" if quiet else f" (got {err.get('input')!r})"
-        parts.append(f"{field}: {err['msg']}{got}")
+        parts.append(f"{field or '(top level)'}: {err['msg']}{got}")
     return "; ".join(parts)

@@ -231,20 +231,14 @@ def _row(scenario: str, timestamp: str, ego: str, boxes_ego: int | None, r: Peer
         "timestamp": timestamp,
         "ego": ego,
         "agent": r.agent,
-        "success": bool(res.success),
-        "reason": res.reason,
+        "success": d["success"],
+        "reason": d["reason"],
         "pose_written": "recovered" if res.success else "reported",
-        "T_ego_peer": np.asarray(res.T_ego_peer, dtype=float).tolist(),
+        "T_ego_peer": d["T_ego_peer"],
         "T_ego_peer_reported": np.asarray(r.T_ego_peer_reported, dtype=float).tolist(),
-        "yaw_deg": res.yaw_deg,
-        "tx": res.tx,
-        "ty": res.ty,
-        "confidence": float(res.confidence),
-        "inliers_bv": int(res.inliers_bv),
-        "inliers_box": int(res.inliers_box),
-        "covariance": d.get("covariance"),
-        "source": res.source,
-        "track_state": res.track_state,
+        **{k: d[k] for k in ("yaw_deg", "tx", "ty", "confidence", "inliers_bv", "inliers_box", "covariance")},
+        "source": d["source"],
+        "track_state": d["track_state"],
         "boxes_ego": boxes_ego,
         "boxes_peer": r.boxes_peer,
     }
@@ -265,6 +259,26 @@ def recover_frame(frame: dict, aligner: Aligner, *, use_prior: bool = False, ego
     :func:`recovered_pose_value`); failed ones keep theirs. Every non-ego agent also gets ``"bb_align"``: the
     jsonl row of :data:`ROW_FIELDS` (success, reason, T_ego_peer, confidence, inliers, ...).
     """
+    ego_key = _ego_key(frame, ego_id)
+    ego_pts, ego_boxes, ego_pose = _unpack_agent(frame, ego_key)
+    peers = [a for a in frame if a != ego_key]
+    recs = recover_peers(
+        aligner,
+        ego_pts,
+        ego_boxes,
+        ego_pose,
+        [PeerInput(str(a), *_unpack_agent(frame, a)) for a in peers],
+        use_prior=use_prior,
+    )
+    out = {a: dict(v) for a, v in frame.items()}
+    for a, r in zip(peers, recs):
+        out[a]["params"] = {**frame[a]["params"], "lidar_pose": r.pose_value}
+        out[a]["bb_align"] = _row("", "", str(ego_key), None if ego_boxes is None else len(ego_boxes), r)
+    return out
+
+
+def _ego_key(frame: dict, ego_id=None):
+    """recover_frame's ego: the agent flagged ``"ego": True``, else ``ego_id``, else the lowest id."""
     from .dataset import agent_order
 
     if not isinstance(frame, dict) or len(frame) < 1:
@@ -276,43 +290,30 @@ def recover_frame(frame: dict, aligner: Aligner, *, use_prior: bool = False, ego
         ego_key = by_text[agent_order(by_text)[0]]
     if ego_key not in frame:
         raise ValueError(f"ego id {ego_key!r} is not in the frame (agents: {list(frame)})")
+    return ego_key
 
-    def unpack(agent_id):
-        entry = frame[agent_id]
-        where = f"frame[{agent_id!r}]"
-        if not isinstance(entry, dict) or not isinstance(entry.get("params"), dict):
-            raise ValueError(f"{where} needs a 'params' dict")
-        if "lidar_pose" not in entry["params"]:
-            raise ValueError(f"{where}['params'] needs 'lidar_pose'")
-        pts = entry.get("lidar_np", entry.get("points"))
-        if pts is None:
-            raise ValueError(f"{where} needs 'lidar_np' (or 'points'): (N, 3+) points in its sensor frame")
-        pts = np.asarray(pts, dtype=np.float32)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise ValueError(f"{where}['lidar_np'] must be (N, 3+), got {pts.shape}")
-        dets = entry.get("detections", entry["params"].get("detections"))
-        boxes = None if dets is None else boxes_from_array(dets, f"{where} detections")
-        try:
-            parse_lidar_pose(entry["params"]["lidar_pose"])
-        except ValueError as exc:
-            raise ValueError(f"{where}['params']['lidar_pose']: {exc}") from exc
-        return pts, boxes, entry["params"]["lidar_pose"]
 
-    ego_pts, ego_boxes, ego_pose = unpack(ego_key)
-    peers = [a for a in frame if a != ego_key]
-    recs = recover_peers(
-        aligner,
-        ego_pts,
-        ego_boxes,
-        ego_pose,
-        [PeerInput(str(a), *unpack(a)) for a in peers],
-        use_prior=use_prior,
-    )
-    out = {a: dict(v) for a, v in frame.items()}
-    for a, r in zip(peers, recs):
-        out[a]["params"] = {**frame[a]["params"], "lidar_pose": r.pose_value}
-        out[a]["bb_align"] = _row("", "", str(ego_key), None if ego_boxes is None else len(ego_boxes), r)
-    return out
+def _unpack_agent(frame: dict, agent_id) -> tuple[np.ndarray, np.ndarray | None, object]:
+    """One agent of recover_frame's dict, checked: (points, boxes or None, its lidar_pose value)."""
+    entry = frame[agent_id]
+    where = f"frame[{agent_id!r}]"
+    if not isinstance(entry, dict) or not isinstance(entry.get("params"), dict):
+        raise ValueError(f"{where} needs a 'params' dict")
+    if "lidar_pose" not in entry["params"]:
+        raise ValueError(f"{where}['params'] needs 'lidar_pose'")
+    pts = entry.get("lidar_np", entry.get("points"))
+    if pts is None:
+        raise ValueError(f"{where} needs 'lidar_np' (or 'points'): (N, 3+) points in its sensor frame")
+    pts = np.asarray(pts, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise ValueError(f"{where}['lidar_np'] must be (N, 3+), got {pts.shape}")
+    dets = entry.get("detections", entry["params"].get("detections"))
+    boxes = None if dets is None else boxes_from_array(dets, f"{where} detections")
+    try:
+        parse_lidar_pose(entry["params"]["lidar_pose"])
+    except ValueError as exc:
+        raise ValueError(f"{where}['params']['lidar_pose']: {exc}") from exc
+    return pts, boxes, entry["params"]["lidar_pose"]
 
 
 # ---- files ---------------------------------------------------------------------------------------------------
@@ -466,19 +467,9 @@ def recover_dataset(
     for g in todo:
         if limit is not None and finished >= limit:
             break
-        followers = None
-        if cfg.track:
-            for key in [k for k in tracks if k[0] != g.scenario]:  # a finished scenario's tracks go
-                del tracks[key]
-
-            def followers(agent: str, scenario=g.scenario) -> Follower:
-                return tracks.setdefault((scenario, agent), Follower(aligner))
-
+        followers = _followers(tracks, g.scenario, aligner) if cfg.track else None
         new_rows = _recover_group(g, out, root, scen_dirs[g.scenario], aligner, cfg, detections, followers)
-        with open(jsonl, "a") as fh:  # the frame's done-marker: its rows, in one append
-            fh.write("".join(json.dumps(r) + "\n" for r in new_rows))
-            fh.flush()
-            os.fsync(fh.fileno())
+        _append_rows(jsonl, new_rows)
         finished += 1
         bar.update()
         if on_frame is not None:
@@ -488,6 +479,25 @@ def recover_dataset(
     if summary["complete"]:
         _atomic_text(out / SUMMARY_NAME, json.dumps(summary, indent=1))
     return summary
+
+
+def _followers(tracks: dict, scenario: str, aligner: Aligner) -> Callable[[str], Follower]:
+    """Peer id -> that peer's Follower in ``scenario`` (kept in ``tracks``); a finished scenario's tracks go."""
+    for key in [k for k in tracks if k[0] != scenario]:
+        del tracks[key]
+
+    def followers(agent: str) -> Follower:
+        return tracks.setdefault((scenario, agent), Follower(aligner))
+
+    return followers
+
+
+def _append_rows(jsonl: Path, rows: list[dict]) -> None:
+    """A frame's done-marker: its rows, in one append, on disk before the next frame starts."""
+    with open(jsonl, "a") as fh:
+        fh.write("".join(json.dumps(r) + "\n" for r in rows))
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 def _recover_group(
@@ -584,6 +594,37 @@ def _resume_rows(jsonl: Path, expected: dict[tuple, set]) -> set:
     return done
 
 
+def _recover_dair_pair(g: FrameGroup, pair, base: Path, root: Path, out: Path, aligner, cfg, detections) -> dict:
+    """One cooperative frame: aligned, its recovered lidar_i2v written into OUT; its jsonl row."""
+    from .dair import calib_text, read_calib
+
+    ego, peer = g.ego, g.peers[0]
+    ego_pts, peer_pts = ego.load_points(), peer.load_points()
+    ego_boxes, peer_boxes = detections(ego, ego_pts), detections(peer, peer_pts)
+    ego_boxes = None if ego_boxes is None else as_boxes(ego_boxes)
+    peer_boxes = None if peer_boxes is None else as_boxes(peer_boxes)
+    T_rep = read_calib(pair.lidar_i2v)
+    pose_value = T_rep.tolist()
+    if cfg.pose_noise_t_m > 0 or cfg.pose_noise_deg > 0:
+        rng = np.random.default_rng([cfg.seed, zlib.crc32(pair.vehicle_id.encode())])
+        pose_value = noisy_pose_value(pose_value, rng, cfg.pose_noise_t_m, cfg.pose_noise_deg)
+    (rec,) = recover_peers(
+        aligner,
+        ego_pts,
+        ego_boxes,
+        np.eye(4).tolist(),
+        [PeerInput(peer.agent, peer_pts, peer_boxes, pose_value)],
+        use_prior=cfg.use_prior,
+    )
+    template = json.loads(pair.lidar_i2v.read_text())
+    dest = out / pair.lidar_i2v.relative_to(root)
+    _atomic_text(dest, calib_text(np.asarray(rec.pose_value, dtype=float), template))
+    row = _row("", pair.vehicle_id, ego.agent, None if ego_boxes is None else len(ego_boxes), rec)
+    row["infrastructure_frame"] = pair.infra_id
+    row["lidar_i2v"] = str(pair.lidar_i2v.relative_to(base))
+    return row
+
+
 def recover_dair_dataset(
     root: str | Path,
     out: str | Path,
@@ -599,13 +640,12 @@ def recover_dair_dataset(
     ``cooperative/calib/lidar_i2v/<veh id>.json`` holds the recovered roadside->vehicle transform (failures keep
     the file as it was), plus the jsonl and summary of :func:`recover_dataset`. ``detections`` defaults to the
     labels. Resumable the same way; ``track`` is not supported (cooperative frames are not one sequence)."""
-    from .dair import calib_text, find_dair_root, frame_group, read_calib, read_pairs
+    from .dair import find_dair_root, frame_group, read_pairs
 
     cfg = cfg or RecoverConfig()
     if cfg.track:
         raise ValueError("track (--track) is not supported on DAIR-V2X-C roots; recover each frame alone")
-    detections = detections or LabelDetections()
-    if isinstance(detections, YamlDetections) and not isinstance(detections, LabelDetections):
+    if detections is None or (isinstance(detections, YamlDetections) and not isinstance(detections, LabelDetections)):
         detections = LabelDetections()
     root, out = _check_paths(Path(root), Path(out))
     base = find_dair_root(root)
@@ -631,34 +671,7 @@ def recover_dair_dataset(
         if limit is not None and finished >= limit:
             break
         g = frame_group(base, pair)
-        ego, peer = g.ego, g.peers[0]
-        ego_pts, peer_pts = ego.load_points(), peer.load_points()
-        ego_boxes, peer_boxes = detections(ego, ego_pts), detections(peer, peer_pts)
-        ego_boxes = None if ego_boxes is None else as_boxes(ego_boxes)
-        peer_boxes = None if peer_boxes is None else as_boxes(peer_boxes)
-        T_rep = read_calib(pair.lidar_i2v)
-        pose_value = T_rep.tolist()
-        if cfg.pose_noise_t_m > 0 or cfg.pose_noise_deg > 0:
-            rng = np.random.default_rng([cfg.seed, zlib.crc32(pair.vehicle_id.encode())])
-            pose_value = noisy_pose_value(pose_value, rng, cfg.pose_noise_t_m, cfg.pose_noise_deg)
-        (rec,) = recover_peers(
-            aligner,
-            ego_pts,
-            ego_boxes,
-            np.eye(4).tolist(),
-            [PeerInput(peer.agent, peer_pts, peer_boxes, pose_value)],
-            use_prior=cfg.use_prior,
-        )
-        template = json.loads(pair.lidar_i2v.read_text())
-        dest = out / pair.lidar_i2v.relative_to(root)
-        _atomic_text(dest, calib_text(np.asarray(rec.pose_value, dtype=float), template))
-        row = _row("", pair.vehicle_id, ego.agent, None if ego_boxes is None else len(ego_boxes), rec)
-        row["infrastructure_frame"] = pair.infra_id
-        row["lidar_i2v"] = str(pair.lidar_i2v.relative_to(base))
-        with open(jsonl, "a") as fh:  # the frame's done-marker
-            fh.write(json.dumps(row) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
+        _append_rows(jsonl, [_recover_dair_pair(g, pair, base, root, out, aligner, cfg, detections)])
         finished += 1
         bar.update()
         if on_frame is not None:

@@ -14,6 +14,7 @@ import concurrent.futures
 import hmac
 import time
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.openapi.utils import get_openapi
@@ -150,9 +151,8 @@ def _result_response(request: Request, result: Result, service: AlignService) ->
     return Response(service.encode_answer(result, encoding), media_type=encoding)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or Settings()
-    service = AlignService(settings)
+def _lifespan(service: AlignService, settings: Settings):
+    """The app's lifespan: the service's workers, and the Zenoh link when enabled (stopped in the reverse order)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -173,30 +173,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if link is not None:
                 await asyncio.to_thread(link.close)
 
-    token = settings.auth.rest_token
-    guard = [_bearer(None if token is None else token.get_secret_value())]
-    # With a token, the schema and the interactive docs are behind it too (declared below with the guard).
-    # /docs and /redoc are this service's own page (docs_page): FastAPI's load Swagger UI from a CDN.
-    docs = {"docs_url": None, "redoc_url": None} | ({} if token is None else {"openapi_url": None})
-    app = FastAPI(
-        **docs,
-        title="bb-align",
-        version=__version__,
-        lifespan=lifespan,
-        description="Ego-side V2V pose recovery (BB-Align): peers' BV images and boxes in, T_ego_peer "
-        "out. Wire format: proto_schemas/WIRE.md.",
-    )
-    app.state.settings = settings
-    app.state.service = service
-    app.state.link = None
-    limits = settings.limits
-    keyring = service.keyring
-    rate = KeyRate(limits.rest_rate_hz, limits.rest_burst, max_keys=limits.max_peers * 4 + 16)
+    return lifespan
 
-    def charge(vehicle_id: str) -> None:
+
+@dataclass
+class _Doors:
+    """What the REST routes share: the service, its settings, the bearer guard and the per-sender rate."""
+
+    service: AlignService
+    settings: Settings
+    guard: list
+    rate: KeyRate
+
+    def charge(self, vehicle_id: str) -> None:
         """One frame from a sender whose signature verified: 429 past its allowance (a frame this sender's key did
         not sign was refused before it got here). Not in the demo profile: there an id proves nothing."""
-        if keyring.required and not rate.allow(vehicle_id):
+        limits = self.settings.limits
+        if self.service.keyring.required and not self.rate.allow(vehicle_id):
             raise WireError(
                 429,
                 "overloaded",
@@ -207,42 +200,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 limit_env("rest_rate_hz"),
             )
 
-    @app.exception_handler(WireError)
-    async def _wire_error(_: Request, e: WireError) -> JSONResponse:
-        if not getattr(e, "counted", False):
-            service.metrics.rejected.labels("rest", e.error).inc()
-        return _error(e)
-
-    @app.post(
-        "/v1/align",
-        response_model=Result,
-        summary="Align a peer frame now and return T_ego_peer",
-        responses={
-            200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
-            **_errors(400, 401, 403, 409, 413, 415, 422, 429, 503, 504),
-        },
-        dependencies=guard,
-        openapi_extra=_binary_body(
-            AlignRequest,
-            "An AlignRequest: `peer` and optionally `ego` (else the "
-            "cached ego frame nearest in time to the peer's stamp).",
-        ),
-    )
-    async def align(request: Request) -> Response:
-        received = time.perf_counter()
-        data, encoding = await _read_body(request, limits.max_message_bytes)
-        req = await asyncio.to_thread(load_align_request, data, limits, encoding, keyring=keyring, now=time.time())
-        charge(req.peer.vehicle_id)
-        future: concurrent.futures.Future = concurrent.futures.Future()
-        accepted = service.submit_request(
-            future.set_result,
-            frame=req.peer,
-            ego=req.ego,
-            nbytes=len(data),
-            encoding=encoding,
-            door="rest",
-            received=received,
-        )
+    async def outcome(self, future: concurrent.futures.Future, accepted: bool) -> Result:
+        """The queued request's result, or the WireError that says why there is none."""
+        settings = self.settings
         if not accepted:
             e = WireError(
                 503,
@@ -264,7 +224,88 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise WireError(503, "unavailable", str(outcome))
         if isinstance(outcome, Exception):
             raise outcome
-        return _result_response(request, outcome, service)
+        return outcome
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    service = AlignService(settings)
+    token = settings.auth.rest_token
+    # With a token, the schema and the interactive docs are behind it too (declared below with the guard).
+    # /docs and /redoc are this service's own page (docs_page): FastAPI's load Swagger UI from a CDN.
+    docs = {"docs_url": None, "redoc_url": None} | ({} if token is None else {"openapi_url": None})
+    app = FastAPI(
+        **docs,
+        title="bb-align",
+        version=__version__,
+        lifespan=_lifespan(service, settings),
+        description="Ego-side V2V pose recovery (BB-Align): peers' BV images and boxes in, T_ego_peer "
+        "out. Wire format: proto_schemas/WIRE.md.",
+    )
+    app.state.settings = settings
+    app.state.service = service
+    app.state.link = None
+    limits = settings.limits
+    doors = _Doors(
+        service,
+        settings,
+        [_bearer(None if token is None else token.get_secret_value())],
+        KeyRate(limits.rest_rate_hz, limits.rest_burst, max_keys=limits.max_peers * 4 + 16),
+    )
+
+    @app.exception_handler(WireError)
+    async def _wire_error(_: Request, e: WireError) -> JSONResponse:
+        if not getattr(e, "counted", False):
+            service.metrics.rejected.labels("rest", e.error).inc()
+        return _error(e)
+
+    _add_align_route(app, doors)
+    _add_frame_route(app, doors)
+    _add_status_routes(app, doors)
+    _add_docs_routes(app, doors.guard, token is not None)
+    return app
+
+
+def _add_align_route(app: FastAPI, doors: _Doors) -> None:
+    service, limits = doors.service, doors.settings.limits
+
+    @app.post(
+        "/v1/align",
+        response_model=Result,
+        summary="Align a peer frame now and return T_ego_peer",
+        responses={
+            200: {"content": {MSGPACK: {"schema": {"$ref": _REF.format(model="Result")}}}},
+            **_errors(400, 401, 403, 409, 413, 415, 422, 429, 503, 504),
+        },
+        dependencies=doors.guard,
+        openapi_extra=_binary_body(
+            AlignRequest,
+            "An AlignRequest: `peer` and optionally `ego` (else the "
+            "cached ego frame nearest in time to the peer's stamp).",
+        ),
+    )
+    async def align(request: Request) -> Response:
+        received = time.perf_counter()
+        data, encoding = await _read_body(request, limits.max_message_bytes)
+        req = await asyncio.to_thread(
+            load_align_request, data, limits, encoding, keyring=service.keyring, now=time.time()
+        )
+        doors.charge(req.peer.vehicle_id)
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        accepted = service.submit_request(
+            future.set_result,
+            frame=req.peer,
+            ego=req.ego,
+            nbytes=len(data),
+            encoding=encoding,
+            door="rest",
+            received=received,
+        )
+        return _result_response(request, await doors.outcome(future, accepted), service)
+
+
+def _add_frame_route(app: FastAPI, doors: _Doors) -> None:
+    service, settings = doors.service, doors.settings
 
     @app.post(
         "/v1/frames",
@@ -272,7 +313,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         status_code=202,
         summary="Hand in an ego or peer frame, as if it came over Zenoh",
         responses=_errors(400, 401, 403, 409, 413, 415, 422, 429, 503),
-        dependencies=guard,
+        dependencies=doors.guard,
         openapi_extra=_binary_body(
             Frame,
             "A Frame or a Signed frame (required when authentication is on). "
@@ -283,13 +324,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def post_frame(request: Request) -> Accepted:
         received = time.perf_counter()
-        data, encoding = await _read_body(request, limits.max_message_bytes)
-        frame = await asyncio.to_thread(load_frame, data, limits, encoding, keyring=keyring, now=time.time())
-        charge(frame.vehicle_id)
+        data, encoding = await _read_body(request, settings.limits.max_message_bytes)
+        frame = await asyncio.to_thread(
+            load_frame, data, settings.limits, encoding, keyring=service.keyring, now=time.time()
+        )
+        doors.charge(frame.vehicle_id)
         if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
             raise WireError(503, "unavailable", "the service is shutting down")
         kind = "ego" if frame.vehicle_id == settings.ego_id else "peer"
         return Accepted(accepted=True, kind=kind, vehicle_id=frame.vehicle_id, seq=frame.seq)
+
+
+def _add_status_routes(app: FastAPI, doors: _Doors) -> None:
+    service, settings, guard = doors.service, doors.settings, doors.guard
 
     @app.get(
         "/v1/peers",
@@ -332,15 +379,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
         return JSONResponse(r.model_dump(), status_code=200 if r.ready else 503)
 
+    _add_metrics_route(app, doors)
+
+
+def _add_metrics_route(app: FastAPI, doors: _Doors) -> None:
     @app.get(
         "/metrics",
         summary="Prometheus metrics",
         response_class=Response,
-        dependencies=guard,
+        dependencies=doors.guard,
         responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **_errors(401)},
     )
     async def metrics() -> Response:
-        return Response(service.metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
+        return Response(doors.service.metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
+
+
+def _add_docs_routes(app: FastAPI, guard: list, guarded_schema: bool) -> None:
+    """The OpenAPI schema (with the binary bodies' models) and the local docs page."""
 
     def openapi() -> dict:
         if app.openapi_schema is None:
@@ -353,7 +408,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return app.openapi_schema
 
     app.openapi = openapi
-    if token is not None:
+    if guarded_schema:
 
         @app.get("/openapi.json", include_in_schema=False, dependencies=guard)
         async def openapi_json() -> JSONResponse:
@@ -363,5 +418,3 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/redoc", include_in_schema=False, dependencies=guard)
     async def docs_page() -> HTMLResponse:
         return HTMLResponse(docs_html(app.openapi()))
-
-    return app

@@ -763,27 +763,33 @@ def _encode(frame: Frame, encoding: str) -> bytes:
     return to_json(frame) if encoding == JSON else pack(frame)
 
 
+# The wire Result's fields that the engine's result serialises (AlignResult.to_dict) as they are.
+_ENGINE_FIELDS = (
+    "success",
+    "reason",
+    "yaw_deg",
+    "tx",
+    "ty",
+    "T_ego_peer",
+    "inliers_bv",
+    "inliers_box",
+    "matches_bv",
+    "box_pairs",
+    "confidence",
+    "stage2_applied",
+    "covariance",
+    "track_state",
+    "track_event",
+    "notes",
+)
+
+
 def _from_engine(res: AlignResult, base: dict, prior_used: bool, timings: dict[str, float]) -> Result:
-    T = np.asarray(res.T_ego_peer, dtype=float)
+    d = res.to_dict()
     return Result(
         **base,
-        success=res.success,
-        reason=res.reason,
-        yaw_deg=res.yaw_deg,
-        tx=res.tx,
-        ty=res.ty,
-        T_ego_peer=T.tolist(),
-        inliers_bv=res.inliers_bv,
-        inliers_box=res.inliers_box,
-        matches_bv=res.matches_bv,
-        box_pairs=res.box_pairs,
-        confidence=res.confidence,
-        stage2_applied=res.stage2_applied,
-        covariance=None if res.covariance is None else np.asarray(res.covariance, dtype=float).tolist(),
+        **{k: d[k] for k in _ENGINE_FIELDS},
         prior_used=prior_used,
         source=res.source if res.track_state is not None and res.source != "none" else None,  # "none": no pose
-        track_state=res.track_state,
-        track_event=res.track_event,
-        notes=list(res.notes),
         timings_ms={k: float(v) for k, v in timings.items()},
     )

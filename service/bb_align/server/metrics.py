@@ -48,6 +48,31 @@ class Metrics:
         intake: Callable[[], int] = lambda: 0,
     ):
         self.registry = r = CollectorRegistry(auto_describe=True)
+        self._counters(r)
+        self.latency = Histogram(
+            "bbalign_result_latency_seconds",
+            "Message received -> result ready",
+            ["door"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.engine = Histogram(
+            "bbalign_engine_seconds", "Engine time by step", ["step"], buckets=_LATENCY_BUCKETS, registry=r
+        )
+        Gauge("bbalign_ego_cache_frames", "Ego frames in the cache", registry=r).set_function(ego_frames)
+        Gauge("bbalign_queued_jobs", "Frames and requests waiting for a worker", registry=r).set_function(queued)
+        Gauge(
+            "bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)", registry=r
+        ).set_function(peers)
+        Gauge("bbalign_intake_messages", "Raw messages waiting for the gate", registry=r).set_function(intake)
+        self.door_throttled = Gauge(
+            "bbalign_door_throttled_seconds",
+            "Time the Zenoh door slept because it had spent its CPU share (a flood pushed back on its senders)",
+            registry=r,
+        )
+        r.register(_BandwidthCollector(bandwidth))
+
+    def _counters(self, r: CollectorRegistry) -> None:
         self.frames = Counter("bbalign_frames_received", "Frames received", ["door", "kind"], registry=r)
         self.dropped = Counter(
             "bbalign_frames_dropped",
@@ -87,28 +112,6 @@ class Metrics:
         self.alignments = Counter(
             "bbalign_alignments", "Alignments run, by outcome (success or reason)", ["peer", "outcome"], registry=r
         )
-        self.latency = Histogram(
-            "bbalign_result_latency_seconds",
-            "Message received -> result ready",
-            ["door"],
-            buckets=_LATENCY_BUCKETS,
-            registry=r,
-        )
-        self.engine = Histogram(
-            "bbalign_engine_seconds", "Engine time by step", ["step"], buckets=_LATENCY_BUCKETS, registry=r
-        )
-        Gauge("bbalign_ego_cache_frames", "Ego frames in the cache", registry=r).set_function(ego_frames)
-        Gauge("bbalign_queued_jobs", "Frames and requests waiting for a worker", registry=r).set_function(queued)
-        Gauge(
-            "bbalign_peers_tracked", "Senders tracked (authenticated, valid frames, not idle)", registry=r
-        ).set_function(peers)
-        Gauge("bbalign_intake_messages", "Raw messages waiting for the gate", registry=r).set_function(intake)
-        self.door_throttled = Gauge(
-            "bbalign_door_throttled_seconds",
-            "Time the Zenoh door slept because it had spent its CPU share (a flood pushed back on its senders)",
-            registry=r,
-        )
-        r.register(_BandwidthCollector(bandwidth))
 
     def forget_peer(self, peer: str, outcomes: set[str]) -> None:
         """Drop an evicted peer's labels (label sets stay bounded by the peers tracked)."""

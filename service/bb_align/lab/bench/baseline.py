@@ -34,10 +34,14 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
+from bb_align.engine import loggabor as lg
+from bb_align.engine import refine as rf
 from bb_align.engine.bev import BevImage
 from bb_align.engine.config import AlignConfig, BoxConfig, FeatureConfig, MimConfig, RefineConfig
 from bb_align.engine.geometry import kabsch_2d, se2, se2_params, se3_from_se2
+from bb_align.engine.keypoints import FAST_THRESHOLD
 from bb_align.engine.loggabor import fft_shape
+from bb_align.engine.pipeline import RECHECK_DEG, RECHECK_M, RECHECK_MIN_GAIN
 
 RANSAC_ITERATIONS = 10_000  # the reference's fixed count
 # box.apply = "auto": a box correction this large is checked by refining again from it, and kept when the lit
@@ -73,12 +77,12 @@ def log_gabor_mim(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, np.nda
     radius = np.sqrt(uu**2 + vv**2)
     theta = np.arctan2(-vv, uu)
     radius[0, 0] = 1.0
-    lowpass = 1.0 / (1.0 + (radius / cfg.lowpass_cutoff) ** (2 * cfg.lowpass_order))
+    lowpass = 1.0 / (1.0 + (radius / lg.LOWPASS_CUTOFF) ** (2 * lg.LOWPASS_ORDER))
 
     amplitude = np.zeros((cfg.n_orient, h, w))
-    for s in range(cfg.n_scales):
-        f0 = 1.0 / (cfg.min_wavelength_px * cfg.mult**s)
-        radial = np.exp(-(np.log(radius / f0) ** 2) / (2.0 * np.log(cfg.sigma_on_f) ** 2)) * lowpass
+    for s in range(lg.N_SCALES):
+        f0 = 1.0 / (lg.MIN_WAVELENGTH_PX * lg.MULT**s)
+        radial = np.exp(-(np.log(radius / f0) ** 2) / (2.0 * np.log(lg.SIGMA_ON_F) ** 2)) * lowpass
         radial[0, 0] = 0.0
         for o in range(cfg.n_orient):
             phi = o * np.pi / cfg.n_orient
@@ -104,7 +108,7 @@ def fast_keypoints(image: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
     pad = descriptor_radius(cfg)
     padded = cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
     fast = cv2.FastFeatureDetector_create(
-        threshold=cfg.fast_threshold, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
+        threshold=FAST_THRESHOLD, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16
     )
     h, w = image.shape
     kept = []
@@ -283,7 +287,7 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
 
     if len(xy_ego) < cfg.min_points or len(pts) < cfg.min_points:
         return Refined(T_init, False, fitness(T_init))
-    _, nn = tree.query(xy_ego, k=min(cfg.normal_neighbours, len(xy_ego)))
+    _, nn = tree.query(xy_ego, k=min(rf.NORMAL_NEIGHBOURS, len(xy_ego)))
     nb = xy_ego[nn] - xy_ego[nn].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
     normals = np.linalg.eigh(cov)[1][:, :, 0]  # eigenvector of the smallest eigenvalue: across the line
@@ -297,18 +301,18 @@ def refine_pose(ego: BevImage, peer: BevImage, T_init: np.ndarray, cfg: RefineCo
                 return Refined(T_init, False, fitness(T_init))
             p, q, nrm = p[ok], xy_ego[j[ok]], normals[j[ok]]
             r_line = ((p - q) * nrm).sum(1)
-            w = 1.0 / np.maximum(1.0, np.abs(r_line) / (cfg.huber_fraction * gate))  # Huber
+            w = 1.0 / np.maximum(1.0, np.abs(r_line) / (rf.HUBER_FRACTION * gate))  # Huber
             # Unknowns (dyaw, dtx, dty) of a small motion applied after T; d p / d yaw = (-p_y, p_x).
             J_line = np.column_stack([nrm[:, 1] * p[:, 0] - nrm[:, 0] * p[:, 1], nrm[:, 0], nrm[:, 1]])
             J_x = np.column_stack([-p[:, 1], np.ones(len(p)), np.zeros(len(p))])
             J_y = np.column_stack([p[:, 0], np.zeros(len(p)), np.ones(len(p))])
-            H = (J_line * w[:, None]).T @ J_line + cfg.point_weight**2 * (J_x.T @ J_x + J_y.T @ J_y)
-            g = (J_line * (w * r_line)[:, None]).T.sum(1) + cfg.point_weight**2 * (
+            H = (J_line * w[:, None]).T @ J_line + rf.POINT_WEIGHT**2 * (J_x.T @ J_x + J_y.T @ J_y)
+            g = (J_line * (w * r_line)[:, None]).T.sum(1) + rf.POINT_WEIGHT**2 * (
                 J_x.T @ (p[:, 0] - q[:, 0]) + J_y.T @ (p[:, 1] - q[:, 1])
             )
             delta = np.linalg.solve(H, -g)
             T = se2(*delta) @ T
-            if abs(delta[0]) < cfg.converged_rad and np.abs(delta[1:]).max() < cfg.converged_m:
+            if abs(delta[0]) < rf.CONVERGED_RAD and np.abs(delta[1:]).max() < rf.CONVERGED_M:
                 break
     yaw, tx, ty = se2_params(T @ np.linalg.inv(T_init))
     accepted = bool(np.hypot(tx, ty) <= cfg.max_correction_m and abs(np.degrees(yaw)) <= cfg.max_correction_deg)
@@ -465,19 +469,16 @@ class BaselineAligner:
             else ("too_few_inliers_box" if res.inliers_box <= rule.min_inliers_box else None)
         )
         if failure is not None:
-            strong = rule.strong_inliers_bv
-            return finish(None if strong is not None and res.inliers_bv > strong else failure)
+            return finish(failure)
         yaw, tx, ty = se2_params(T_fit)
         if np.hypot(tx, ty) > cfg.box.max_correction_m or abs(np.degrees(yaw)) > cfg.box.max_correction_deg:
             return finish("box_correction_too_large")
         refined = ref is not None and ref.accepted
         if cfg.box.apply == "always" or not refined:
             T_box = T_fit
-        elif cfg.box.apply == "auto" and (
-            np.hypot(tx, ty) > cfg.box.recheck_m or abs(np.degrees(yaw)) > cfg.box.recheck_deg
-        ):
+        elif cfg.box.apply == "auto" and (np.hypot(tx, ty) > RECHECK_M or abs(np.degrees(yaw)) > RECHECK_DEG):
             # A large box correction: refine again from the box-corrected pose, keep it if the images agree more.
             alt = refine_pose(ego.bev, peer.bev, T_fit @ T_bv, cfg.refine, seed=seed)
-            if alt.accepted and alt.fitness > ref.fitness + cfg.box.recheck_min_gain:
+            if alt.accepted and alt.fitness > ref.fitness + RECHECK_MIN_GAIN:
                 T_box = alt.T @ np.linalg.inv(T_bv)
         return finish(None)
