@@ -289,3 +289,30 @@ def test_combine_weighs_by_information_and_leaves_out_a_disagreeing_measurement(
     assert not used and m is a
     m, used = combine(Measurement(False, reason="no overlap"), b, 11.345)
     assert used and m is b
+
+
+@pytest.mark.parametrize("own", [True, False], ids=["own_measurement", "fused_only"])
+def test_a_fused_pose_the_frame_cannot_bound_is_answered_by_the_frames_own_measurement(own):
+    """The peer's odometry is re-anchored by 1 m (below the jump detector, inside the gate): the fused pose lies
+    ~0.5 m from this frame's exact measurement, so the measurement (3 sigma = 0.6 m) cannot bound it within 1 m; the
+    measurement itself it can bound, and it is the answer, with its own covariance."""
+    cfg = TrackConfig(answer_own_measurement=own)
+    track = PeerTrack(cfg)
+    cov = np.diag(np.square([np.radians(0.1), 0.2, 0.2]))
+    odo = _odometry(drift_per_frame=0.0, jump_at=1, jump=(0.0, 1.0, 0.0))
+
+    def exact(k):
+        T = _truth(k)[2]
+        return Measurement(True, T, cov, evidence=Evidence(T, cov, 0.5))
+
+    assert track.step(0.0, lambda T: exact(0), lambda T: exact(0), *odo(0)).valid
+    a = track.step(DT, lambda T: exact(1), lambda T: exact(1), *odo(1))
+    assert a.source == "tracking" and a.mahalanobis2 < cfg.gate_chi2  # fused, not an event
+    T_true = _truth(1)[2]
+    if own:
+        assert a.valid, a.why_not
+        np.testing.assert_allclose(a.T_ego_peer, T_true, atol=1e-9)
+        np.testing.assert_allclose(a.covariance, cov)
+    else:
+        assert not a.valid and "bounds the answer's error" in a.why_not
+        assert 0.3 < pose_error(a.T_ego_peer, T_true)[0] < 0.7  # between the jumped prediction and the truth

@@ -340,6 +340,12 @@ class PeerTrack:
         if source == "acquisition" and ev is not None:
             self.support = ev.fitness  # a full acquisition that agrees: the reference the next frames are held to
         why = self._judge(ev, T, P_T)
+        if why is not None and ev is not None and self.cfg.answer_own_measurement and self.with_odometry:
+            # The fused pose is not bounded by this frame's measurement (it lies a little off it, and the bound adds
+            # that offset to the measurement's own 3 sigma); the measurement itself may be: answer it, under the
+            # same rules, with its own covariance.
+            if self._judge(ev, ev.T_ego_peer, ev.covariance) is None:
+                T, P_T, why = ev.T_ego_peer, ev.covariance, None
         if why is None:
             self.misses = 0
             self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)

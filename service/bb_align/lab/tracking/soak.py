@@ -378,7 +378,9 @@ def run_track_soak(
         time.sleep(cfg.grace_s)  # the last frames' results
         last = lives[-1]
         run["samples"].append(_sample(lives, collector, time.perf_counter() - collector.t0))
-        run["peers_status"] = last.svc.get("/v1/peers") if last.svc.proc.poll() is None else None
+        if last.svc.proc.poll() is None:
+            run["peers_status"] = last.svc.get("/v1/peers")
+            run["metrics"] = _metrics(last.svc)
         sub.undeclare()
     finally:
         for s in senders:
@@ -395,9 +397,26 @@ def run_track_soak(
             for r in sorted(collector.rows, key=lambda r: r.t_recv):
                 fh.write(json.dumps(vars(r)) + "\n")
     rep = report(cfg, cars, collector, lives, run, kill, build_s)
+    keys = ("frames_accepted", "frames_dropped", "intake_dropped", "results", "failed")
     status = run.get("peers_status") or {}
-    rep["service_frames_dropped_last_life"] = {p: v.get("frames_dropped") for p, v in status.items()}
+    rep["service_counters_last_life"] = {p: {k: v.get(k) for k in keys} for p, v in status.items()}
+    rep["service_metrics_last_life"] = run.get("metrics")
     return rep
+
+
+def _metrics(svc: ServiceProcess) -> dict[str, float]:
+    """The service's intake, door, drop and rejection counters (/metrics), summed over their peer labels."""
+    import re
+
+    import httpx
+
+    out: dict[str, float] = defaultdict(float)
+    text = httpx.get(svc.rest + "/metrics", timeout=10).text
+    for line in text.splitlines():
+        if line.startswith(("bbalign_frames", "bbalign_intake", "bbalign_door", "bbalign_alignments_total")):
+            name, _, value = line.rpartition(" ")
+            out[re.sub(r'peer="[^"]*",?', "", name).replace(",}", "}").replace("{}", "")] += float(value)
+    return dict(out)
 
 
 def _cached(folder: Path | None, key: tuple, build: Callable[[], list[CarStream]]) -> list[CarStream]:
