@@ -223,6 +223,20 @@ class PeerTrack:
             return "the track's uncertainty exceeds the answer bounds"
         return None
 
+    def _own_measurement_stands(self, ev: Evidence | None, T: np.ndarray) -> bool:
+        """With odometry, for a fused pose T that is not a valid answer: this frame's measurement is one instead.
+        The fused pose must lie inside the measurement's own gate (the two estimators agree; the measurement
+        found enough of the peer), and the measurement must pass every rule as the answer, with its own
+        covariance: what failed was only that the measurement cannot bound T's offset from it plus its own
+        3 sigma (``_bounded``), or the track's precision."""
+        if ev is None or not (self.cfg.answer_own_measurement and self.with_odometry):
+            return False
+        if self._supported(ev) is not None:
+            return False
+        if mahalanobis2(ev.covariance, log_left(T, ev.T_ego_peer)) > self.cfg.gate_chi2:
+            return False
+        return self._judge(ev, ev.T_ego_peer, ev.covariance) is None
+
     def _bounded(self, ev: Evidence, T: np.ndarray) -> str | None:
         """Why this frame's measurement ``ev`` does not bound the error of the answer T within evidence_bound, or
         None."""
@@ -340,12 +354,8 @@ class PeerTrack:
         if source == "acquisition" and ev is not None:
             self.support = ev.fitness  # a full acquisition that agrees: the reference the next frames are held to
         why = self._judge(ev, T, P_T)
-        if why is not None and ev is not None and self.cfg.answer_own_measurement and self.with_odometry:
-            # The fused pose is not bounded by this frame's measurement (it lies a little off it, and the bound adds
-            # that offset to the measurement's own 3 sigma); the measurement itself may be: answer it, under the
-            # same rules, with its own covariance.
-            if self._judge(ev, ev.T_ego_peer, ev.covariance) is None:
-                T, P_T, why = ev.T_ego_peer, ev.covariance, None
+        if why is not None and self._own_measurement_stands(ev, T):
+            T, P_T, why = ev.T_ego_peer, ev.covariance, None
         if why is None:
             self.misses = 0
             self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
