@@ -608,11 +608,14 @@ def plot_track_soak(rep: dict, path: Path, bin_s: float = 10.0) -> None:
             ax.axvline(j["at_s"] / 60, color="orange", ls="--", lw=0.8)
         if rep.get("kill"):
             ax.axvline(rep["kill"]["t_s"] / 60, color="red", lw=1.0)
+        if rep.get("restart_ready_s"):
+            ax.axvline(rep["restart_ready_s"] / 60, color="green", lw=1.0)
         ax.legend(fontsize=8, loc="upper right")
     peers, wrong = len(rep["per_peer"]), rep["wrong"]
     fig.suptitle(
         f"tracking soak: {peers} peers at {rep['config']['rate_hz']:g} Hz, {rep['answered']} answered, "
-        f"{rep['successful']} successful, {wrong} wrong; orange: odometry jumps, red: kill -9 + restart"
+        f"{rep['successful']} successful, {wrong} wrong\norange: odometry jumps, red: kill -9, green: the restarted "
+        "service ready"
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
