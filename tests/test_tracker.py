@@ -291,28 +291,33 @@ def test_combine_weighs_by_information_and_leaves_out_a_disagreeing_measurement(
     assert used and m is b
 
 
-@pytest.mark.parametrize("own", [True, False], ids=["own_measurement", "fused_only"])
-def test_a_fused_pose_the_frame_cannot_bound_is_answered_by_the_frames_own_measurement(own):
-    """The peer's odometry is re-anchored by 1 m (below the jump detector, inside the gate): the fused pose lies
-    ~0.5 m from this frame's exact measurement, so the measurement (3 sigma = 0.6 m) cannot bound it within 1 m; the
-    measurement itself it can bound, and it is the answer, with its own covariance."""
-    cfg = TrackConfig(answer_own_measurement=own)
-    track = PeerTrack(cfg)
-    cov = np.diag(np.square([np.radians(0.1), 0.2, 0.2]))
-    odo = _odometry(drift_per_frame=0.0, jump_at=1, jump=(0.0, 1.0, 0.0))
+def _own(T_fused, ev, own=True):
+    track = PeerTrack(TrackConfig(answer_own_measurement=own))
+    track.with_odometry = True
+    return track, track._own_measurement_stands(ev, T_fused)
 
-    def exact(k):
-        T = _truth(k)[2]
-        return Measurement(True, T, cov, evidence=Evidence(T, cov, 0.5))
 
-    assert track.step(0.0, lambda T: exact(0), lambda T: exact(0), *odo(0)).valid
-    a = track.step(DT, lambda T: exact(1), lambda T: exact(1), *odo(1))
-    assert a.source == "tracking" and a.mahalanobis2 < cfg.gate_chi2  # fused, not an event
-    T_true = _truth(1)[2]
-    if own:
-        assert a.valid, a.why_not
-        np.testing.assert_allclose(a.T_ego_peer, T_true, atol=1e-9)
-        np.testing.assert_allclose(a.covariance, cov)
-    else:
-        assert not a.valid and "bounds the answer's error" in a.why_not
-        assert 0.3 < pose_error(a.T_ego_peer, T_true)[0] < 0.7  # between the jumped prediction and the truth
+def test_a_frames_own_measurement_stands_in_for_a_fused_pose_it_bounds_only_without_the_offset():
+    """Worked by hand: the peer 30 m ahead, the measurement's yaw sigma 0.25 deg, the fused pose turned 0.28 deg
+    from it. The fused pose fails the bound (0.28 + 3 x 0.25 = 1.03 deg); the measurement, widened by the fused
+    pose as a second mode (0.25^2 + 0.5 x 0.28^2 -> 0.319 deg, 3 sigma 0.96 deg), passes: it is the answer."""
+    T_m = se2(0.0, 30.0, 0.0)
+    cov = np.diag([np.radians(0.25) ** 2, 0.1**2, 0.1**2])
+    ev = Evidence(T_m, cov, 0.5)
+    T_fused = se2(np.radians(0.28), 0.0, 0.0) @ T_m
+    track, stands = _own(T_fused, ev)
+    assert track._bounded(ev, T_fused) is not None and stands
+    assert not _own(T_fused, ev, own=False)[1]
+
+
+def test_a_measurement_the_fused_pose_disagrees_with_by_0_8_m_does_not_stand_in():
+    """The demo's case: a refinement biased 0.8 m along the street (its own 3 sigma 0.75 m), the fused pose near
+    the truth and inside the measurement's gate (Mahalanobis^2 10.2). Alone the measurement would pass its bound;
+    with the fused pose as a second mode its sigma is sqrt(0.25^2 + 0.5 x 0.8^2) = 0.62 m: not an answer."""
+    T_m = se2(0.0, 50.0, 0.0)
+    cov = np.diag([np.radians(0.1) ** 2, 0.25**2, 0.25**2])
+    ev = Evidence(T_m, cov, 0.5)
+    T_fused = se2(0.0, 0.8, 0.0) @ T_m
+    track, stands = _own(T_fused, ev)
+    assert track._bounded(ev, T_m) is None  # the measurement alone is bounded
+    assert not stands
