@@ -228,8 +228,8 @@ class PeerTrack:
         The fused pose must lie inside the measurement's own gate (the two estimators agree; the measurement
         found enough of the peer), and the measurement must pass every rule as the answer, with its own
         covariance widened by the fused pose as a second mode: a measurement that sits 0.8 m from a fused pose
-        is not trusted to 3 of its own sigmas alone (in the demo scene such refinements were 0.6-0.98 m off at
-        33-64 m while their own 3 sigma claimed under 1 m)."""
+        is not trusted to 3 of its own sigmas alone (in the demo scene such refinements were 0.56-0.84 m off at
+        33-47 m while their own 3 sigma claimed under 1 m)."""
         if ev is None or not (self.cfg.answer_own_measurement and self.with_odometry):
             return False
         if self._supported(ev) is not None:
