@@ -289,3 +289,35 @@ def test_combine_weighs_by_information_and_leaves_out_a_disagreeing_measurement(
     assert not used and m is a
     m, used = combine(Measurement(False, reason="no overlap"), b, 11.345)
     assert used and m is b
+
+
+def _own(T_fused, ev, own=True):
+    track = PeerTrack(TrackConfig(answer_own_measurement=own))
+    track.with_odometry = True
+    return track, track._own_measurement_stands(ev, T_fused)
+
+
+def test_a_frames_own_measurement_stands_in_for_a_fused_pose_it_bounds_only_without_the_offset():
+    """Worked by hand: the peer 30 m ahead, the measurement's yaw sigma 0.25 deg, the fused pose turned 0.28 deg
+    from it. The fused pose fails the bound (0.28 + 3 x 0.25 = 1.03 deg); the measurement, widened by the fused
+    pose as a second mode (0.25^2 + 0.5 x 0.28^2 -> 0.319 deg, 3 sigma 0.96 deg), passes: it is the answer."""
+    T_m = se2(0.0, 30.0, 0.0)
+    cov = np.diag([np.radians(0.25) ** 2, 0.1**2, 0.1**2])
+    ev = Evidence(T_m, cov, 0.5)
+    T_fused = se2(np.radians(0.28), 0.0, 0.0) @ T_m
+    track, stands = _own(T_fused, ev)
+    assert track._bounded(ev, T_fused) is not None and stands
+    assert not _own(T_fused, ev, own=False)[1]
+
+
+def test_a_measurement_the_fused_pose_disagrees_with_by_0_8_m_does_not_stand_in():
+    """The demo's case: a refinement biased 0.8 m along the street (its own 3 sigma 0.75 m), the fused pose near
+    the truth and inside the measurement's gate (Mahalanobis^2 10.2). Alone the measurement would pass its bound;
+    with the fused pose as a second mode its sigma is sqrt(0.25^2 + 0.5 x 0.8^2) = 0.62 m: not an answer."""
+    T_m = se2(0.0, 50.0, 0.0)
+    cov = np.diag([np.radians(0.1) ** 2, 0.25**2, 0.25**2])
+    ev = Evidence(T_m, cov, 0.5)
+    T_fused = se2(0.0, 0.8, 0.0) @ T_m
+    track, stands = _own(T_fused, ev)
+    assert track._bounded(ev, T_m) is None  # the measurement alone is bounded
+    assert not stands

@@ -574,6 +574,11 @@ class TrackConfig(_Frozen):
         "own sigmas, puts the truth within evidence_bound_m / _deg of the answer: the answer's distance from the "
         "measurement plus this many sigmas (worst direction of the peer's position; yaw)",
     )
+    answer_own_measurement: bool = Field(
+        True,
+        description="with odometry, when the fused pose is not bounded by this frame's measurement but the "
+        "measurement itself is (by the same rules), the answer is the measurement with its own covariance",
+    )
     evidence_bound_m: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on position, metres")
     evidence_bound_deg: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on yaw, degrees")
     reacquire_s: float = Field(
