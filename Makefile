@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test run bench bench-accuracy bench-real bench-sim-real clean
+.PHONY: venv test run bench-accuracy bench-real bench-sim-real bench-engine bench-flood clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -55,3 +55,13 @@ bench-sim-real: $(STAMP)
 	$(VENV)/bin/bb-align sim out/sim_turn --family turn --scenarios 20 --seed 7 --fleet hdl64 --workers 2
 	$(PY) benchmarks/sim_vs_real.py --data $(SHARED_DATA) --sim "mixed, >= 70 m=$(BENCH_ACC_DIR)@70" \
 		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn"
+
+# The engine's departures from the paper, measured (docs/engine.md; real rows need ../shared/data).
+bench-engine: $(STAMP)
+	$(PY) benchmarks/engine_ablation.py --data $(SHARED_DATA)
+
+# Floods against a bb-align serve child process: several keyless sessions, then large queries (docs/security.md).
+bench-flood: $(STAMP)
+	$(PY) benchmarks/stream_flood.py --seconds 15 --flooders 1,2,3 --sizes small,big \
+		--json docs/security_stream_flood_fixed.json --plot docs/security_stream_flood_fixed.png
+	$(PY) benchmarks/query_flood.py --seconds 25 --senders 2 --mb 4 > docs/security_query_flood.json
