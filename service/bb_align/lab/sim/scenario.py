@@ -151,9 +151,7 @@ def _place(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimC
         s_other = float(ss[int(rng.integers(len(ss)))])
         agents.append(_add_agent(world, ln, s_other, rng, cfg.stopped_prob, agents))
         taken.append((ln, s_other))
-    for i, v in enumerate(world.vehicles):
-        v.vid = i
-    return [a.vid for a in agents]
+    return _numbered(world, agents)
 
 
 def _spacing(rng, distance_m: float | None, cfg: SimConfig) -> float:
