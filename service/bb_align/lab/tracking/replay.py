@@ -63,6 +63,27 @@ def error_components(T_est: np.ndarray, T_true: np.ndarray) -> list[float]:
     return [float(wrap_angle(e[0] - t[0])), e[1] - t[1], e[2] - t[2]]
 
 
+def scored_frame(name: str, k: int, stamp: float, r, T_est: np.ndarray, T_true: np.ndarray) -> dict:
+    """The fields every tracked frame's record shares, as `bb-align track` scores them: the answer ``r`` (an engine
+    AlignResult or a wire Result: source, track state and event, success, reason) and its pose ``T_est`` against
+    the truth."""
+    t_err, r_err = pose_error(T_est, T_true)
+    return {
+        "sequence": name,
+        "frame": k,
+        "stamp": stamp,
+        "distance_m": float(np.linalg.norm(T_true[:2, 3])),
+        "source": r.source,
+        "state": r.track_state,
+        "event": r.track_event,
+        "success": bool(r.success),
+        "reason": r.reason,
+        "t_err_m": t_err,
+        "r_err_deg": r_err,
+        "err": error_components(T_est, T_true),  # (yaw rad, tx m, ty m), estimate - truth
+    }
+
+
 def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bool = False) -> list[dict]:
     """Every frame of one sequence through a fresh follower; one record per frame."""
     aligner = Aligner(cfg.align)
@@ -81,27 +102,16 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         T_prior = _reported(group) if cfg.use_gnss else None
         r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior)
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
-        t_err, r_err = pose_error(r.T_ego_peer, T_true)
-        err = error_components(r.T_ego_peer, T_true)
+        row = scored_frame(name, k, stamp, r, r.T_ego_peer, T_true)
+        err = row["err"]
         # The engine run's own pose (the refinement's measurement, or the acquisition) before the track fused it.
         measured, measured_cov = follower.last_measured or (None, None)
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(r.covariance), 0.0)).tolist()
         records.append(
-            {
-                "sequence": name,
+            row
+            | {
                 "kind": peer.extra.get("sweep"),
-                "frame": k,
-                "stamp": stamp,
-                "distance_m": float(np.linalg.norm(T_true[:2, 3])),
-                "source": r.source,
-                "state": r.track_state,
-                "event": r.track_event,
-                "success": bool(r.success),
-                "reason": r.reason,
                 "confidence": float(r.confidence),
-                "t_err_m": t_err,
-                "r_err_deg": r_err,
-                "err": err,  # (yaw rad, tx m, ty m), estimate - truth
                 "measured": None if measured is None else list(se2_params(measured)),
                 "odometry": None if O_ego is None else [list(se2_params(O_ego)), list(se2_params(O_peer))],
                 "truth": list(se2_params(T_true)),

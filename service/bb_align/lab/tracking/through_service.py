@@ -18,10 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bb_align.engine.geometry import pose_error
 from bb_align.io.dataset import AgentFrame, find_scenarios, iter_scenario_frames, parse_lidar_pose
 
-from .replay import error_components
+from .replay import scored_frame
 
 
 def _frame_bytes(agent: AgentFrame, vehicle_id: str, stamp: float, seq: int, odometry: bool, bev: dict) -> bytes:
@@ -78,23 +77,12 @@ def replay_sequence_through_service(
             raise RuntimeError(f"{name} frame {k}: HTTP {resp.status_code}: {resp.text[:300]}")
         r = load_result(resp.content)
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
-        t_err, r_err = pose_error(r.matrix(), T_true)
-        err = error_components(r.matrix(), T_true)
+        row = scored_frame(name, k, stamp, r, r.matrix(), T_true)
+        err = row["err"]
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(np.asarray(r.covariance)), 0)).tolist()
         records.append(
-            {
-                "sequence": name,
-                "frame": k,
-                "stamp": stamp,
-                "distance_m": float(np.linalg.norm(T_true[:2, 3])),
-                "source": r.source,
-                "state": r.track_state,
-                "event": r.track_event,
-                "success": bool(r.success),
-                "reason": r.reason,
-                "t_err_m": t_err,
-                "r_err_deg": r_err,
-                "err": err,
+            row
+            | {
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 "ran_acquisition": r.source == "acquisition" or "acquire" in r.timings_ms,
                 "ms": float(r.timings_ms.get("track_total", r.latency_ms or ms)),
