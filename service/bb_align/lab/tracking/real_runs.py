@@ -1,0 +1,114 @@
+"""Tracking on real sweeps: the follower run through time on the real 10 Hz KITTI runs in ``../shared/data``.
+
+The runs hold one car's consecutive sweeps (and, in ``kitti00_run_far``, the same car about 75 m further on), so
+two cars are made from them: the ego drives the run's frames forward, back and forward again (each step 0.1 s;
+its odometry the run's poses), and the peer is another frame of the same run at each step (its odometry the
+same poses). Every answer is scored against the run's reference poses:
+
+- ``kitti08_run`` (residential) and ``kitti01_run`` (highway entry, fast, turning: strong self-motion
+  distortion): the peer is frame ``9 - k`` while the ego is at frame ``k``, 0-9 m apart;
+- ``kitti00_run_far``: the peer alternates between frames 94 and 95 (the car 73-80 m ahead), its odometry
+  jumping back and forth by one sweep's travel, as the poses say.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bb_align.engine.config import AlignConfig
+from bb_align.engine.follow import Follower
+from bb_align.engine.geometry import pose_error
+from bb_align.engine.pipeline import Aligner
+from bb_align.io.clouds import load_cloud
+
+RUNS = ("kitti08_run", "kitti01_run", "kitti00_run_far")
+FAR_PEER_FRAMES = (94, 95)
+STEP_S = 0.1
+
+
+@dataclass
+class Step:
+    run: str
+    step: int
+    ego_frame: int
+    peer_frame: int
+    distance_m: float
+    source: str | None
+    state: str | None
+    success: bool
+    reason: str | None
+    t_err_m: float
+    r_err_deg: float
+
+    @property
+    def wrong(self) -> bool:
+        return self.success and not (self.t_err_m < 1.0 and self.r_err_deg < 1.0)
+
+
+def run_poses(folder: Path) -> dict[int, np.ndarray]:
+    """Frame -> 4x4 T_velo0_veloK: the run's pose list, plus ``T_0_K.txt`` for frames outside it (94, 95)."""
+    poses: dict[int, np.ndarray] = {}
+    for line in next(folder.glob("velo_poses_*.txt")).read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            v = [float(x) for x in line.split()]
+            T = np.eye(4)
+            T[:3] = np.array(v[1:13]).reshape(3, 4)
+            poses[int(v[0])] = T
+    for k in FAR_PEER_FRAMES:
+        if (path := folder / f"T_0_{k}.txt").exists():
+            poses[k] = np.loadtxt(path)
+    return poses
+
+
+def schedule(run: str, laps: int = 3) -> list[tuple[int, int]]:
+    """(ego frame, peer frame) per step: the ego forward, back and forward over frames 0-9 (``laps`` passes)."""
+    ego = [k if lap % 2 == 0 else 9 - k for lap in range(laps) for k in range(10)]
+    if run == "kitti00_run_far":
+        return [(e, FAR_PEER_FRAMES[i % 2]) for i, e in enumerate(ego)]
+    return [(e, 9 - e) for e in ego]
+
+
+def track_run(data: Path, run: str, laps: int = 3, odometry: bool = True, config: AlignConfig | None = None):
+    """Every step of one run through a fresh follower; a Step per peer frame."""
+    folder = data / run
+    aligner, poses = Aligner(config or AlignConfig()), run_poses(folder)
+    follower = Follower(aligner)
+    frames: dict[tuple[int, bool], object] = {}
+
+    def frame(k: int, peer: bool):
+        if (k, peer) not in frames:  # the ego frame needs no features: the follower measures against it
+            frames[(k, peer)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"), features=peer)
+        return frames[(k, peer)]
+
+    steps = []
+    for i, (e, p) in enumerate(schedule(run, laps)):
+        T_true = np.linalg.inv(poses[e]) @ poses[p]
+        O = {"O_ego": poses[e], "O_peer": poses[p]} if odometry else {}
+        r = follower.step(frame(e, False), frame(p, True), STEP_S * i, **O)
+        t_err, r_err = pose_error(r.T_ego_peer, T_true)
+        dist = float(np.hypot(T_true[0, 3], T_true[1, 3]))
+        steps.append(Step(run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err))
+    return steps
+
+
+def summary(steps: list[Step]) -> dict:
+    """Per run: steps, successful, wrong successes, the worst successful error, refusal reasons."""
+    out: dict = {}
+    for s in steps:
+        o = out.setdefault(s.run, {"steps": 0, "successful": 0, "wrong": 0, "worst_m": 0.0, "worst_deg": 0.0})
+        o["steps"] += 1
+        o["successful"] += s.success
+        o["wrong"] += s.wrong
+        if s.success:
+            o["worst_m"], o["worst_deg"] = max(o["worst_m"], s.t_err_m), max(o["worst_deg"], s.r_err_deg)
+        else:
+            reasons = o.setdefault("refused", {})
+            reasons[s.reason] = reasons.get(s.reason, 0) + 1
+    return out
+
+
+def records(steps: list[Step]) -> list[dict]:
+    return [asdict(s) for s in steps]

@@ -1,0 +1,31 @@
+"""The follower on real 10 Hz KITTI sweeps (bb_align.lab.tracking.real_runs; skipped with a reason without
+../shared): every successful answer within 1 m & 1 deg of the runs' reference poses, and near range answered.
+`benchmarks/track_real.py` runs every run, three laps, with and without odometry."""
+
+from __future__ import annotations
+
+from bb_align.lab.tracking.real_runs import schedule, summary, track_run
+
+
+def test_the_schedule_drives_the_ego_forward_and_back_and_pairs_the_far_car_ahead():
+    steps = schedule("kitti00_run_far", laps=2)
+    assert [e for e, _ in steps] == list(range(10)) + list(range(9, -1, -1))
+    assert {p for _, p in steps} == {94, 95}
+    assert schedule("kitti08_run", laps=1) == [(k, 9 - k) for k in range(10)]
+
+
+def test_a_residential_run_with_odometry_is_answered_and_right(shared_data):
+    s = summary(track_run(shared_data, "kitti08_run", laps=1))["kitti08_run"]
+    assert s["wrong"] == 0 and s["successful"] >= 9, s
+
+
+def test_reversing_without_odometry_is_refused_not_answered_wrong(shared_data):
+    # The peer's motion reverses at step 10: the constant-velocity model predicts the wrong way for a while.
+    steps = track_run(shared_data, "kitti01_run", laps=2, odometry=False)
+    assert not [s for s in steps if s.wrong], [s for s in steps if s.wrong]
+    assert sum(s.success for s in steps[:10]) >= 9  # before the reversal it is answered
+
+
+def test_the_far_car_is_never_answered_wrong_through_time(shared_data):
+    steps = track_run(shared_data, "kitti00_run_far", laps=1)
+    assert not [s for s in steps if s.wrong], [s for s in steps if s.wrong]
