@@ -81,7 +81,7 @@ class _Tally:
         self.raw_points = self.bytes_with_points = self.raw_bev = 0
         self.window: deque[tuple[float, int]] = deque()
 
-    def add_message(self, nbytes: int, now: float) -> None:
+    def add_message(self, nbytes: int, now: float, window_s: float) -> None:
         self.messages += 1
         self.bytes += nbytes
         bucket = math.floor(now / _BUCKET_S) * _BUCKET_S  # bounded memory under any message rate
@@ -89,6 +89,13 @@ class _Tally:
             self.window[-1] = (bucket, self.window[-1][1] + nbytes)
         else:
             self.window.append((bucket, nbytes))
+            # Old buckets go as new ones come, not only when someone reads the rate: a service nobody scrapes
+            # kept one bucket per 0.1 s per sender for ever (measured in the tracking soak).
+            self._expire(now, window_s)
+
+    def _expire(self, now: float, window_s: float) -> None:
+        while self.window and self.window[0][0] + _BUCKET_S <= now - window_s:
+            self.window.popleft()
 
     def add_frame(self, fb: FrameBytes) -> None:
         self.frames += 1
@@ -100,8 +107,7 @@ class _Tally:
             self.bytes_with_points += fb.total
 
     def report(self, now: float, window_s: float) -> PeerBandwidth:
-        while self.window and self.window[0][0] + _BUCKET_S <= now - window_s:
-            self.window.popleft()
+        self._expire(now, window_s)
         in_window = sum(n for _, n in self.window)
         return PeerBandwidth(
             messages=self.messages,
@@ -131,8 +137,8 @@ class BandwidthMeter:
         """A message arrived (call once per message, before it can be dropped)."""
         now = self._clock()
         with self._lock:
-            self._peers.setdefault(peer_id, _Tally()).add_message(nbytes, now)
-            self._total.add_message(nbytes, now)
+            self._peers.setdefault(peer_id, _Tally()).add_message(nbytes, now, self.window_s)
+            self._total.add_message(nbytes, now, self.window_s)
 
     def record_frame(self, peer_id: str, fb: FrameBytes) -> None:
         """A message decoded into a valid frame."""

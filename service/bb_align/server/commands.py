@@ -139,9 +139,15 @@ def banner(settings) -> str:
 
 def run_server(settings, log_level: str = "info") -> None:
     """uvicorn on the settings' host and port. SIGTERM or SIGINT drains gracefully and returns (exit code 0)."""
+    import logging
+
     import uvicorn
 
+    from .allocator import configure_malloc
     from .app import create_app
+
+    # before any thread (Zenoh's, the workers): glibc limits only the arenas it has not made yet
+    malloc = configure_malloc(settings.malloc_arena_max, settings.malloc_mmap_threshold_kb)
 
     class _Server(uvicorn.Server):
         def handle_exit(self, sig, frame) -> None:  # drain, then exit 0 instead of re-raising the signal
@@ -155,6 +161,7 @@ def run_server(settings, log_level: str = "info") -> None:
         log_level=log_level,
         timeout_graceful_shutdown=int(settings.shutdown_timeout_s),
     )
+    logging.getLogger("bb_align.server").info("glibc malloc: %s", malloc or "defaults")
     _Server(config).run()
 
 

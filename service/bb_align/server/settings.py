@@ -220,6 +220,22 @@ class Settings(BaseSettings):
     request_timeout_s: float = Field(30.0, gt=0, description="REST /v1/align gives up (504) after this")
     shutdown_timeout_s: float = Field(30.0, gt=0, description="SIGTERM: longest wait for in-flight work")
     bandwidth_window_s: float = Field(5.0, gt=0, description="sliding window of the kbit/s rates")
+    malloc_arena_max: int | None = Field(
+        2,
+        ge=1,
+        le=64,
+        description="glibc: at most this many malloc arenas (each keeps its own freed memory; glibc's default is 8 "
+        "per core, and Zenoh runs over a hundred threads); set at start, an operator's MALLOC_ARENA_MAX wins; "
+        "None: glibc's default (server/allocator.py)",
+    )
+    malloc_mmap_threshold_kb: int | None = Field(
+        256,
+        ge=0,
+        le=32768,
+        description="glibc: blocks from this size (KiB) up get a mapping of their own, given back to the system when "
+        "freed (a fixed value turns off glibc's adaptive threshold, under which freed multi-MB arrays stayed in the "
+        "heaps and the resident size crept); an operator's MALLOC_MMAP_THRESHOLD_ wins; None: glibc's default",
+    )
     refusal_notice_interval_s: float = Field(
         0.1,
         ge=0,

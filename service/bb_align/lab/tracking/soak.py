@@ -74,6 +74,13 @@ class TrackSoakConfig(BaseModel):
     pose_sigma_deg: float = Field(2.0, ge=0)
     workers: int = Field(2, ge=1, le=16)
     sample_s: float = Field(5.0, gt=0, description="RSS, CPU and load average sampled this often")
+    rss_flat_mb_per_min: float = Field(
+        0.25,
+        gt=0,
+        description="RSS counts as flat when, in each process, the least-squares slope of its per-minute lowest "
+        "value after warm-up is below this (15 MB an hour; the creep before the allocator settings was 1.2-1.5 "
+        "MB/min on a quiet machine)",
+    )
     grace_s: float = Field(5.0, ge=0, description="results awaited after the last frame")
     startup_timeout_s: float = Field(120.0, gt=0)
 
@@ -238,6 +245,17 @@ class Restart(threading.Thread):
             self.error = f"{type(e).__name__}: {e}"
 
 
+def anonymous_mb(pid: int | None) -> float | None:
+    """A process's anonymous resident memory (heaps, mappings of its own; not its mapped files), MB."""
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Anonymous:"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def _sample(lives: list[Life], collector: Collector, t: float) -> dict:
     svc = lives[-1].svc
     mem = svc.memory_mb()
@@ -248,6 +266,7 @@ def _sample(lives: list[Life], collector: Collector, t: float) -> dict:
         "t_s": round(t, 2),
         "pid": svc.pid,
         "rss_mb": mem["rss_mb"],
+        "anon_mb": anonymous_mb(svc.pid),
         "cpu_s": svc.cpu_seconds(),
         "harness_cpu_s": sum(os.times()[:2]),
         "load": [float(v) for v in Path("/proc/loadavg").read_text().split()[:3]],
@@ -516,15 +535,43 @@ def _rss(samples: list[dict], lives: list[Life], warmup_s: float) -> list[dict]:
         if len(late) >= 3:
             t = np.array([s["t_s"] for s in late]) / 60.0
             m = np.array([s["rss_mb"] for s in late])
+            slope, se = _slope(t, m)
             row.update(
                 samples=len(late),
+                minutes=float(t[-1] - t[0]),
                 rss_first_mb=float(m[0]),
                 rss_last_mb=float(m[-1]),
+                rss_min_mb=float(m.min()),
                 rss_max_mb=float(m.max()),
-                slope_mb_per_min=float(np.polyfit(t, m, 1)[0]),
+                slope_mb_per_min=slope,
+                slope_se_mb_per_min=se,
             )
+            floor_t, floor_m = _minute_floor(t, m)
+            if len(floor_t) >= 3:
+                row["floor_slope_mb_per_min"], row["floor_slope_se_mb_per_min"] = _slope(floor_t, floor_m)
+                row["floor_mb"] = [round(float(v), 1) for v in floor_m]
+            anon = [(s["t_s"] / 60.0, s["anon_mb"]) for s in late if s.get("anon_mb") is not None]
+            if len(anon) >= 3:
+                row["anon_slope_mb_per_min"] = _slope(*map(np.array, zip(*anon)))[0]
         out.append(row)
     return out
+
+
+def _minute_floor(t_min: np.ndarray, mb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest RSS of each whole minute (with at least half its samples): the memory the process keeps,
+    without the large arrays in flight at the moment of a sample (they swing the RSS by 10-40 MB)."""
+    minute = np.floor(t_min - t_min[0])
+    full = max(2, int(0.5 * np.median(np.unique(minute, return_counts=True)[1])))
+    keep = [k for k in np.unique(minute) if (minute == k).sum() >= full]
+    return np.array(keep) + t_min[0], np.array([mb[minute == k].min() for k in keep])
+
+
+def _slope(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of y against t and its standard error."""
+    b, a = np.polyfit(t, y, 1)
+    res = y - (a + b * t)
+    se = np.sqrt(res @ res / max(1, len(t) - 2) / ((t - t.mean()) @ (t - t.mean())))
+    return float(b), float(se)
 
 
 def report(cfg, cars, collector: Collector, lives: list[Life], run: dict, kill: dict, build_s: float) -> dict:
@@ -575,6 +622,11 @@ def report(cfg, cars, collector: Collector, lives: list[Life], run: dict, kill: 
         "no_wrong_success": rep["wrong"] == 0,
         "every_peer_answered_after_restart": bool(kill) and all(v is not None for v in answered_again),
         "every_peer_answered": all(v["answered"] > 0 for v in rep["per_peer"].values()),
+        "rss_flat_after_warmup": all(
+            s["floor_slope_mb_per_min"] < cfg.rss_flat_mb_per_min
+            for s in rep["services"]
+            if "floor_slope_mb_per_min" in s
+        ),
     }
     return rep
 
@@ -590,8 +642,12 @@ def plot_track_soak(rep: dict, path: Path, bin_s: float = 10.0) -> None:
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     for pid in sorted({s["pid"] for s in samples}):
         mine = [s for s in samples if s["pid"] == pid and s["rss_mb"] is not None]
-        axes[0].plot([s["t_s"] / 60 for s in mine], [s["rss_mb"] for s in mine], ".-", label=f"service pid {pid}")
-    axes[0].set_ylabel("service RSS (MB)")
+        t_min = [s["t_s"] / 60 for s in mine]
+        (line,) = axes[0].plot(t_min, [s["rss_mb"] for s in mine], ".-", label=f"service pid {pid} RSS")
+        anon = [(t, s["anon_mb"]) for t, s in zip(t_min, mine) if s.get("anon_mb") is not None]
+        if anon:
+            axes[0].plot(*zip(*anon), ":", color=line.get_color(), label=f"pid {pid} anonymous")
+    axes[0].set_ylabel("service memory (MB)")
     t = np.array([s["t_s"] for s in samples])
     res, ok = np.array([s["results"] for s in samples]), np.array([s["successes"] for s in samples])
     dt = np.diff(t)
@@ -654,7 +710,12 @@ def summary_lines(rep: dict) -> list[str]:
         if "slope_mb_per_min" in s:
             lines.append(
                 f"  service pid {s['pid']} ({s['how']}): RSS after warm-up {s['rss_first_mb']:.0f} -> "
-                f"{s['rss_last_mb']:.0f} MB (max {s['rss_max_mb']:.0f}), slope {s['slope_mb_per_min']:+.2f} MB/min"
+                f"{s['rss_last_mb']:.0f} MB over {s['minutes']:.1f} min (min {s['rss_min_mb']:.0f}, max "
+                f"{s['rss_max_mb']:.0f}), slope {s['slope_mb_per_min']:+.2f} +- {s['slope_se_mb_per_min']:.2f} MB/min"
+                f"; per-minute lowest {s.get('floor_slope_mb_per_min', float('nan')):+.2f} +- "
+                f"{s.get('floor_slope_se_mb_per_min', float('nan')):.2f} MB/min (flat: below "
+                f"{rep['config']['rss_flat_mb_per_min']:g}); anonymous memory "
+                f"{s.get('anon_slope_mb_per_min', float('nan')):+.2f} MB/min"
             )
     lines.append("checks: " + ", ".join(f"{k} {'ok' if v else 'FAILED'}" for k, v in rep["checks"].items()))
     return lines
