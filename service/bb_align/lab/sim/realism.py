@@ -1,6 +1,6 @@
 """How simulated BV images compare with real ones: statistics and a side-by-side figure.
 
-    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data]
+    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data] [--street 12]
 
 Statistics per cloud (engine's default BevConfig): points, lit BV pixels, lit pixels per 100 m^2 in range
 rings (sparsity with range), the share of lit pixels that are low clutter (0.3-1.5 m above the local ground:
@@ -22,6 +22,53 @@ from bb_align.engine.config import BevConfig
 from bb_align.engine.keypoints import detect_keypoints
 
 RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
+BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))  # the far-pair bands of benchmarks/sim_vs_real.py
+TUNED = {"KITTI 00 street (tuned on)": "kitti00_run_far"}
+HELD_OUT = {
+    "KITTI 08 street (held out)": "kitti08_run",
+    "KITTI 08 loop (held out)": "kitti08_loop",
+    "KITTI 01 highway (held out)": "kitti01_run",
+}
+
+
+def lit_by_band(bev) -> list[int]:
+    """Lit pixels of a BV image by range from its sensor, in BANDS."""
+    rc = np.argwhere(bev.image > 0)
+    r = np.hypot(*bev.pixel_to_metre(rc).T)
+    return [int(((r >= lo) & (r < hi)).sum()) for lo, hi in BANDS]
+
+
+def band_profile(clouds) -> dict:
+    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation."""
+    from bb_align import AlignConfig, Aligner
+
+    aligner = Aligner(AlignConfig())
+    rows = np.array([lit_by_band(aligner.prepare(p).bev) for p in clouds])
+    return {
+        "scans": len(rows),
+        "median": np.median(rows, 0).astype(int).tolist(),
+        "q25": np.percentile(rows, 25, 0).astype(int).tolist(),
+        "q75": np.percentile(rows, 75, 0).astype(int).tolist(),
+    }
+
+
+def real_hdl64_scans(data: Path, folder: str) -> list[np.ndarray]:
+    from bb_align.io.clouds import load_cloud
+
+    return [load_cloud(f) for f in sorted((data / folder).glob("*.bin"))]
+
+
+def street_scans(n: int, seed: int = 7) -> list[np.ndarray]:
+    """Both cars' scans of n street-family scenarios, HDL-64E, 73-81 m apart (make bench-sim-real's set)."""
+    from .scenario import Scenario, SimConfig
+
+    cfg = SimConfig(family="street", fleet=("hdl64",))
+    out = []
+    for i in range(n):
+        d = 73.0 + 8.0 * (i + 0.5) / n
+        frame = Scenario(seed * 100003 + i, 2, d, cfg).frame(0)
+        out += [a.points for a in frame.agents.values()]
+    return out
 
 
 def bev_stats(points: np.ndarray, config: BevConfig | None = None) -> dict:
@@ -122,8 +169,10 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out_dir", type=Path)
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[4] / "shared" / "data")
+    ap.add_argument("--street", type=int, default=12, help="street-family scenarios for the band profile")
     args = ap.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)
+    street_profiles(args)
     real = real_clouds(args.data) if args.data.is_dir() else {}
     sim = simulated_clouds()
     stats = {"real": {k: bev_stats(v) for k, v in real.items()}, "sim": {k: bev_stats(v) for k, v in sim.items()}}
@@ -138,6 +187,23 @@ def main(argv=None) -> None:
                 f"{group:4s} {name:40s} "
                 + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items())
             )
+
+
+def street_profiles(args) -> None:
+    """Lit pixels by band: the street family against the KITTI 00 scans it was tuned on and held-out HDL-64E scans."""
+    from tqdm import tqdm
+
+    sets = {}
+    for name, folder in tqdm({**TUNED, **HELD_OUT}.items(), desc="real"):
+        if (args.data / folder).is_dir():
+            sets[name] = band_profile(real_hdl64_scans(args.data, folder))
+    sets["sim street family, 73-81 m"] = band_profile(street_scans(args.street))
+    (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
+    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile |")
+    print("| --- | ---: | --- | --- |")
+    for name, p in sets.items():
+        quart = " / ".join(f"{a}-{b}" for a, b in zip(p["q25"], p["q75"]))
+        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} |")
 
 
 if __name__ == "__main__":
