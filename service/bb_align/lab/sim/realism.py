@@ -197,7 +197,17 @@ def street_profiles(args) -> None:
     for name, folder in tqdm({**TUNED, **HELD_OUT}.items(), desc="real"):
         if (args.data / folder).is_dir():
             sets[name] = band_profile(real_hdl64_scans(args.data, folder))
-    sets["sim street family, 73-81 m"] = band_profile(street_scans(args.street))
+    street = street_scans(args.street)
+    sets["sim street family, 73-81 m"] = band_profile(street)
+    real = {}
+    for folder, frame in (("kitti00_run_far", "000094"), ("kitti00_run_far", "000000"), ("kitti08_run", "000000")):
+        if (args.data / folder / f"{frame}.bin").exists():
+            real[f"{folder} {frame} (real)"] = real_hdl64_scans(args.data, folder)[0 if frame == "000000" else -2]
+    figure(
+        {**real, **{f"sim street {i // 2} car {i % 2}": street[i] for i in range(0, 6, 2)}},
+        args.out_dir / "street_real_vs_sim.png",
+        cols=3,
+    )
     (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
     print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile |")
     print("| --- | ---: | --- | --- |")
