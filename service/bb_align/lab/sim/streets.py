@@ -27,6 +27,9 @@ RESIDENTIAL_LINE_GAPS = 0.6
 # Share of a residential frontage that is built (the rest: alleys and driveways, never open land): the real street
 # is a canyon of facades that hides what stands behind them (docs/sim/street_real_vs_sim.png).
 RESIDENTIAL_FRONTAGE = 0.9
+# Blocks of a residential street (its building line and how full its kerbs are change from one to the next), m:
+# a street changes from block to block, so that one place does not look like the next 75 m on.
+RESIDENTIAL_BLOCK_M = (50.0, 120.0)
 # What a residential kerb holds besides houses (per metre of street, each side), chosen on the lit-pixel profile of
 # the real KITTI 00 scans within 40 m (docs/simulation.md): front-garden shrubs in irregular clumps, bins and bikes,
 # lot dividers (fences and hedges running back from the street between houses), porches and bays on facades.
@@ -283,8 +286,9 @@ class _Side:
         (a residential street's rows are irregular, unlike a lot's 6.3 m grid)."""
         r = self.rng
         sp = s0 + r.uniform(0, 4)
+        occupancy = r.uniform(0.3, 1.0)  # how full this block's kerb is
         while sp < s1:
-            if r.random() < 0.12:  # a driveway or a hydrant: nobody parks here
+            if r.random() < 0.12 or r.random() > occupancy:  # a driveway, a hydrant, or just a free space
                 sp += r.uniform(4, 12)
                 continue
             lat = self.road.half_width - self.road.parking / 2 + r.normal(0, 0.15)
@@ -389,7 +393,9 @@ class _Side:
         while s < L:
             style = str(r.choice(STYLES, p=self.weights))
             styles.append(style)
-            end = min(L, s + 150.0)
+            end = min(L, s + (r.uniform(*RESIDENTIAL_BLOCK_M) if self.residential else 150.0))
+            if self.residential:  # each block its own building line
+                self.building_line = float(r.uniform(1.0, 5.0))
             if style != "open" or r.random() < 0.3:
                 self.furniture(s, end, dense=style == "city")
             if style in ("suburb", "city") and r.random() < 0.6:  # street trees
