@@ -29,15 +29,9 @@ from bb_align.engine.landscape import Fields, score_grid
 from bb_align.engine.refine import overlap_fitness
 from bb_align.io.dataset import iter_frames
 from bb_align.lab.realpairs import RealPair, discover, score, seeded_prior
+from bb_align.lab.sim.realism import lit_by_band
 
-BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))
 REAL = "real: KITTI 00, 73-80 m"
-
-
-def lit_by_band(bev) -> list[int]:
-    rc = np.argwhere(bev.image > 0)
-    r = np.hypot(*bev.pixel_to_metre(rc).T)
-    return [int(((r >= lo) & (r < hi)).sum()) for lo, hi in BANDS]
 
 
 def ramp_along(aligner: Aligner, ego_cloud, pts_peer, G) -> float:

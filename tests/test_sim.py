@@ -10,7 +10,7 @@ from bb_align.io.dataset import iter_frames
 from bb_align.lab.sim import DetectionModel, Scenario, SimConfig, detect, simulate_sequence
 from bb_align.lab.sim.paths import straight
 from bb_align.lab.sim.raycast import Mount, cast_sweep
-from bb_align.lab.sim.sensors import SensorModel
+from bb_align.lab.sim.sensors import SENSOR_MODELS, SensorModel
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
 
@@ -203,3 +203,44 @@ def test_scenario_families_place_the_cars_as_named(family):
         else:
             assert 20.0 <= d <= hi + 5
             assert 60.0 <= abs(dyaw) <= 120.0
+
+
+def test_reach_follows_the_datasheet_range_law():
+    hdl = SENSOR_MODELS["hdl64"]
+    # the two datasheet points, and the power law through them in between
+    np.testing.assert_allclose(hdl.reach_m([0.8, 0.1]), [120.0, 50.0])
+    k = np.log(120 / 50) / np.log(8)
+    np.testing.assert_allclose(hdl.reach_m(0.4), 120 * 0.5**k)
+    # without a datasheet 10 % range: the lidar equation's square-root law
+    np.testing.assert_allclose(SENSOR.reach_m(0.1), 100 / np.sqrt(8))
+    np.testing.assert_allclose(hdl.detect_probability([0.0, 50.0, 200.0], 0.1), [1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("exponent", [0.0, 1.0])
+def test_far_wall_returns_thin_out_as_the_range_law_says(exponent):
+    """A wall of reflectivity 0.4 facing the car 60 m ahead: the share of rays that return, straight ahead and at
+    35-45 deg off its normal, against 1 - (r / reach(0.4 cos^q(incidence)))^3 averaged over those rays."""
+    sensor = SENSOR.model_copy(
+        update={"elevations_deg": (0.0, 1.0), "far_falloff": 3.0, "max_range_m": 120, "range_10pct_m": 50.0}
+    )
+    sensor = sensor.model_copy(update={"incidence_exponent": exponent})
+    sh = Shapes()
+    sh.prism(60.5, 0.0, 0.5, 100.0, 0.0, 0.0, 20.0, reflect=0.4)
+    terrain = Terrain(np.array([-200.0, -200.0]), 2.0, np.zeros((201, 201)), np.zeros((201, 201)))
+    car = Vehicle(0, 4.5, 1.8, 1.5, "car", pose0=(0.0, 0.0, 0.0))
+    world = World([], sh.arrays(), [car], terrain, [])
+    sweep = cast_sweep(world, 0, sensor, Mount(height_m=2.0), 0.0, np.random.default_rng(3), distortion=False)
+    az = np.degrees(np.arctan2(sweep.points[:, 1], sweep.points[:, 0]))
+    cols = (np.arange(sensor.columns) + 0.5) / sensor.columns
+    col_az = np.degrees(np.angle(np.exp(1j * (np.pi - 2 * np.pi * cols))))
+    for lo, hi in ((-5.0, 5.0), (35.0, 45.0)):
+        a = np.radians(col_az[(col_az > lo) & (col_az < hi)])
+        expected = []
+        for e in np.radians(sensor.elevations_deg):
+            r = 60.0 / np.cos(a) / np.cos(e)
+            expected.append(sensor.detect_probability(r, 0.4 * (np.cos(a) * np.cos(e)) ** exponent))
+        expected = np.mean(expected)
+        got = ((az > lo) & (az < hi)).sum() / (2 * len(a))
+        assert abs(got - expected) < 3 * np.sqrt(expected * (1 - expected) / (2 * len(a))) + 0.01, (lo, got, expected)
+    if exponent == 1.0:  # a Lambertian wall is fainter seen obliquely: fewer returns than straight ahead
+        assert ((az > 35) & (az < 45)).sum() < 0.5 * ((az > -5) & (az < 5)).sum()

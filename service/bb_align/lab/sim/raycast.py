@@ -24,6 +24,7 @@ from .sensors import SensorModel
 from .world import ShapeArrays, World
 
 K_NEAREST = 12  # footprints kept per azimuth column (nearer ones occlude the rest for almost every beam)
+GROUND_REFLECTIVITY = 0.25  # asphalt, kerb stone and verge at 905 nm, between pavement's ~0.1 and grass' ~0.4
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,8 @@ def T_world_sensor_at(world: World, vehicle: int, mount: Mount, t: float) -> np.
 
 
 def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None, dt: np.ndarray):
-    """Entry/exit distances (n_cols, M) of horizontal rays (origin o, unit direction d per column)."""
+    """Entry/exit distances (n_cols, M) of horizontal rays (origin o, unit direction d per column), and the cosine
+    between each ray and the normal of the side face it enters by (1 for a ray that starts inside)."""
     cx = shapes.xy[None, :, 0]
     cy = shapes.xy[None, :, 1]
     if vel is not None:
@@ -69,6 +71,7 @@ def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None,
     rx, ry = ox[:, None] - cx, oy[:, None] - cy
     t_in = np.full(rx.shape, np.inf)
     t_out = np.full(rx.shape, -np.inf)
+    cos_in = np.ones(rx.shape)
     p = ~shapes.is_cyl
     if p.any():
         c, s = np.cos(shapes.yaw[p]), np.sin(shapes.yaw[p])
@@ -81,8 +84,10 @@ def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None,
         a, b = shapes.a[p], shapes.b[p]
         t1, t2 = (-a - lx) / ldx, (a - lx) / ldx
         t3, t4 = (-b - ly) / ldy, (b - ly) / ldy
-        t_in[:, p] = np.maximum(np.minimum(t1, t2), np.minimum(t3, t4))
+        tx, ty = np.minimum(t1, t2), np.minimum(t3, t4)
+        t_in[:, p] = np.maximum(tx, ty)
         t_out[:, p] = np.minimum(np.maximum(t1, t2), np.maximum(t3, t4))
+        cos_in[:, p] = np.where(tx > ty, np.abs(ldx), np.abs(ldy))  # entered through an x face or a y face
     q = shapes.is_cyl
     if q.any():
         bq = rx[:, q] * dx[:, None] + ry[:, q] * dy[:, None]
@@ -91,8 +96,11 @@ def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None,
         sq = np.sqrt(np.maximum(disc, 0.0))
         t_in[:, q] = np.where(disc > 0, -bq - sq, np.inf)
         t_out[:, q] = np.where(disc > 0, -bq + sq, -np.inf)
+        # at the entry point the radial normal n = (r + t d) / a, and n . d = bq + t_in = -sq
+        cos_in[:, q] = np.clip(sq / shapes.a[q], 0.0, 1.0)
     hit = t_out > np.maximum(t_in, 0.0)
-    return np.where(hit, np.maximum(t_in, 0.0), np.inf), t_out
+    cos_in = np.where(t_in > 0.0, cos_in, 1.0)
+    return np.where(hit, np.maximum(t_in, 0.0), np.inf), t_out, cos_in
 
 
 def _ground_hits(
@@ -170,23 +178,24 @@ def cast_sweep(
     veh, vel = world.vehicle_shapes(t_mid, exclude={vehicle})
     vnear = np.hypot(veh.xy[:, 0] - x0, veh.xy[:, 1] - y0) < reach + veh.radius + 5.0
     st, veh, vel = st.take(near), veh.take(vnear), vel[vnear]
-    tin_s, tout_s = _footprint_hits(ox, oy, dx, dy, st, None, dt)
-    tin_v, tout_v = _footprint_hits(ox, oy, dx, dy, veh, vel, dt)
+    tin_s, tout_s, cos_s = _footprint_hits(ox, oy, dx, dy, st, None, dt)
+    tin_v, tout_v, cos_v = _footprint_hits(ox, oy, dx, dy, veh, vel, dt)
     shapes = ShapeArrays.concat([st, veh])
     t_in = np.concatenate([tin_s, tin_v], axis=1)
     t_out = np.concatenate([tout_s, tout_v], axis=1)
+    cos_side = np.concatenate([cos_s, cos_v], axis=1)
 
     # K nearest crossed footprints per column.
     k = min(K_NEAREST, t_in.shape[1])
     rows = np.arange(n)[:, None]
     if k > 0:
         idx = np.argpartition(t_in, k - 1, axis=1)[:, :k] if t_in.shape[1] > k else np.tile(np.arange(k), (n, 1))
-        kin, kout = t_in[rows, idx], t_out[rows, idx]
+        kin, kout, kcos = t_in[rows, idx], t_out[rows, idx], cos_side[rows, idx]
         zb, zt = shapes.zb[idx], shapes.zt[idx]
         por, refl, own = shapes.porosity[idx], shapes.reflect[idx], shapes.owner[idx]
         relief = shapes.relief[idx]
     else:
-        kin = kout = zb = zt = por = refl = relief = np.zeros((n, 0))
+        kin = kout = kcos = zb = zt = por = refl = relief = np.zeros((n, 0))
         own = np.zeros((n, 0), dtype=np.int64)
 
     # Beam geometry (true directions include calibration error and the residual tilt).
@@ -204,6 +213,10 @@ def cast_sweep(
     enter = np.maximum(kin[:, None, :], lo)
     leave = np.minimum(kout[:, None, :], hi)
     hit = enter <= leave
+    # cosine of incidence: a side face (its horizontal cosine times the beam's cos(elevation)) or, for a ray that
+    # comes in through the top or bottom (a roof seen from above, a crown from below), the horizontal plane
+    cos_e = 1.0 / np.sqrt(1.0 + slope * slope)
+    incidence = np.where(kin[:, None, :] >= lo, kcos[:, None, :] * cos_e[:, :, None], np.abs(slope * cos_e)[:, :, None])
     porous = por[:, None, :] > 0
     if porous.any():
         u = rng.random(hit.shape)
@@ -227,20 +240,27 @@ def cast_sweep(
         d_obj_min = np.take_along_axis(d_obj, kbest[..., None], axis=2)[..., 0]
         own_b = np.take_along_axis(np.broadcast_to(own[:, None, :], d_obj.shape), kbest[..., None], 2)[..., 0]
         refl_b = np.take_along_axis(np.broadcast_to(refl[:, None, :], d_obj.shape), kbest[..., None], 2)[..., 0]
+        inc_b = np.take_along_axis(incidence, kbest[..., None], 2)[..., 0]
+        por_b = np.take_along_axis(np.broadcast_to(por[:, None, :], d_obj.shape), kbest[..., None], 2)[..., 0]
     else:
         d_obj_min = np.full(slope.shape, np.inf)
         own_b = np.full(slope.shape, -1)
         refl_b = np.zeros(slope.shape)
+        inc_b = np.ones(slope.shape)
+        por_b = np.zeros(slope.shape)
     d_ground = _ground_hits(world, ox, oy, dx, dy, z0, slope, sensor.max_range_m, rng)
     on_ground = d_ground < d_obj_min
     d = np.where(on_ground, d_ground, d_obj_min)
     owner = np.where(on_ground, -2, own_b)
-    reflect = np.where(on_ground, 0.25, refl_b)
+    reflect = np.where(on_ground, GROUND_REFLECTIVITY, refl_b)
     r = d * np.sqrt(1.0 + slope * slope)
 
-    # Returns: range limits, dropout, weaker far returns from dark surfaces.
-    eff_range = sensor.max_range_m * np.clip(0.5 + reflect, 0.5, 1.0)
-    p_keep = (1.0 - sensor.dropout) * np.clip(1.0 - (r / eff_range) ** sensor.far_falloff, 0.0, 1.0)
+    # Returns: range limits, dropout, and the detection range of each surface (sensors.SensorModel.reach_m): its
+    # reflectivity times the cosine of incidence for a solid face (Lambertian); a porous medium (foliage) and the
+    # rough ground scatter without a face to lean on, so their reflectivity counts in full.
+    solid = ~on_ground & (por_b <= 0)
+    lambert = np.where(solid, np.clip(inc_b, 0.0, 1.0) ** sensor.incidence_exponent, 1.0)
+    p_keep = (1.0 - sensor.dropout) * sensor.detect_probability(r, reflect * lambert)
     keep = np.isfinite(r) & (r >= sensor.min_range_m) & (r <= sensor.max_range_m) & (rng.random(r.shape) < p_keep)
     ci, bi = np.nonzero(keep)
     rr = r[ci, bi] + rng.normal(0.0, sensor.range_noise_m, len(ci))

@@ -1,6 +1,6 @@
 """How simulated BV images compare with real ones: statistics and a side-by-side figure.
 
-    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data]
+    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data] [--street 12]
 
 Statistics per cloud (engine's default BevConfig): points, lit BV pixels, lit pixels per 100 m^2 in range
 rings (sparsity with range), the share of lit pixels that are low clutter (0.3-1.5 m above the local ground:
@@ -22,6 +22,82 @@ from bb_align.engine.config import BevConfig
 from bb_align.engine.keypoints import detect_keypoints
 
 RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
+BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))  # the far-pair bands of benchmarks/sim_vs_real.py
+TUNED = {"KITTI 00 street (tuned on)": "kitti00_run_far"}
+HELD_OUT = {
+    "KITTI 08 street (held out)": "kitti08_run",
+    "KITTI 08 loop (held out)": "kitti08_loop",
+    "KITTI 01 highway (held out)": "kitti01_run",
+}
+
+
+def lit_by_band(bev) -> list[int]:
+    """Lit pixels of a BV image by range from its sensor, in BANDS."""
+    rc = np.argwhere(bev.image > 0)
+    r = np.hypot(*bev.pixel_to_metre(rc).T)
+    return [int(((r >= lo) & (r < hi)).sum()) for lo, hi in BANDS]
+
+
+def band_profile(clouds) -> dict:
+    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation."""
+    from bb_align import AlignConfig, Aligner
+
+    aligner = Aligner(AlignConfig())
+    rows = np.array([lit_by_band(aligner.prepare(p).bev) for p in clouds])
+    return {
+        "scans": len(rows),
+        "median": np.median(rows, 0).astype(int).tolist(),
+        "q25": np.percentile(rows, 25, 0).astype(int).tolist(),
+        "q75": np.percentile(rows, 75, 0).astype(int).tolist(),
+    }
+
+
+def along_street_alias(pts_ego, pts_peer, T_ego_peer, reach_m: float = 90.0) -> tuple[float, float]:
+    """(overlap at the truth, best overlap elsewhere) of the peer's BV samples on the ego's: the peer slid along the
+    baseline every metre over +-reach_m and +-1 m across, at the truth's yaw and turned by half a turn, skipping
+    the truth's +-3 m. Images only (no engine decision): how much a place looks like another one along a street."""
+    from bb_align import AlignConfig, Aligner
+    from bb_align.engine.geometry import ground_se2, se2
+    from bb_align.engine.refine import overlap_fitness
+
+    aligner = Aligner(AlignConfig())
+    cfg = aligner.config
+    ego, peer = aligner.prepare(pts_ego), aligner.prepare(pts_peer)
+    G = ground_se2(T_ego_peer)
+    cloud, sample = ego.cloud(cfg.refine), aligner.refiner.sample(peer.bev)[0]
+    gate = cfg.refine.gates_m[-1]
+    truth = overlap_fitness(cloud, sample, G, gate)[0]
+    yaw = np.arctan2(G[1, 0], G[0, 0])
+    along = G[:2, 2] / np.linalg.norm(G[:2, 2])
+    across = np.array([-along[1], along[0]])
+    best = 0.0
+    for turn in (0.0, np.pi):
+        for du in np.arange(-reach_m, reach_m + 0.1, 1.0):
+            if turn == 0.0 and abs(du) < 3:
+                continue
+            for dv in (-1.0, 0.0, 1.0):
+                t = G[:2, 2] + du * along + dv * across
+                best = max(best, overlap_fitness(cloud, sample, se2(yaw + turn, t[0], t[1]), gate)[0])
+    return float(truth), float(best)
+
+
+def real_hdl64_scans(data: Path, folder: str) -> list[np.ndarray]:
+    from bb_align.io.clouds import load_cloud
+
+    return [load_cloud(f) for f in sorted((data / folder).glob("*.bin"))]
+
+
+def street_scans(n: int, seed: int = 7) -> list[np.ndarray]:
+    """Both cars' scans of n street-family scenarios, HDL-64E, 73-81 m apart (make bench-sim-real's set)."""
+    from .scenario import Scenario, SimConfig
+
+    cfg = SimConfig(family="street", fleet=("hdl64",))
+    out = []
+    for i in range(n):
+        d = 73.0 + 8.0 * (i + 0.5) / n
+        frame = Scenario(seed * 100003 + i, 2, d, cfg).frame(0)
+        out += [a.points for a in frame.agents.values()]
+    return out
 
 
 def bev_stats(points: np.ndarray, config: BevConfig | None = None) -> dict:
@@ -122,8 +198,13 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out_dir", type=Path)
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[4] / "shared" / "data")
+    ap.add_argument("--street", type=int, default=12, help="street-family scenarios for the band profile")
+    ap.add_argument("--alias", type=int, default=0, help="pairs for the along-street alias (real KITTI 00 and street)")
     args = ap.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)
+    street_profiles(args)
+    if args.alias:
+        alias_table(args)
     real = real_clouds(args.data) if args.data.is_dir() else {}
     sim = simulated_clouds()
     stats = {"real": {k: bev_stats(v) for k, v in real.items()}, "sim": {k: bev_stats(v) for k, v in sim.items()}}
@@ -138,6 +219,60 @@ def main(argv=None) -> None:
                 f"{group:4s} {name:40s} "
                 + " ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items())
             )
+
+
+def street_profiles(args) -> None:
+    """Lit pixels by band: the street family against the KITTI 00 scans it was tuned on and held-out HDL-64E scans."""
+    from tqdm import tqdm
+
+    sets = {}
+    for name, folder in tqdm({**TUNED, **HELD_OUT}.items(), desc="real"):
+        if (args.data / folder).is_dir():
+            sets[name] = band_profile(real_hdl64_scans(args.data, folder))
+    street = street_scans(args.street)
+    sets["sim street family, 73-81 m"] = band_profile(street)
+    real = {}
+    for folder, frame in (("kitti00_run_far", "000094"), ("kitti00_run_far", "000000"), ("kitti08_run", "000000")):
+        if (args.data / folder / f"{frame}.bin").exists():
+            real[f"{folder} {frame} (real)"] = real_hdl64_scans(args.data, folder)[0 if frame == "000000" else -2]
+    figure(
+        {**real, **{f"sim street {i // 2} car {i % 2}": street[i] for i in range(0, 6, 2)}},
+        args.out_dir / "street_real_vs_sim.png",
+        cols=3,
+    )
+    (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
+    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile |")
+    print("| --- | ---: | --- | --- |")
+    for name, p in sets.items():
+        quart = " / ".join(f"{a}-{b}" for a, b in zip(p["q25"], p["q75"]))
+        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} |")
+
+
+def alias_table(args) -> None:
+    """along_street_alias on KITTI 00 pairs (frames 0, 3, 6, 9 against 94, 95) and as many street-family pairs."""
+    from .scenario import Scenario, SimConfig
+
+    far = args.data / "kitti00_run_far"
+    rows = {"KITTI 00, 73-80 m": [], "sim street family, 73-81 m": []}
+    scans = real_hdl64_scans(args.data, "kitti00_run_far")
+    for a in (0, 3, 6, 9)[: max(1, args.alias // 2)]:
+        for j, b in enumerate((94, 95)):
+            T = np.loadtxt(far / f"T_{a}_{b}.txt")
+            rows["KITTI 00, 73-80 m"].append(along_street_alias(scans[a], scans[10 + j], T))
+    for i in range(args.alias):
+        frame = Scenario(
+            7 * 100003 + i, 2, 73.0 + 8.0 * (i + 0.5) / args.alias, SimConfig(family="street", fleet=("hdl64",))
+        ).frame(0)
+        e, p = frame.agents["0"], frame.agents["1"]
+        rows["sim street family, 73-81 m"].append(
+            along_street_alias(e.points, p.points, np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor)
+        )
+    out = {
+        k: np.median(np.array(v), axis=0).tolist() + [int(sum(b > t for t, b in v)), len(v)] for k, v in rows.items()
+    }
+    (args.out_dir / "street_alias.json").write_text(json.dumps(out, indent=2))
+    for k, (t, b, above, n) in out.items():
+        print(f"| {k} | {t:.3f} | {b:.3f} | {above} / {n} |")
 
 
 if __name__ == "__main__":

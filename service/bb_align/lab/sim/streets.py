@@ -22,9 +22,26 @@ STYLES = ("city", "suburb", "industrial", "open")
 STYLE_WEIGHTS = (0.3, 0.3, 0.2, 0.2)
 # A residential street as on the real far pairs (KITTI 00): houses with yards, some facades, parked cars on both
 # sides; its property-line walls and hedges broken by driveways and gates more often than elsewhere.
-RESIDENTIAL_WEIGHTS = (0.3, 0.7, 0.0, 0.0)
+RESIDENTIAL_WEIGHTS = (0.6, 0.4, 0.0, 0.0)
 RESIDENTIAL_LINE_GAPS = 0.6
+# Share of a residential frontage that is built (the rest: alleys and driveways, never open land): the real street
+# is a canyon of facades that hides what stands behind them (docs/sim/street_real_vs_sim.png).
+RESIDENTIAL_FRONTAGE = 0.9
+# Blocks of a residential street (its building line and how full its kerbs are change from one to the next), m:
+# a street changes from block to block, so that one place does not look like the next 75 m on.
+RESIDENTIAL_BLOCK_M = (50.0, 120.0)
+# What a residential kerb holds besides houses (per metre of street, each side), chosen on the lit-pixel profile of
+# the real KITTI 00 scans within 40 m (docs/simulation.md): front-garden shrubs in irregular clumps, bins and bikes,
+# lot dividers (fences and hedges running back from the street between houses), porches and bays on facades.
+RESIDENTIAL_SHRUB_CLUMPS = 1 / 7.0
+RESIDENTIAL_SMALL_THINGS = 1 / 9.0
+RESIDENTIAL_LOT_DIVIDERS = 1 / 60.0
 FAMILIES = ("mixed", "street", "turn")
+# Reflectivity at the LiDARs' 905 nm (what sensors.SensorModel.reach_m reads): green leaves reflect about half of
+# the near infrared (their NIR plateau), plaster, brick and concrete facades 0.3-0.8; bark, asphalt and dark paint
+# less. The HDL-64E datasheet's 80 % targets are "cars and foliage".
+FOLIAGE_REFLECTIVITY = 0.55
+FACADE_REFLECTIVITY = (0.3, 0.8)
 
 
 class _Occupancy:
@@ -94,8 +111,9 @@ class _Side:
         parked: list,
         weights: tuple[float, ...] = STYLE_WEIGHTS,
         line_gaps: float = 0.25,
+        residential: bool = False,
     ):
-        self.weights, self.line_gaps = weights, line_gaps
+        self.weights, self.line_gaps, self.residential = weights, line_gaps, residential
         self.sh, self.occ, self.rng, self.road, self.idx, self.side, self.parked = (
             sh,
             occ,
@@ -106,6 +124,7 @@ class _Side:
             parked,
         )
         self.edge = road.half_width + road.sidewalk  # property line, from the centre line
+        self.building_line = float(rng.uniform(1.0, 5.0)) if residential else 0.0  # setback of this side's houses
 
     def at(self, s: float, lat: float) -> tuple[float, float, float]:
         """World (x, y, road heading) at arc length s, ``lat`` metres out from the centre line on this side."""
@@ -126,7 +145,7 @@ class _Side:
         h_crown = r.uniform(2.5, 7.0) * scale
         self.sh.cyl(x, y, r.uniform(0.12, 0.3) * scale, 0.0, h_trunk + 0.5, reflect=0.25)
         z1 = h_trunk + 0.55 * h_crown
-        self.sh.cyl(x, y, r_crown, h_trunk, z1, porosity=r.uniform(0.35, 0.65), reflect=0.35)
+        self.sh.cyl(x, y, r_crown, h_trunk, z1, porosity=r.uniform(0.35, 0.65), reflect=FOLIAGE_REFLECTIVITY)
         jx, jy = r.normal(0, 0.3 * scale, 2)
         self.sh.cyl(
             x + jx,
@@ -135,13 +154,19 @@ class _Side:
             z1,
             h_trunk + h_crown,
             porosity=r.uniform(0.35, 0.65),
-            reflect=0.35,
+            reflect=FOLIAGE_REFLECTIVITY,
         )
 
     def bush(self, x, y, big=1.0):
         r = self.rng
         self.sh.cyl(
-            x, y, r.uniform(0.4, 1.6) * big, 0.0, r.uniform(0.5, 1.9) * big, porosity=r.uniform(0.2, 0.5), reflect=0.3
+            x,
+            y,
+            r.uniform(0.4, 1.6) * big,
+            0.0,
+            r.uniform(0.5, 1.9) * big,
+            porosity=r.uniform(0.2, 0.5),
+            reflect=FOLIAGE_REFLECTIVITY,
         )
 
     def wall(self, s0, s1, lat, h, thick=0.15, zb=0.0, porosity=0.0, step=6.0, gap_prob=0.0):
@@ -187,19 +212,24 @@ class _Side:
         bounds = np.concatenate([[0.0], np.sort(r.uniform(0, frontage, n_parts - 1)), [frontage]])
         base_h = {"city": r.uniform(8, 32), "suburb": r.uniform(3.5, 8), "industrial": r.uniform(5, 12)}[style]
         base_set = r.uniform(0.3, 2.5) if style == "city" else r.uniform(3, 14)
+        jitter, skew = (0.8 if style == "city" else 2.5), np.radians(2)
+        if self.residential:  # houses on the street's common building line, as planned streets are laid out
+            base_set, jitter, skew = self.building_line, 0.3, np.radians(0.5)
         for a, b in zip(bounds[:-1], bounds[1:]):
             if b - a < 4:
                 continue
-            setback = max(0.2, base_set + r.normal(0, 0.8 if style == "city" else 2.5))
+            setback = max(0.2, base_set + r.normal(0, jitter))
             depth = {"city": r.uniform(12, 30), "suburb": r.uniform(8, 14), "industrial": r.uniform(15, 45)}[style]
             cx, cy, yaw = self.at(s + (a + b) / 2, self.edge + setback + depth / 2)
             hl, hw = (b - a) / 2 - r.uniform(0, 0.8), depth / 2
-            yaw_b = yaw + r.normal(0, np.radians(2))
+            yaw_b = yaw + r.normal(0, skew)
             if not self.occ.claim_rect(cx, cy, hl, hw, yaw_b, self.occ.any_corridor):
                 continue
             h = max(3.0, base_h * r.uniform(0.6, 1.4))
             relief = {"city": r.uniform(0.2, 1.0), "suburb": r.uniform(0.1, 0.6), "industrial": r.uniform(0.05, 0.3)}
-            self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(0.2, 0.6), relief=relief[style])
+            self.sh.prism(cx, cy, hl, hw, yaw_b, 0.0, h, reflect=r.uniform(*FACADE_REFLECTIVITY), relief=relief[style])
+            if self.residential:
+                self.bays(cx, cy, hl, hw, yaw_b, h)
             if r.random() < 0.4:  # annex, porch or stepped roof
                 off = self.side * hw * r.uniform(0.3, 0.9)
                 self.sh.prism(
@@ -210,7 +240,7 @@ class _Side:
                     yaw_b,
                     0.0,
                     h * r.uniform(0.3, 1.6),
-                    reflect=r.uniform(0.2, 0.6),
+                    reflect=r.uniform(*FACADE_REFLECTIVITY),
                     relief=relief[style],
                 )
             if r.random() < {"city": 0.7, "suburb": 0.5, "industrial": 0.4}[style]:  # a second row behind
@@ -227,7 +257,7 @@ class _Side:
                         yaw_b + r.normal(0, 0.03),
                         0.0,
                         max(3.0, base_h * r.uniform(0.5, 1.6)),
-                        reflect=r.uniform(0.2, 0.6),
+                        reflect=r.uniform(*FACADE_REFLECTIVITY),
                         relief=relief[style],
                     )
             if style == "suburb":
@@ -250,6 +280,73 @@ class _Side:
             x, y, yaw = self.at(r.uniform(s0, s1), self.edge + r.uniform(2.5, max(3.0, setback - 2.5)))
             if self.free(x, y):
                 self.park(x, y, yaw + np.pi / 2 * self.side + r.normal(0, 0.1))
+
+    def kerb_parking(self, s0, s1):
+        """Kerb-side cars packed as drivers leave them: gaps of 0.5-6 m, driveway breaks, a little skew and offset
+        (a residential street's rows are irregular, unlike a lot's 6.3 m grid)."""
+        r = self.rng
+        sp = s0 + r.uniform(0, 4)
+        occupancy = r.uniform(0.3, 1.0)  # how full this block's kerb is
+        while sp < s1:
+            if r.random() < 0.12 or r.random() > occupancy:  # a driveway, a hydrant, or just a free space
+                sp += r.uniform(4, 12)
+                continue
+            lat = self.road.half_width - self.road.parking / 2 + r.normal(0, 0.15)
+            x, y, yaw = self.at(sp + 2.4, lat)
+            if self.free(x, y, kerb=True):
+                self.park(x, y, yaw + (np.pi if self.side > 0 else 0.0) + r.normal(0, 0.05))
+            sp += 4.8 + 0.5 + r.exponential(1.8)
+
+    def kerb_life(self, s0, s1):
+        """The small, irregular things of a residential street's edge (RESIDENTIAL_* rates)."""
+        r = self.rng
+        for _ in range(int(r.poisson((s1 - s0) * RESIDENTIAL_SHRUB_CLUMPS))):  # clumps of garden shrubs
+            cx, cy, _ = self.at(r.uniform(s0, s1), self.edge + r.uniform(0.4, 4.0))
+            for _ in range(int(r.integers(2, 6))):
+                x, y = cx + r.normal(0, 0.9), cy + r.normal(0, 0.9)
+                if self.free(x, y):
+                    h = r.uniform(0.4, 1.8)
+                    self.sh.cyl(
+                        x, y, r.uniform(0.25, 0.9), 0.0, h, porosity=r.uniform(0.15, 0.5), reflect=FOLIAGE_REFLECTIVITY
+                    )
+        for _ in range(int(r.poisson((s1 - s0) * RESIDENTIAL_SMALL_THINGS))):  # bins, bikes, boxes, low posts
+            x, y, yaw = self.at(r.uniform(s0, s1), self.edge + r.uniform(-1.5, 2.5))
+            if not self.free(x, y, kerb=True):
+                continue
+            kind = r.random()
+            if kind < 0.4:  # wheelie bin
+                self.sh.prism(x, y, 0.3, 0.3, yaw + r.normal(0, 0.3), 0.0, 1.05, reflect=r.uniform(0.1, 0.5))
+            elif kind < 0.7:  # parked bike: a porous frame
+                self.sh.prism(x, y, 0.85, 0.25, yaw + r.uniform(0, np.pi), 0.0, 1.05, porosity=0.6, reflect=0.5)
+            else:  # post, bollard, electricity box
+                self.sh.prism(x, y, r.uniform(0.1, 0.5), r.uniform(0.1, 0.3), yaw, 0.0, r.uniform(0.8, 1.6))
+        for _ in range(int(r.poisson((s1 - s0) * RESIDENTIAL_LOT_DIVIDERS))):  # fence or hedge between two lots
+            depth = r.uniform(4, 18)
+            x, y, yaw = self.at(r.uniform(s0, s1), self.edge + 0.3 + depth / 2)
+            if self.free(x, y):
+                hedge = r.random() < 0.5
+                self.sh.prism(
+                    x,
+                    y,
+                    depth / 2,
+                    r.uniform(0.2, 0.6) if hedge else 0.05,
+                    yaw + np.pi / 2 + r.normal(0, 0.05),
+                    0.0,
+                    r.uniform(1.0, 2.2),
+                    porosity=r.uniform(0.2, 0.4) if hedge else r.uniform(0.0, 0.5),
+                    reflect=0.45,
+                )
+
+    def bays(self, cx, cy, hl, hw, yaw_b, h):
+        """Porches, bays and garages on the street face of a house (real facades are broken)."""
+        r = self.rng
+        for _ in range(int(r.integers(0, 3))):
+            u = r.uniform(-hl * 0.8, hl * 0.8)
+            out = r.uniform(0.3, 1.2)
+            off = -self.side * (hw + out / 2)  # towards the street
+            c, s_ = np.cos(yaw_b), np.sin(yaw_b)
+            x, y = cx + c * u - s_ * off, cy + s_ * u + c * off
+            self.sh.prism(x, y, r.uniform(0.8, 2.5), out / 2, yaw_b, 0.0, min(h, r.uniform(2.5, 4.5)), reflect=0.4)
 
     def open_stretch(self, s, length):
         """Few landmarks: nothing, bushes, a fence or wall, a guard rail, a few trees, woods, a parking lot."""
@@ -296,7 +393,9 @@ class _Side:
         while s < L:
             style = str(r.choice(STYLES, p=self.weights))
             styles.append(style)
-            end = min(L, s + 150.0)
+            end = min(L, s + (r.uniform(*RESIDENTIAL_BLOCK_M) if self.residential else 150.0))
+            if self.residential:  # each block its own building line
+                self.building_line = float(r.uniform(1.0, 5.0))
             if style != "open" or r.random() < 0.3:
                 self.furniture(s, end, dense=style == "city")
             if style in ("suburb", "city") and r.random() < 0.6:  # street trees
@@ -321,7 +420,10 @@ class _Side:
                 x, y, _ = self.at(r.uniform(s, end), self.edge - r.uniform(0.3, self.road.sidewalk - 0.2))
                 if self.free(x, y, kerb=True):
                     self.sh.cyl(x, y, r.uniform(0.2, 0.3), 0.0, r.uniform(1.5, 1.9), reflect=0.3)
-            if self.road.parking > 0 and r.random() < 0.85:  # kerb-side parking
+            if self.residential:
+                self.kerb_life(s, end)
+                self.kerb_parking(s, end)
+            elif self.road.parking > 0 and r.random() < 0.85:  # kerb-side parking
                 for sp in np.arange(s, end, 6.3):
                     x, y, yaw = self.at(sp, self.road.half_width - self.road.parking / 2)
                     if r.random() > 0.3 and self.free(x, y, kerb=True):
@@ -331,11 +433,11 @@ class _Side:
                     length = min(end - s, r.uniform(30, 120))
                     self.open_stretch(s, length)
                     s += length
-                elif r.random() < 0.75:
+                elif r.random() < (RESIDENTIAL_FRONTAGE if self.residential else 0.75):
                     frontage = r.uniform(12, 50) if style != "suburb" else r.uniform(12, 22)
                     self.building(s, frontage, style)
                     s += frontage
-                elif r.random() < 0.6:
+                elif self.residential or r.random() < 0.6:
                     s += r.uniform(3, 15)  # alley or driveway
                 else:
                     length = r.uniform(15, 50)
@@ -438,7 +540,9 @@ def generate_world(
     for i, road in enumerate(roads):
         for side in (-1, 1):
             if street and i == 0:
-                styles += _Side(sh, occ, rng, road, i, side, parked, RESIDENTIAL_WEIGHTS, RESIDENTIAL_LINE_GAPS).walk()
+                styles += _Side(
+                    sh, occ, rng, road, i, side, parked, RESIDENTIAL_WEIGHTS, RESIDENTIAL_LINE_GAPS, residential=True
+                ).walk()
             else:
                 styles += _Side(sh, occ, rng, road, i, side, parked).walk()
     _vegetation(sh, occ, rng, roads)
