@@ -14,7 +14,9 @@ frame keys as fast as its blocking publisher goes: ``small`` 1-byte junk, ``big`
 envelopes. Recorded per phase: results per car, ``stale_ego_frame`` results, service CPU (cores, in total and per
 thread group from /proc/<pid>/task: Zenoh's rx-N, tx-N and other threads, the door thread, the Python threads:
 engine workers, gate, REST), the cores of the cars' side (this process) and of the flooders, the load average, and
-RSS. Prints and writes JSON, then a summary table; ``--plot`` draws results kept per car.
+RSS. A phase's results are those for the frames sent in it (by their stamps) published by 2 s after its end,
+the same for the baseline and the flood (the flooders go on 3 s past the phase); ``kept`` is the flood's over
+the baseline's, per car. Prints and writes JSON, then a summary table; ``--plot`` draws results kept per car.
 
 ``--pin`` models a vehicle, where the flooders are other computers: the service process (every thread, with Zenoh's
 receive threads and the door) on CPU 1, this process (ego, cars, listener) and the flooders on CPU 0, for the
@@ -46,7 +48,7 @@ SIZES = {  # FloodConfig fields per flood size
 
 def _outcome(data: bytes) -> tuple[str, float | None]:
     """A result's outcome, read without checking its signature (the listener holds no key): "success" or its
-    reason, and the seconds since its peer frame was stamped (time.time() when sent)."""
+    reason, and its peer frame's stamp (time.time() when it was sent)."""
     import msgpack
 
     from bb_align.protocol import Limits, peek_signed
@@ -54,8 +56,8 @@ def _outcome(data: bytes) -> tuple[str, float | None]:
     env = peek_signed(data, Limits())
     body = msgpack.unpackb(env.payload if env is not None else data, raw=False)
     stamp = body.get("peer_stamp")
-    latency = time.time() - stamp if isinstance(stamp, int | float) else None
-    return ("success" if body.get("success") else str(body.get("reason"))), latency
+    stamp = float(stamp) if isinstance(stamp, int | float) else None
+    return ("success" if body.get("success") else str(body.get("reason"))), stamp
 
 
 def pin(pid: int, cpus: set[int]) -> None:
@@ -116,16 +118,18 @@ class Streams:
 
     def on_result(self, sample) -> None:
         car = str(sample.key_expr).rsplit("/", 1)[-1]
-        outcome, latency = _outcome(sample.payload.to_bytes())
+        outcome, stamp = _outcome(sample.payload.to_bytes())
+        now = time.time()
         with self.lock:
-            self.results.append((time.monotonic(), car, outcome, latency))
+            self.results.append((now, car, outcome, stamp))
 
     def run(self, seconds: float) -> tuple[float, float]:
-        """Publish for ``seconds`` (the ego, car1, car2 once per 0.1 s tick); (start, end) of the phase."""
+        """Publish for ``seconds`` (the ego, car1, car2 once per 0.1 s tick); (start, end) of the phase, wall
+        clock (the frames' stamps)."""
         from bb_align_client import encode_frame
         from service_support import RANGE_M
 
-        t0 = time.monotonic()
+        t0, w0 = time.monotonic(), time.time()
         tick, self.ticks = 0, 0
         while time.monotonic() - t0 < seconds:
             late = time.monotonic() - (t0 + tick * 0.1)
@@ -145,14 +149,15 @@ class Streams:
             self.seq += 1
             tick += 1
             time.sleep(max(0.0, t0 + tick * 0.1 - time.monotonic()))
-        return t0, time.monotonic()
+        return w0, time.time()
 
-    def count(self, t0: float, t1: float) -> dict:
+    def count(self, t0: float, t1: float, until: float) -> dict:
+        """The results for the frames sent in [t0, t1) (by their stamps) that arrived by ``until``."""
         with self.lock:
-            got = [r for r in self.results if t0 <= r[0] < t1]
+            got = [r for r in self.results if r[3] is not None and t0 <= r[3] < t1 and r[0] < until]
         per_car = Counter(r[1] for r in got)
         reasons = Counter(r[2] for r in got)
-        lat = sorted(r[3] for r in got if r[3] is not None)
+        lat = sorted(r[0] - r[3] for r in got)
         pct = lambda q: round(lat[min(len(lat) - 1, int(q * len(lat)))] * 1e3) if lat else None  # noqa: E731
         return {
             "results": {c: per_car[c] for c in CARS},
@@ -162,9 +167,10 @@ class Streams:
 
 
 def phase(streams: Streams, svc, seconds: float, settle_s: float, pinned: bool = False) -> dict:
-    """One phase: stream for ``seconds``, count the results published from its start until ``settle_s`` after its
-    end (the last frames' answers), with the service's CPU (per thread group) and RSS over it, this process's CPU
-    (the ego, the cars and the listener) and the load average."""
+    """One phase: stream for ``seconds``, count the results for the frames sent in it (by their stamps) published
+    by ``settle_s`` after its end (the same for the baseline and the flood: the flood goes on meanwhile), with
+    the service's CPU (per thread group) and RSS over it, this process's CPU (the ego, the cars and the listener)
+    and the load average."""
     if pinned:  # threads the service started since the last phase inherit CPU 1; this is belt and braces
         pin(svc.pid, SERVICE_CPUS)
     cpu0, w0, peers0, door0 = svc.cpu_seconds(), time.monotonic(), svc.get("/v1/peers"), _door_refused(svc)
@@ -173,7 +179,7 @@ def phase(streams: Streams, svc, seconds: float, settle_s: float, pinned: bool =
     cpu1, w1 = svc.cpu_seconds(), time.monotonic()
     thr1, own1 = thread_cpu(svc.pid), _own_cpu()
     time.sleep(settle_s)
-    out = streams.count(t0, t1 + settle_s)
+    out = streams.count(t0, t1, t1 + settle_s)
     peers1 = svc.get("/v1/peers")
     out["frames_accepted"] = {
         c: peers1.get(c, {}).get("frames_accepted", 0) - peers0.get(c, {}).get("frames_accepted", 0) for c in CARS
@@ -215,7 +221,7 @@ def run_case(streams, svc, ep: str, size: str, n: int, seconds: float, pinned: b
     try:
         for f in flooders:
             f.start()
-        flood = phase(streams, svc, seconds, 0.0, pinned)
+        flood = phase(streams, svc, seconds, 2.0, pinned)  # the flooders go on 3 s past the phase
         put = [f.finish() for f in flooders]
     finally:
         for f in flooders:

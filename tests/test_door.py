@@ -246,3 +246,37 @@ def test_envelope_spans_agree_with_msgpack_or_give_up(frame_car1):
         frame_car1(1),  # a frame holds arrays and maps
     ):
         assert envelope_spans(data) is None
+
+
+def test_the_door_thread_pays_for_each_refusal_before_it_takes_the_next_message():
+    """A costly refusal's pause must come before the messages behind it: paid once per batch, 16 large junk
+    messages bought one long pause, after which a car's frames of two sweeps came out back to back and the
+    scheduler (latest only) dropped the older (issue 31, F7)."""
+    import types
+
+    import zenoh
+
+    from bb_align.server.zenoh_link import ZenohLink
+
+    events: list[str] = []
+    samples = ["junk1", "frame1", "junk2", "junk3", "frame2"]
+
+    class Fifo:
+        def recv(self):
+            if not samples:
+                raise zenoh.ZError("closed")
+            return samples.pop(0)
+
+        def try_recv(self):
+            return samples.pop(0) if samples else None
+
+    class Spy:
+        def spend(self, cpu_s):
+            assert cpu_s >= 0
+            events.append("pay")
+
+    link = ZenohLink.__new__(ZenohLink)
+    link.settings = types.SimpleNamespace(limits=Limits())
+    link._on_frame = lambda sample: events.append(sample) or sample.startswith("frame")  # frames queued
+    link._door_loop(Fifo(), Spy())
+    assert events == ["junk1", "pay", "frame1", "junk2", "pay", "junk3", "pay", "frame2"]
