@@ -212,21 +212,26 @@ def _door_refused(svc) -> float:
     return sum(float(ln.rsplit(" ", 1)[1]) for ln in text.splitlines() if ln.startswith("bbalign_door_refused_total{"))
 
 
-def run_case(streams, svc, ep: str, size: str, n: int, seconds: float, pinned: bool) -> dict:
+def run_case(streams, svc, ep: str, size: str, n: int, seconds: float, pinned: bool, blocks: int = 1) -> dict:
+    """``blocks`` times a baseline phase then a flood phase (alternating, so both see the same background load of
+    a shared machine); counts summed over the blocks, rates averaged."""
     from bb_align.lab.flood import FloodConfig, FloodProcess
 
-    base = phase(streams, svc, seconds, 2.0, pinned)
-    cfg = FloodConfig(duration_s=seconds + 3.0, replays_per_cycle=0, **SIZES[size])
-    flooders = [FloodProcess(ep, "bbalign", {"ego": None, "car1": None, "car2": None}, cfg) for _ in range(n)]
-    try:
-        for f in flooders:
-            f.start()
-        flood = phase(streams, svc, seconds, 2.0, pinned)  # the flooders go on 3 s past the phase
-        put = [f.finish() for f in flooders]
-    finally:
-        for f in flooders:
-            f.stop()
-    time.sleep(3.0)  # the flood's last messages drain before the next baseline
+    bases, floods, put = [], [], []
+    for _ in range(blocks):
+        bases.append(phase(streams, svc, seconds, 2.0, pinned))
+        cfg = FloodConfig(duration_s=seconds + 3.0, replays_per_cycle=0, **SIZES[size])
+        flooders = [FloodProcess(ep, "bbalign", {"ego": None, "car1": None, "car2": None}, cfg) for _ in range(n)]
+        try:
+            for f in flooders:
+                f.start()
+            floods.append(phase(streams, svc, seconds, 2.0, pinned))  # the flooders go on 3 s past the phase
+            put += [f.finish() for f in flooders]
+        finally:
+            for f in flooders:
+                f.stop()
+        time.sleep(3.0)  # the flood's last messages drain before the next baseline
+    base, flood = _merge(bases), _merge(floods)
     kept = {
         c: round(flood["results"][c] / base["results"][c], 3) if base["results"][c] else None for c in CARS
     }  # fmt: skip
@@ -234,9 +239,14 @@ def run_case(streams, svc, ep: str, size: str, n: int, seconds: float, pinned: b
         "size": size,
         "flooders": n,
         "pinned": pinned,
+        "blocks": blocks,
         "no_flood": base,
         "flood": flood,
         "kept": kept,
+        "kept_per_block": [
+            {c: round(f["results"][c] / b["results"][c], 3) if b["results"][c] else None for c in CARS}
+            for b, f in zip(bases, floods, strict=True)
+        ],
         "flooders_put": [
             {
                 "msg_per_s": round(p["msg_per_s"]),
@@ -246,6 +256,31 @@ def run_case(streams, svc, ep: str, size: str, n: int, seconds: float, pinned: b
             for p in put
         ],  # fmt: skip
     }
+
+
+def _merge(phases: list[dict]) -> dict:
+    """Phases as one: integer counts summed, other numbers averaged, the load average's first and last."""
+    first = phases[0]
+    out: dict = {}
+    for key, value in first.items():
+        values = [ph.get(key) for ph in phases]
+        if key == "load_avg_1min":
+            out[key] = [first[key][0], phases[-1][key][1]]
+        elif isinstance(value, dict):
+            keys = sorted({k for v in values for k in v})
+            out[key] = _merge([{k: v.get(k, 0) for k in keys} for v in values])
+        elif isinstance(value, bool) or value is None:
+            out[key] = value
+        elif isinstance(value, int):
+            out[key] = sum(values)
+        elif isinstance(value, float):
+            out[key] = round(sum(values) / len(values), 3)
+        elif isinstance(value, list):
+            cols = [[v[i] for v in values if v[i] is not None] for i in range(len(value))]
+            out[key] = [round(sum(c) / len(c)) if c else None for c in cols]
+        else:
+            out[key] = value
+    return out
 
 
 def plot(out: dict, path: Path) -> None:
@@ -292,6 +327,9 @@ def main() -> None:
     ap.add_argument("--title", default="Signed cars under keyless Zenoh floods")
     ap.add_argument("--pin", action="store_true", help="the service on CPU 1, the cars and flooders on CPU 0")
     ap.add_argument("--repeat", type=int, default=1, help="runs of every case")
+    ap.add_argument(
+        "--blocks", type=int, default=1, help="baseline and flood phases alternated this many times per case"
+    )
     ap.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE", help="a service Limits field")
     a = ap.parse_args()
     if a.pin:
@@ -314,6 +352,7 @@ def main() -> None:
         "title": a.title,
         "command": " ".join(sys.argv),
         "seconds": a.seconds,
+        "blocks": a.blocks,
         "pinned": {"service_cpus": sorted(SERVICE_CPUS), "cars_and_flooders_cpus": sorted(CARS_CPUS)}
         if a.pin
         else None,
@@ -343,7 +382,7 @@ def main() -> None:
                 time.sleep(1.0)
                 phase(streams, svc, 8.0, 2.0, a.pin)  # warm-up: tracks acquired, caches filled
                 for size, n, run in tqdm(cases, desc="flood cases"):
-                    case = run_case(streams, svc, ep[0], size, n, a.seconds, a.pin)
+                    case = run_case(streams, svc, ep[0], size, n, a.seconds, a.pin, a.blocks)
                     case["run"] = run if a.repeat > 1 else None
                     out["cases"].append(case)
                     print(json.dumps({k: case[k] for k in ("size", "flooders", "run", "kept")}), file=sys.stderr)
@@ -368,7 +407,7 @@ def summary(out: dict) -> str:
     """One line per case: kept per car, the cores of each side in the flood (baseline in brackets), RSS, load."""
     pinned = out["pinned"]
     lines = [
-        f"{out['title']}: {out['seconds']} s per phase, "
+        f"{out['title']}: {out['seconds']} s per phase, {out.get('blocks', 1)} block(s) per case, "
         + (
             f"service on CPU {pinned['service_cpus']}, cars and flooders on CPU {pinned['cars_and_flooders_cpus']}"
             if pinned
@@ -387,10 +426,13 @@ def summary(out: dict) -> str:
             f"{f['service_cores']:.2f} ({b['service_cores']:.2f}), "
             + ", ".join(f"{ft.get(k, 0):.2f} ({bt.get(k, 0):.2f})" for k in ("zenoh_rx", "door", "python", "sys"))
             + f" | {f['cars_side_cores']:.2f} ({b['cars_side_cores']:.2f})"
-            f" | {sum(p['cpu_cores'] for p in c['flooders_put']):.2f}"
+            f" | {sum(p['cpu_cores'] for p in c['flooders_put']) / c.get('blocks', 1):.2f}"
             f" | {f['service_rss_mb']}"
             f" | {b['load_avg_1min'][0]}-{f['load_avg_1min'][1]}"
         )
+        if c.get("blocks", 1) > 1:
+            per = "; ".join(" ".join(f"{k[car] or 0:.2f}" for car in CARS) for k in c["kept_per_block"])
+            lines.append(f"{'':15s}| kept per block: {per}")
     return "\n".join(lines)
 
 
