@@ -5,19 +5,22 @@
 
 Each sender is its own process with its own Zenoh session, sending queries of ``--mb`` MB of junk (just under the
 service's message limit) on ``bbalign/align/ego`` as fast as Zenoh takes them, without waiting for the replies.
-Meanwhile car1 (a fleet-key signer) asks for an alignment once a second. Prints one JSON document."""
+Meanwhile car1 (a fleet-key signer) asks for an alignment once a second. Prints one JSON document. ``--pin``: the
+service process on CPU 1, this process and the senders on CPU 0 (as stream_flood.py --pin)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 KEY = "bench-fleet-key-0123456789abcdef"
 
@@ -54,7 +57,13 @@ def main() -> None:
     ap.add_argument("--mb", type=float, default=4.0)
     ap.add_argument("--after", type=float, default=10.0, help="seconds watched after the flood")
     ap.add_argument("--kind", choices=("junk", "envelope"), default="envelope")
+    ap.add_argument("--pin", action="store_true", help="the service on CPU 1, this process and the senders on CPU 0")
     a = ap.parse_args()
+
+    from stream_flood import CARS_CPUS, SERVICE_CPUS, pin
+
+    if a.pin:
+        pin(os.getpid(), CARS_CPUS)  # the senders (spawned children) inherit it
 
     from bb_align.lab.harness import start_service
     from bb_align_client import ZenohPeer, encode_frame
@@ -65,6 +74,9 @@ def main() -> None:
     settings = secure_settings(True)
     with tempfile.TemporaryDirectory() as log_dir:
         svc = start_service(settings, KEY, Path(log_dir), timeout_s=120)
+        if a.pin:
+            pin(svc.pid, SERVICE_CPUS)
+        load0 = os.getloadavg()[0]
         ep = svc.zenoh_endpoint
         _, ego, peer = moving_pair(1)[0]
         rss, asked, answered = [], 0, 0
@@ -128,6 +140,8 @@ def main() -> None:
                     "after_end": by("after")[-1],
                 },
                 "car1_queries_answered": f"{answered}/{asked}",
+                "pinned": a.pin,
+                "load_avg_1min": [round(load0, 2), round(os.getloadavg()[0], 2)],
                 "exit_code": code,
                 "samples": rss,
             },

@@ -11,7 +11,8 @@ import pytest
 
 from bb_align.lab.harness import make_credentials
 from bb_align.protocol import Limits, WireError, load_frame, sign
-from bb_align.server.door import Budget, Door, stamp_and_seq
+from bb_align.server import door as door_module
+from bb_align.server.door import Budget, Door, envelope_spans, stamp_and_seq
 from bb_align.server.scheduler import EGO, SIGNED, UNVERIFIED_LANE, Intake, Job
 from bb_align.server.settings import AuthSettings
 from bb_align_client import encode_frame
@@ -177,3 +178,114 @@ def test_a_genuine_signers_junk_is_refused_at_the_door_within_its_budget(fleet):
     assert _refusal(door, "car1", junk).error == "undecodable"
     with pytest.raises(WireError):  # the gate agrees
         load_frame(junk, LIMITS, keyring=ring, now=time.time())
+
+
+def test_large_junk_is_refused_from_its_headers_before_any_decode_or_mac(fleet, frame_car1, monkeypatch):
+    """A keyless 1 MB envelope (zero signature, a genuine certificate copied from the air) whose payload cannot be a
+    frame, a 1 MB unsigned frame, and a genuine signer's non-frame: refused without the full decode (which copied
+    the megabyte twice) and without a signature check (a first message from car1 used to cost one); a frame-shaped
+    forgery still gets its signature checked. The gate refuses each too."""
+    door, ring = _door(fleet)  # no frame accepted from car1 yet: no (stamp, seq) to refuse old ones by
+    creds = fleet[1]
+    verified, decoded = [], []
+    verify, peek = ring.verify_signed, door_module.peek_signed
+    ring.verify_signed = lambda *a, **k: verified.append(1) or verify(*a, **k)
+    monkeypatch.setattr(door_module, "peek_signed", lambda *a: decoded.append(1) or peek(*a))
+    cert = creds["car1"].certificate_bytes
+    big = b"\0" * (1 << 20)
+    env = lambda payload, mac=b"\0" * 64: msgpack.packb(  # noqa: E731
+        {"schema_version": 1, "key_id": "car1", "alg": "ed25519", "mac": mac, "cert": cert, "payload": payload}
+    )
+    unsigned = msgpack.packb({"schema_version": 1, "vehicle_id": "car1", "seq": 1, "stamp": time.time(), "png": big})
+    cases = {
+        "zero signature, 1 MB non-map payload": (env(big), "undecodable"),
+        "1 MB unsigned frame": (unsigned, "unauthenticated"),
+        "zero-MAC HMAC, no fleet key here": (
+            msgpack.packb({"key_id": "fleet", "alg": "hmac-sha256", "mac": b"\0" * 32, "payload": big}),
+            "unauthenticated",
+        ),
+        "genuine signer, 1 MB payload that is not a map": (sign(big, creds["car1"]), "undecodable"),
+    }
+    for name, (data, error) in cases.items():
+        assert _refusal(door, "car1", data).error == error, name
+    assert decoded == [] and verified == []
+    junk_map = sign(msgpack.packb({"x": big}), creds["car1"])  # a map, but no stamp and seq: decoded, no MAC
+    assert _refusal(door, "car1", junk_map).error == "undecodable" and decoded == [1] and verified == []
+    forged = env(msgpack.packb({"schema_version": 1, "vehicle_id": "car1", "seq": 1 << 40, "stamp": time.time()}))
+    assert _refusal(door, "car1", forged).error == "unauthenticated" and verified == [1]  # only a MAC tells
+    assert door.lane("car1", sign(frame_car1(3), creds["car1"])) == (SIGNED, "car1")
+    for data, _ in [*cases.values(), (junk_map, None), (forged, None)]:
+        with pytest.raises(WireError):  # the gate agrees
+            load_frame(data, LIMITS, keyring=ring, now=time.time())
+
+
+def test_envelope_spans_agree_with_msgpack_or_give_up(frame_car1):
+    """The header reader against msgpack's own decoder: the same keys, each str or bin value's bytes at its span;
+    None (the full decode decides) for what it does not read."""
+    messages = [
+        {"schema_version": 1, "key_id": "fleet", "alg": "hmac-sha256", "mac": b"\1" * 32, "payload": b"\x81" * 70000},
+        {"mac": b"", "payload": "text", "n": -5, "f": 1.5, "big": 1 << 62, "neg": -(1 << 40), "t": True, "z": None},
+        {"k" * 40: b"v" * 300, "": b""},
+        {},
+    ]
+    for obj in messages:
+        data = msgpack.packb(obj, use_bin_type=True)
+        spans = envelope_spans(data)
+        assert spans is not None and {k.decode() for k in spans} == set(obj)
+        for key, (_, start, end) in spans.items():
+            value = obj[key.decode()]
+            if isinstance(value, bytes | str):
+                assert data[start:end] == (value if isinstance(value, bytes) else value.encode())
+    for data in (
+        msgpack.packb({"a": [1, 2]}),  # nested
+        msgpack.packb({1: b"x"}),  # a key that is not a string
+        msgpack.packb({"a": b"x"}) + b"\0",  # trailing bytes
+        msgpack.packb({"a": b"xyz"})[:-1],  # truncated
+        b"\x82\xa1a\x01\xa1a\x02",  # a key twice
+        msgpack.packb({str(i): i for i in range(9)}),  # more fields than an envelope has
+        frame_car1(1),  # a frame holds arrays and maps
+    ):
+        assert envelope_spans(data) is None
+
+
+def test_the_door_thread_pays_for_each_refusal_before_it_takes_the_next_message():
+    """A costly refusal's pause must come before the messages behind it: paid once per batch, 16 large junk
+    messages bought one long pause, after which a car's frames of two sweeps came out back to back and the
+    scheduler (latest only) dropped the older (issue 31, F7). And no message taken from the FIFO is lost."""
+    import types
+
+    import zenoh
+
+    from bb_align.server.zenoh_link import ZenohLink
+
+    events: list[str] = []
+    samples = ["junk1", "frame1", "junk2", "junk3", "frame2"]
+
+    class Fifo:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def recv(self):
+            if not self.items:
+                raise zenoh.ZError("closed")
+            return self.items.pop(0)
+
+        def try_recv(self):
+            return self.items.pop(0) if self.items else None
+
+    class Spy:
+        def spend(self, cpu_s):
+            assert cpu_s >= 0
+            events.append("pay")
+
+    link = ZenohLink.__new__(ZenohLink)
+    link.settings = types.SimpleNamespace(limits=Limits())
+    link._on_frame = lambda sample: events.append(sample) or sample.startswith("frame")  # frames queued
+    link._door_loop(Fifo(samples), Spy())
+    assert events == ["junk1", "pay", "frame1", "junk2", "pay", "junk3", "pay", "frame2"]
+    # every message taken is checked: the batch loop lost the one it took last when a batch was full (a signed frame
+    # now and then under a flood, counted nowhere)
+    events.clear()
+    many = [f"frame{i}" if i % 7 == 0 else f"junk{i}" for i in range(1000)]
+    link._door_loop(Fifo(many), Spy())
+    assert [e for e in events if e != "pay"] == many

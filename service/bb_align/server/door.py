@@ -6,15 +6,17 @@ that authenticated frames need; a keyless flood must therefore cost as little as
 The door refuses only what the gate would certainly refuse, cheapest test first:
 
 1. not a msgpack map (one byte looked at: 1-byte garbage and most junk end here);
-2. not a Signed envelope, or one this receiver has no key for (decoded under the message limits, no crypto);
-3. a byte-for-byte copy of a message verified here recently (a replay of a frame still on its way to the gate):
+2. not a Signed envelope, one this receiver has no key for, or one whose payload is not a map (a frame is one):
+   read first from the envelope's top-level headers alone (``envelope_spans``: no value is copied, so a 1 MB
+   message costs about what 1 byte does), else decoded under the message limits; no crypto;
+3. a payload that is not a frame (no readable stamp and seq): refused before its signature is checked, since the
+   gate refuses it whoever signed it (a compromised car's junk, and a keyless sender's, costs no MAC);
+4. a byte-for-byte copy of a message verified here recently (a replay of a frame still on its way to the gate):
    refused without a signature check;
-4. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
+5. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
    an older frame): read without trusting it, since a frame that old is refused whoever signed it;
-5. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
-   the key chunk it came under;
-6. a signed payload that is not a frame (no readable stamp and seq): a compromised car's junk is refused here,
-   so its signature check counts against the door's CPU budget instead of costing the gate a second one.
+6. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
+   the key chunk it came under.
 
 A message that passes goes to the ego's lane (signed by the ego) or the signed lane, one signed by a genuine
 vehicle for another's key chunk to the unverified lane (the gate names the error). The gate checks everything
@@ -39,10 +41,28 @@ from .scheduler import EGO, SIGNED, UNVERIFIED_LANE
 # msgpack map headers: fixmap 0x80-0x8f, map16 0xde, map32 0xdf (a Signed envelope is a map)
 _MAP_FIRST_BYTES = frozenset(range(0x80, 0x90)) | {0xDE, 0xDF}
 _PAYLOAD_KEYS = 16  # a frame has fewer top-level fields; more and the peek gives up (the gate decides)
+_ENVELOPE_KEYS = 8  # a Signed envelope has 6 fields at most; more and envelope_spans gives up (full decode)
+_STR_HEADERS = frozenset(range(0xA0, 0xC0)) | {0xD9, 0xDA, 0xDB}
+_BIN_HEADERS = frozenset({0xC4, 0xC5, 0xC6})
+_FIXED_WIDTH = {0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}
+_FIXED_WIDTH |= {0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}  # nil, bools, floats, unsigned and signed ints
+_LENGTH_WIDTH = {0xD9: 1, 0xDA: 2, 0xDB: 4, 0xC4: 1, 0xC5: 2, 0xC6: 4}  # str8/16/32, bin8/16/32
 
 
 def _undecodable(detail: str) -> WireError:
     return WireError(400, "undecodable", detail)
+
+
+def _not_signed() -> WireError:
+    return WireError(401, "unauthenticated", "not a Signed frame (refused at the door)", "message")
+
+
+def _no_key(key_id: str, alg: str) -> WireError:
+    return WireError(401, "unauthenticated", f"no key for {key_id!r} ({alg})", "mac", alg)
+
+
+def _not_a_frame() -> WireError:
+    return _undecodable("the signed payload is not a frame (no readable stamp and seq)")
 
 
 def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
@@ -67,6 +87,53 @@ def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
     if type(stamp) not in (int, float) or type(seq) is not int:
         return None
     return float(stamp), seq
+
+
+def _scalar(data: bytes, i: int) -> tuple[int, int] | None:
+    """(start, end) of the contents of the msgpack scalar whose header is at ``i`` (a str's or bin's bytes, a
+    number's); None for a map, an array, an extension or a value running past the end."""
+    b = data[i]
+    if b <= 0x7F or b >= 0xE0:  # positive and negative fixints: the header is the value
+        return i + 1, i + 1
+    if 0xA0 <= b <= 0xBF:  # fixstr
+        start, n = i + 1, b - 0xA0
+    elif b in _FIXED_WIDTH:
+        start, n = i + 1, _FIXED_WIDTH[b]
+    elif b in _LENGTH_WIDTH:
+        start = i + 1 + _LENGTH_WIDTH[b]
+        n = int.from_bytes(data[i + 1 : start], "big")
+    else:
+        return None
+    return (start, start + n) if start + n <= len(data) else None
+
+
+def envelope_spans(data: bytes) -> dict[bytes, tuple[int, int, int]] | None:
+    """The top-level map of a raw message read from its headers alone, no value copied: key (its UTF-8 bytes) ->
+    (header byte, start, end) of its value's contents. None when this small reader cannot tell (not a map, more
+    than an envelope's fields, a key that is not a string, a nested value, a key twice, truncated or trailing
+    bytes): the caller then decodes the message in full, so the reader only ever makes a refusal cheaper."""
+    b, size = data[0], len(data)
+    if 0x80 <= b <= 0x8F:
+        n, i = b - 0x80, 1
+    elif b in (0xDE, 0xDF):
+        i = 3 if b == 0xDE else 5
+        n = int.from_bytes(data[1:i], "big")
+    else:
+        return None
+    if n > _ENVELOPE_KEYS:
+        return None
+    spans: dict[bytes, tuple[int, int, int]] = {}
+    for _ in range(n):
+        key = _scalar(data, i) if i < size and data[i] in _STR_HEADERS else None
+        value = _scalar(data, key[1]) if key is not None and key[1] < size else None
+        if value is None:
+            return None
+        name = data[key[0] : key[1]]
+        if name in spans:
+            return None
+        spans[name] = (data[key[1]], *value)
+        i = value[1]
+    return spans if i == size else None
 
 
 class RecentSignatures:
@@ -163,34 +230,55 @@ class Door:
         """(lane, verified signer or None) for a stream message under key chunk ``sender``; raises WireError."""
         if not data or data[0] not in _MAP_FIRST_BYTES:
             raise _undecodable("not a msgpack map (a Signed frame is one)")
+        self._refuse_by_headers(data)
         env = peek_signed(data, self.limits)
         if env is None:  # undecodable, not an envelope, or a malformed one: the gate refuses each
-            raise WireError(401, "unauthenticated", "not a Signed frame (refused at the door)", "message")
+            raise _not_signed()
         if not self.keyring.knows(env.key_id, env.alg):
-            raise WireError(401, "unauthenticated", f"no key for {env.key_id!r} ({env.alg})", "mac", env.alg)
+            raise _no_key(env.key_id, env.alg)
+        claimed = stamp_and_seq(env.payload)
+        if claimed is None:  # junk, signed or not: the gate refuses it whoever signed it, so no MAC is spent on it
+            raise _not_a_frame()
         if self.recent.is_copy(env.key_id, env.mac, env.payload):
             raise WireError(409, "replayed", "a copy of a message already received", "mac")
-        self._refuse_old(sender, env.payload)
+        self._refuse_old(sender, claimed)
         try:
             signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
         except AuthError as e:
             raise WireError(e.status, e.error, e.detail, "mac", env.alg) from None
         self.recent.add(env.key_id, env.mac, env.payload)
-        if stamp_and_seq(env.payload) is None:  # signed junk: refused here, its signature check within the budget
-            raise _undecodable("the signed payload is not a frame (no readable stamp and seq)")
         try:
             self.keyring.authorize(signer, sender)
         except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
             return UNVERIFIED_LANE, None
         return (EGO if sender == self.ego_id else SIGNED), signer
 
-    def _refuse_old(self, sender: str, payload: bytes) -> None:
+    def _refuse_by_headers(self, data: bytes) -> None:
+        """Refuse from the top-level headers alone (nothing copied, whatever the size) what steps 2-3 would refuse
+        after decoding: no envelope, no key, a payload that is not a map. Anything this cannot read goes on to
+        the full decode."""
+        spans = envelope_spans(data)
+        if spans is None:
+            return
+        if b"mac" not in spans or b"payload" not in spans:
+            raise _not_signed()
+        key_id, alg = spans.get(b"key_id"), spans.get(b"alg")
+        if key_id is not None and key_id[0] in _STR_HEADERS and (alg is None or alg[0] in _STR_HEADERS):
+            try:
+                kid = data[key_id[1] : key_id[2]].decode()
+                algorithm = "hmac-sha256" if alg is None else data[alg[1] : alg[2]].decode()  # Signed's default
+            except UnicodeDecodeError:
+                return
+            if not self.keyring.knows(kid, algorithm):
+                raise _no_key(kid, algorithm)
+        header, start, end = spans[b"payload"]
+        if header in _BIN_HEADERS and (start == end or data[start] not in _MAP_FIRST_BYTES):
+            raise _not_a_frame()
+
+    def _refuse_old(self, sender: str, claimed: tuple[float, int]) -> None:
         newest = self._newest(sender)
         if newest is None:
             return
-        claimed = stamp_and_seq(payload)
-        if claimed is None:
-            raise _undecodable("the signed payload is not a frame")
         if claimed <= newest:
             raise WireError(
                 409, "replayed", f"(stamp, seq) {claimed} is not newer than the last accepted {newest}", "stamp"
