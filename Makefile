@@ -62,6 +62,8 @@ bench-engine: $(STAMP)
 
 # Floods against a bb-align serve child process: several keyless sessions, then large queries (docs/security.md).
 bench-flood: $(STAMP)
-	$(PY) benchmarks/stream_flood.py --seconds 15 --flooders 1,2,3 --sizes small,big \
-		--json docs/security_stream_flood_fixed.json --plot docs/security_stream_flood_fixed.png
-	$(PY) benchmarks/query_flood.py --seconds 25 --senders 2 --mb 4 > docs/security_query_flood.json
+	$(PY) benchmarks/stream_flood.py --seconds 10 --blocks 3 --flooders 2 --sizes small,big --pin \
+		--json docs/security_stream_flood_pinned.json --plot docs/security_stream_flood_pinned.png
+	$(PY) benchmarks/stream_flood.py --seconds 10 --blocks 3 --flooders 2 --sizes small,big \
+		--json docs/security_stream_flood_unpinned.json --plot docs/security_stream_flood_unpinned.png
+	$(PY) benchmarks/query_flood.py --seconds 25 --senders 2 --mb 4 --kind envelope --pin > docs/security_query_flood.json
