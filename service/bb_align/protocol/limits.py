@@ -147,7 +147,6 @@ class Limits(BaseModel):
         "counted against it",
     )
     door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
-    door_batch: int = Field(64, ge=1, description="messages the door takes from the FIFO per budget check")
     intake_recent_signatures: int = Field(
         4096,
         ge=1,
