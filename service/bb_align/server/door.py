@@ -34,6 +34,7 @@ from collections.abc import Callable
 import msgpack
 
 from bb_align.protocol import WireError, peek_signed
+from bb_align.protocol.models import Signed
 from bb_align.protocol.signatures import AuthError, Keyring
 
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE
@@ -47,6 +48,7 @@ _BIN_HEADERS = frozenset({0xC4, 0xC5, 0xC6})
 _FIXED_WIDTH = {0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}
 _FIXED_WIDTH |= {0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}  # nil, bools, floats, unsigned and signed ints
 _LENGTH_WIDTH = {0xD9: 1, 0xDA: 2, 0xDB: 4, 0xC4: 1, 0xC5: 2, 0xC6: 4}  # str8/16/32, bin8/16/32
+_DEFAULT_ALG = Signed.model_fields["alg"].default  # an envelope without `alg` is the model's default
 
 
 def _undecodable(detail: str) -> WireError:
@@ -266,7 +268,7 @@ class Door:
         if key_id is not None and key_id[0] in _STR_HEADERS and (alg is None or alg[0] in _STR_HEADERS):
             try:
                 kid = data[key_id[1] : key_id[2]].decode()
-                algorithm = "hmac-sha256" if alg is None else data[alg[1] : alg[2]].decode()  # Signed's default
+                algorithm = _DEFAULT_ALG if alg is None else data[alg[1] : alg[2]].decode()
             except UnicodeDecodeError:
                 return
             if not self.keyring.knows(kid, algorithm):
