@@ -29,6 +29,17 @@ M_MMAP_THRESHOLD = -3  # glibc malloc.h
 M_ARENA_MAX = -8
 
 
+class _MallInfo2(ctypes.Structure):
+    """glibc's ``struct mallinfo2`` (2.33+): byte counts over every arena, as size_t."""
+
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost"
+        )
+    ]  # fmt: skip
+
+
 def _glibc() -> ctypes.CDLL | None:
     """The process's own C library when it is glibc (it has gnu_get_libc_version), else None."""
     try:
@@ -57,3 +68,16 @@ def configure_malloc(arena_max: int | None, mmap_threshold_kb: int | None) -> di
         else:
             log.warning("glibc refused mallopt(%s=%d)", env, value)
     return applied
+
+
+def heap_bytes() -> dict[str, int] | None:
+    """The C heap as malloc sees it: ``in_use`` (bytes handed out, from the heaps and mapped on their own) and
+    ``free`` (bytes the heaps keep free). A leak grows ``in_use``; fragmentation grows ``free`` and the resident
+    size, not ``in_use``. None where the C library has no mallinfo2 (glibc before 2.33, musl, macOS)."""
+    libc = _glibc()
+    fn = getattr(libc, "mallinfo2", None) if libc is not None else None
+    if fn is None:
+        return None
+    fn.restype = _MallInfo2
+    info = fn()
+    return {"in_use": int(info.uordblks + info.hblkhd), "free": int(info.fordblks)}

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
+from .allocator import heap_bytes
 from .bandwidth import BandwidthReport
 
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -36,6 +38,22 @@ class _BandwidthCollector:
             if bw.ratio_vs_points is not None:
                 ratio.add_metric([peer], bw.ratio_vs_points)
         yield from (msgs, byts, parts, rate, ratio)
+
+
+class _HeapCollector:
+    """The C heap's bytes in use and kept free (glibc's mallinfo2) and the Python objects' memory blocks, read at
+    scrape time: a leak shows in the bytes in use or the blocks, fragmentation in the free bytes
+    (server/allocator.py). Python's small objects live in its own arenas, outside malloc's count."""
+
+    def collect(self):
+        yield GaugeMetricFamily("bbalign_python_blocks", "Memory blocks Python has allocated", sys.getallocatedblocks())
+        heap = heap_bytes()
+        if heap is None:
+            return
+        g = GaugeMetricFamily("bbalign_heap_bytes", "C heap bytes by state (glibc mallinfo2)", labels=["state"])
+        for state, n in heap.items():
+            g.add_metric([state], n)
+        yield g
 
 
 class Metrics:
@@ -71,6 +89,7 @@ class Metrics:
             registry=r,
         )
         r.register(_BandwidthCollector(bandwidth))
+        r.register(_HeapCollector())
 
     def _counters(self, r: CollectorRegistry) -> None:
         self.frames = Counter("bbalign_frames_received", "Frames received", ["door", "kind"], registry=r)

@@ -267,6 +267,7 @@ def _sample(lives: list[Life], collector: Collector, t: float) -> dict:
         "pid": svc.pid,
         "rss_mb": mem["rss_mb"],
         "anon_mb": anonymous_mb(svc.pid),
+        **_heap(svc),
         "cpu_s": svc.cpu_seconds(),
         "harness_cpu_s": sum(os.times()[:2]),
         "load": [float(v) for v in Path("/proc/loadavg").read_text().split()[:3]],
@@ -438,6 +439,29 @@ def _metrics(svc: ServiceProcess) -> dict[str, float]:
     return dict(out)
 
 
+def _heap(svc: ServiceProcess) -> dict[str, float]:
+    """The service's C heap in use and free (MB) and Python's allocated blocks, from /metrics; {} when the
+    service does not answer (being killed, restarting) or its C library has no mallinfo2."""
+    import httpx
+
+    names = {
+        'bbalign_heap_bytes{state="in_use"}': ("heap_in_use_mb", 2**-20),
+        'bbalign_heap_bytes{state="free"}': ("heap_free_mb", 2**-20),
+        "bbalign_python_blocks": ("python_blocks", 1.0),
+    }
+    try:
+        text = httpx.get(svc.rest + "/metrics", timeout=2).text
+    except httpx.HTTPError:
+        return {}
+    out = {}
+    for line in text.splitlines():
+        name, _, value = line.rpartition(" ")
+        if name in names:
+            key, scale = names[name]
+            out[key] = float(value) * scale
+    return out
+
+
 def _cached(folder: Path | None, key: tuple, build: Callable[[], list[CarStream]]) -> list[CarStream]:
     """``build()``, kept in ``folder`` under a name made of ``key`` (the simulation takes minutes)."""
     import hashlib
@@ -550,9 +574,17 @@ def _rss(samples: list[dict], lives: list[Life], warmup_s: float) -> list[dict]:
             if len(floor_t) >= 3:
                 row["floor_slope_mb_per_min"], row["floor_slope_se_mb_per_min"] = _slope(floor_t, floor_m)
                 row["floor_mb"] = [round(float(v), 1) for v in floor_m]
-            anon = [(s["t_s"] / 60.0, s["anon_mb"]) for s in late if s.get("anon_mb") is not None]
-            if len(anon) >= 3:
-                row["anon_slope_mb_per_min"] = _slope(*map(np.array, zip(*anon)))[0]
+            for key, unit in (
+                ("anon_mb", "mb"),
+                ("heap_in_use_mb", "mb"),
+                ("heap_free_mb", "mb"),
+                ("python_blocks", ""),
+            ):
+                pts = [(s["t_s"] / 60.0, s[key]) for s in late if s.get(key) is not None]
+                if len(pts) >= 3:
+                    name = key.removesuffix("_mb")
+                    row[f"{name}_slope{'_mb' if unit else ''}_per_min"] = _slope(*map(np.array, zip(*pts)))[0]
+                    row[f"{name}_first"], row[f"{name}_last"] = pts[0][1], pts[-1][1]
         out.append(row)
     return out
 
@@ -647,6 +679,9 @@ def plot_track_soak(rep: dict, path: Path, bin_s: float = 10.0) -> None:
         anon = [(t, s["anon_mb"]) for t, s in zip(t_min, mine) if s.get("anon_mb") is not None]
         if anon:
             axes[0].plot(*zip(*anon), ":", color=line.get_color(), label=f"pid {pid} anonymous")
+        heap = [(t, s["heap_in_use_mb"]) for t, s in zip(t_min, mine) if s.get("heap_in_use_mb") is not None]
+        if heap:
+            axes[0].plot(*zip(*heap), "--", color=line.get_color(), label=f"pid {pid} C heap in use")
     axes[0].set_ylabel("service memory (MB)")
     t = np.array([s["t_s"] for s in samples])
     res, ok = np.array([s["results"] for s in samples]), np.array([s["successes"] for s in samples])
@@ -715,7 +750,10 @@ def summary_lines(rep: dict) -> list[str]:
                 f"; per-minute lowest {s.get('floor_slope_mb_per_min', float('nan')):+.2f} +- "
                 f"{s.get('floor_slope_se_mb_per_min', float('nan')):.2f} MB/min (flat: below "
                 f"{rep['config']['rss_flat_mb_per_min']:g}); anonymous memory "
-                f"{s.get('anon_slope_mb_per_min', float('nan')):+.2f} MB/min"
+                f"{s.get('anon_slope_mb_per_min', float('nan')):+.2f} MB/min; C heap in use "
+                f"{s.get('heap_in_use_slope_mb_per_min', float('nan')):+.3f} MB/min, free "
+                f"{s.get('heap_free_slope_mb_per_min', float('nan')):+.3f} MB/min; Python blocks "
+                f"{s.get('python_blocks_slope_per_min', float('nan')):+.0f} /min"
             )
     lines.append("checks: " + ", ".join(f"{k} {'ok' if v else 'FAILED'}" for k, v in rep["checks"].items()))
     return lines
