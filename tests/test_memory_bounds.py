@@ -3,14 +3,16 @@ the allocator settings the service applies at start are applied (glibc) or skipp
 
 from __future__ import annotations
 
+import ctypes
 import os
 import subprocess
 import sys
 
 import pytest
 
-from bb_align.server.allocator import _glibc, configure_malloc
+from bb_align.server.allocator import _glibc, configure_malloc, heap_bytes
 from bb_align.server.bandwidth import BandwidthMeter
+from bb_align.server.metrics import Metrics
 from bb_align.server.settings import Settings
 
 
@@ -117,3 +119,22 @@ def test_an_operators_malloc_environment_is_kept(monkeypatch):
     monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
     assert configure_malloc(None, None) == {}  # nothing asked, nothing set
     assert list(configure_malloc(2, None)) == []  # the operator's MALLOC_ARENA_MAX stands
+
+
+@pytest.mark.skipif(getattr(_glibc(), "mallinfo2", None) is None, reason="glibc 2.33+'s mallinfo2")
+def test_heap_bytes_count_a_known_block_and_reach_the_metrics():
+    """A 64 MiB block from malloc shows in the bytes in use while it is held and leaves them when freed; the
+    service's /metrics text carries both states and Python's block count."""
+    libc = _glibc()
+    libc.malloc.restype = ctypes.c_void_p
+    libc.free.argtypes = [ctypes.c_void_p]
+    before = heap_bytes()["in_use"]
+    p = libc.malloc(64 << 20)
+    held = heap_bytes()["in_use"]
+    libc.free(p)
+    after = heap_bytes()["in_use"]
+    assert held - before >= 64 << 20 and held - before < (64 << 20) + (1 << 20)
+    assert abs(after - before) < 1 << 20
+    text = Metrics(bandwidth=BandwidthMeter().report, ego_frames=lambda: 0, queued=lambda: 0).exposition().decode()
+    for name in ('bbalign_heap_bytes{state="in_use"}', 'bbalign_heap_bytes{state="free"}', "bbalign_python_blocks "):
+        assert name in text
