@@ -48,18 +48,13 @@ def test_bandwidth_window_stays_at_its_bound_when_nobody_reads_the_rate():
 # ---- glibc malloc settings (server/allocator.py), each in a fresh process: they act on the process's allocator --
 _PROBE = """
 import ctypes, os, sys, tempfile, threading
-from bb_align.server.allocator import configure_malloc
+from bb_align.server.allocator import _MallInfo2 as MI2, configure_malloc
 arena_max, mmap_kb = (None if v == "-" else int(v) for v in sys.argv[1:3])
 print(sorted(configure_malloc(arena_max, mmap_kb)))
 libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 libc.free.argtypes = [ctypes.c_void_p]
 libc.fopen.restype = ctypes.c_void_p
-class MI2(ctypes.Structure):
-    _fields_ = [
-        (n, ctypes.c_size_t)
-        for n in "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost".split()
-    ]
 libc.mallinfo2.restype = MI2
 # a 4 MiB block freed, then another: is the second one mapped on its own?
 libc.free(libc.malloc(4 << 20))
