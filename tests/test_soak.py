@@ -75,8 +75,8 @@ def test_a_short_keyless_flood_charges_no_signed_id_and_results_keep_flowing(tmp
     for name, phase in (("baseline", baseline), ("flood", flood)):
         # Every signed frame passed the gate. One in a few thousand used to vanish under the flood: the door's batch
         # loop dropped a message whenever a batch was full (docs/security.md, Floods; fixed, the door now takes one
-        # message at a time). The tolerance of one stays until repeated runs show none lost.
-        assert phase["ego"]["lost"] <= 1 and phase["peers"]["lost"] <= 1, (name, phase)
+        # message at a time). 30 runs of this test at load 8-13 lost none of 4 800 signed frames.
+        assert phase["ego"]["lost"] == 0 and phase["peers"]["lost"] == 0, (name, phase)
         assert phase["intake_dropped_charged_to_signed_ids"] == 0 and phase["per_peer"]["car1"]["intake_dropped"] == 0
     assert flood["results"] > 0  # results keep flowing under the flood
     assert report["checks"]["flood_junk_never_charged_to_a_signed_id"]
