@@ -23,6 +23,7 @@ from bb_align.engine.keypoints import detect_keypoints
 
 RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
 BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))  # the far-pair bands of benchmarks/sim_vs_real.py
+CARRIAGEWAY_M = 7.0  # half the kerb-to-kerb width of a street with parking both sides, m
 TUNED = {"KITTI 00 street (tuned on)": "kitti00_run_far"}
 HELD_OUT = {
     "KITTI 08 street (held out)": "kitti08_run",
@@ -31,24 +32,31 @@ HELD_OUT = {
 }
 
 
-def lit_by_band(bev) -> list[int]:
-    """Lit pixels of a BV image by range from its sensor, in BANDS."""
+def lit_by_band(bev, within_y_m: float = np.inf) -> list[int]:
+    """Lit pixels of a BV image by range from its sensor, in BANDS (only those within ``within_y_m`` of its x axis)."""
     rc = np.argwhere(bev.image > 0)
-    r = np.hypot(*bev.pixel_to_metre(rc).T)
-    return [int(((r >= lo) & (r < hi)).sum()) for lo, hi in BANDS]
+    xy = bev.pixel_to_metre(rc)
+    r = np.hypot(*xy.T)
+    near_axis = np.abs(xy[:, 1]) < within_y_m
+    return [int(((r >= lo) & (r < hi) & near_axis).sum()) for lo, hi in BANDS]
 
 
 def band_profile(clouds) -> dict:
-    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation."""
+    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation, and the
+    median of those within CARRIAGEWAY_M of the sensor's x axis (on a street the car drives along: its carriageway,
+    parked cars and what stands over it)."""
     from bb_align import AlignConfig, Aligner
 
     aligner = Aligner(AlignConfig())
-    rows = np.array([lit_by_band(aligner.prepare(p).bev) for p in clouds])
+    bevs = [aligner.prepare(p).bev for p in clouds]
+    rows = np.array([lit_by_band(b) for b in bevs])
+    lane = np.array([lit_by_band(b, CARRIAGEWAY_M) for b in bevs])
     return {
         "scans": len(rows),
         "median": np.median(rows, 0).astype(int).tolist(),
         "q25": np.percentile(rows, 25, 0).astype(int).tolist(),
         "q75": np.percentile(rows, 75, 0).astype(int).tolist(),
+        "carriageway_median": np.median(lane, 0).astype(int).tolist(),
     }
 
 
@@ -267,11 +275,12 @@ def street_profiles(args) -> None:
         cols=3,
     )
     (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
-    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile |")
-    print("| --- | ---: | --- | --- |")
+    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile | within 7 m of the axis |")
+    print("| --- | ---: | --- | --- | --- |")
     for name, p in sets.items():
         quart = " / ".join(f"{a}-{b}" for a, b in zip(p["q25"], p["q75"]))
-        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} |")
+        lane = " / ".join(map(str, p["carriageway_median"]))
+        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} |")
 
 
 def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0):
