@@ -11,6 +11,7 @@ from bb_align.lab.sim import DetectionModel, Scenario, SimConfig, detect, simula
 from bb_align.lab.sim.paths import straight
 from bb_align.lab.sim.raycast import Mount, cast_sweep
 from bb_align.lab.sim.sensors import SENSOR_MODELS, SensorModel
+from bb_align.lab.sim.streets import generate_world
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
 
@@ -244,3 +245,41 @@ def test_far_wall_returns_thin_out_as_the_range_law_says(exponent):
         assert abs(got - expected) < 3 * np.sqrt(expected * (1 - expected) / (2 * len(a))) + 0.01, (lo, got, expected)
     if exponent == 1.0:  # a Lambertian wall is fainter seen obliquely: fewer returns than straight ahead
         assert ((az > 35) & (az < 45)).sum() < 0.5 * ((az > -5) & (az < 5)).sum()
+
+
+def test_street_family_has_a_junction_every_block():
+    """A residential street meets a side street or a crossing every 80-200 m (real blocks' lengths), at 80-90 deg
+    or diagonally at 30-60 deg: measured on the generated road polylines, where each side street touches the main
+    road's centre line."""
+    for seed in (5, 6):
+        world = generate_world(np.random.default_rng([seed, 0]), family="street")
+        main = world.roads[0].centre
+        at, angles = [], []
+        for road in world.roads[1:]:
+            d = np.hypot(*(road.centre.xy[:, None, :] - main.xy[None, ::4, :]).transpose(2, 0, 1)).min(1)
+            k = int(np.argmin(d))
+            assert d[k] < 1.5  # it reaches the main road
+            s, _ = main.nearest_s(road.centre.xy[k])
+            dh = road.centre.heading[k] - float(main.pose_at(s)[2])
+            ang = np.degrees(abs(np.arctan2(np.sin(dh), np.cos(dh))))
+            at.append(s)
+            angles.append(min(ang, 180.0 - ang))  # the angle between the two streets
+        gaps = np.diff(np.sort(at))
+        assert len(at) >= 3
+        assert np.all((gaps > 79.0) & (gaps < 201.0)), gaps
+        assert all(29.0 <= a <= 61.0 or 79.0 <= a <= 90.0 for a in angles), angles
+
+
+@pytest.mark.parametrize(
+    ("family", "n_shapes", "n_vehicles", "xy_sum", "zt_sum"),
+    [
+        ("mixed", 1142, 179, 24039.15641189408, 4941.471601648981),
+        ("turn", 2342, 183, 496357.29604680056, 9665.231590196789),
+    ],
+)
+def test_mixed_and_turn_worlds_stay_as_they_were(family, n_shapes, n_vehicles, xy_sum, zt_sum):
+    """The fixed benchmark's (mixed) and the turn family's worlds do not move when the street family changes: the
+    counts and sums of one world each, as the generator made them before the street family had junctions."""
+    world = generate_world(np.random.default_rng([5, 0]), family=family)
+    assert (len(world.static.a), len(world.vehicles)) == (n_shapes, n_vehicles)
+    np.testing.assert_allclose([world.static.xy.sum(), world.static.zt.sum()], [xy_sum, zt_sum], rtol=1e-9)

@@ -23,6 +23,7 @@ from bb_align.engine.keypoints import detect_keypoints
 
 RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
 BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))  # the far-pair bands of benchmarks/sim_vs_real.py
+CARRIAGEWAY_M = 7.0  # half the kerb-to-kerb width of a street with parking both sides, m
 TUNED = {"KITTI 00 street (tuned on)": "kitti00_run_far"}
 HELD_OUT = {
     "KITTI 08 street (held out)": "kitti08_run",
@@ -31,24 +32,31 @@ HELD_OUT = {
 }
 
 
-def lit_by_band(bev) -> list[int]:
-    """Lit pixels of a BV image by range from its sensor, in BANDS."""
+def lit_by_band(bev, within_y_m: float = np.inf) -> list[int]:
+    """Lit pixels of a BV image by range from its sensor, in BANDS (only those within ``within_y_m`` of its x axis)."""
     rc = np.argwhere(bev.image > 0)
-    r = np.hypot(*bev.pixel_to_metre(rc).T)
-    return [int(((r >= lo) & (r < hi)).sum()) for lo, hi in BANDS]
+    xy = bev.pixel_to_metre(rc)
+    r = np.hypot(*xy.T)
+    near_axis = np.abs(xy[:, 1]) < within_y_m
+    return [int(((r >= lo) & (r < hi) & near_axis).sum()) for lo, hi in BANDS]
 
 
 def band_profile(clouds) -> dict:
-    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation."""
+    """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation, and the
+    median of those within CARRIAGEWAY_M of the sensor's x axis (on a street the car drives along: its carriageway,
+    parked cars and what stands over it)."""
     from bb_align import AlignConfig, Aligner
 
     aligner = Aligner(AlignConfig())
-    rows = np.array([lit_by_band(aligner.prepare(p).bev) for p in clouds])
+    bevs = [aligner.prepare(p).bev for p in clouds]
+    rows = np.array([lit_by_band(b) for b in bevs])
+    lane = np.array([lit_by_band(b, CARRIAGEWAY_M) for b in bevs])
     return {
         "scans": len(rows),
         "median": np.median(rows, 0).astype(int).tolist(),
         "q25": np.percentile(rows, 25, 0).astype(int).tolist(),
         "q75": np.percentile(rows, 75, 0).astype(int).tolist(),
+        "carriageway_median": np.median(lane, 0).astype(int).tolist(),
     }
 
 
@@ -79,6 +87,27 @@ def along_street_alias(pts_ego, pts_peer, T_ego_peer, reach_m: float = 90.0) -> 
                 t = G[:2, 2] + du * along + dv * across
                 best = max(best, overlap_fitness(cloud, sample, se2(yaw + turn, t[0], t[1]), gate)[0])
     return float(truth), float(best)
+
+
+def landscape_at_truth(pts_ego, pts_peer, T_ego_peer) -> tuple[bool, float]:
+    """(bounded, 1-sigma along the baseline) of the engine's pose landscape (engine/landscape.py) laid around the
+    true pose: whether the images pin the pose along a street at all. Unbounded (a corridor: the landscape's mass
+    reaches its window's edge) gives inf. Images only: the score the engine would weigh, not its decision."""
+    from bb_align import AlignConfig, Aligner
+    from bb_align.engine.geometry import ground_se2
+    from bb_align.engine.landscape import Fields, landscape
+
+    aligner = Aligner(AlignConfig())
+    cfg = aligner.config
+    ego, peer = aligner.prepare(pts_ego), aligner.prepare(pts_peer)
+    G = ground_se2(T_ego_peer)
+    cloud = ego.cloud(cfg.refine)
+    pts = aligner.refiner.sample(peer.bev)[0][: cfg.landscape.max_points]
+    land = landscape(cloud, Fields.of(cloud, cfg.landscape), pts, G, cfg.landscape)
+    if land.at_edge:
+        return False, float("inf")
+    along = G[:2, 2] / np.linalg.norm(G[:2, 2])
+    return True, float(np.sqrt(along @ land.covariance[1:, 1:] @ along))
 
 
 def real_hdl64_scans(data: Path, folder: str) -> list[np.ndarray]:
@@ -200,11 +229,16 @@ def main(argv=None) -> None:
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[4] / "shared" / "data")
     ap.add_argument("--street", type=int, default=12, help="street-family scenarios for the band profile")
     ap.add_argument("--alias", type=int, default=0, help="pairs for the along-street alias (real KITTI 00 and street)")
+    ap.add_argument(
+        "--landscape", type=int, default=0, help="street pairs for the landscape at the truth (and all real far pairs)"
+    )
     args = ap.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     street_profiles(args)
     if args.alias:
         alias_table(args)
+    if args.landscape:
+        landscape_table(args)
     real = real_clouds(args.data) if args.data.is_dir() else {}
     sim = simulated_clouds()
     stats = {"real": {k: bev_stats(v) for k, v in real.items()}, "sim": {k: bev_stats(v) for k, v in sim.items()}}
@@ -241,11 +275,59 @@ def street_profiles(args) -> None:
         cols=3,
     )
     (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
-    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile |")
-    print("| --- | ---: | --- | --- |")
+    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile | within 7 m of the axis |")
+    print("| --- | ---: | --- | --- | --- |")
     for name, p in sets.items():
         quart = " / ".join(f"{a}-{b}" for a, b in zip(p["q25"], p["q75"]))
-        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} |")
+        lane = " / ".join(map(str, p["carriageway_median"]))
+        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} |")
+
+
+def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0):
+    """(ego points, peer points, T_ego_peer) of n street-family pairs, HDL-64E, spaced evenly over [lo, hi] m."""
+    from .scenario import Scenario, SimConfig
+
+    for i in range(n):
+        d = lo + (hi - lo) * (i + 0.5) / n
+        frame = Scenario(seed * 100003 + i, 2, d, SimConfig(family="street", fleet=("hdl64",))).frame(0)
+        e, p = frame.agents["0"], frame.agents["1"]
+        yield e.points, p.points, np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor
+
+
+def landscape_table(args) -> None:
+    """landscape_at_truth on every KITTI 00 far pair, the KITTI 08 16 m pair (held out) and street-family pairs at
+    73-81 m and at 16 m: how many are a corridor, and the median 1-sigma along the street of the bounded ones."""
+    from tqdm import tqdm
+
+    from bb_align.io.clouds import load_cloud as load
+
+    far, k08 = args.data / "kitti00_run_far", args.data / "kitti_seq08_pair"
+    sets = {"KITTI 00, 73-80 m (tuned on)": [], "KITTI 08, 16 m (held out)": []}
+    for a in range(10):
+        for b in (94, 95):
+            sets["KITTI 00, 73-80 m (tuned on)"].append(
+                (load(far / f"{a:06d}.bin"), load(far / f"{b:06d}.bin"), np.loadtxt(far / f"T_{a}_{b}.txt"))
+            )
+    sets["KITTI 08, 16 m (held out)"].append(
+        (load(k08 / "000000.bin"), load(k08 / "000049.bin"), np.loadtxt(k08 / "T_velo0_velo49_icp_refined.txt"))
+    )
+    sets["sim street family, 73-81 m"] = street_pairs(args.landscape)
+    sets["sim street family, 16 m"] = street_pairs(max(1, args.landscape // 4), lo=15.5, hi=16.5)
+    out = {}
+    for name, pairs in sets.items():
+        rows = [landscape_at_truth(*p) for p in tqdm(pairs, desc=name)]
+        bounded = [s for ok, s in rows if ok]
+        out[name] = {
+            "pairs": len(rows),
+            "corridor": len(rows) - len(bounded),
+            "sigma_along_median_m": float(np.median(bounded)) if bounded else None,
+        }
+    (args.out_dir / "street_landscape.json").write_text(json.dumps(out, indent=2))
+    print("| pairs | n | landscape at the truth a corridor | 1-sigma along the street, median of the bounded |")
+    print("| --- | ---: | ---: | ---: |")
+    for k, v in out.items():
+        sig = "-" if v["sigma_along_median_m"] is None else f"{v['sigma_along_median_m']:.2f} m"
+        print(f"| {k} | {v['pairs']} | {v['corridor']} / {v['pairs']} | {sig} |")
 
 
 def alias_table(args) -> None:

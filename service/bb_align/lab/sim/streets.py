@@ -36,6 +36,21 @@ RESIDENTIAL_BLOCK_M = (50.0, 120.0)
 RESIDENTIAL_SHRUB_CLUMPS = 1 / 7.0
 RESIDENTIAL_SMALL_THINGS = 1 / 9.0
 RESIDENTIAL_LOT_DIVIDERS = 1 / 60.0
+# How full a residential block's kerbs are (drawn per block), and the share of those cars kept whatever the
+# traffic: KITTI 00's kerbs are lined with cars, 3-5 x the sim's lit pixels within the carriageway before.
+RESIDENTIAL_KERB_OCCUPANCY = (0.6, 1.0)
+RESIDENTIAL_PARKED_KEPT = 0.9
+# Junctions of a residential street: real residential blocks are ~80-200 m long, so a car following another 75 m
+# ahead usually has a junction near one of them. A side street to one side (a T) or a crossing; a share of them
+# diagonal (30-60 deg between the streets, as the real KITTI 00 street's fork), the rest 80-100 deg.
+RESIDENTIAL_JUNCTION_M = (80.0, 200.0)
+RESIDENTIAL_CROSSING = 0.4
+RESIDENTIAL_DIAGONAL = 0.25
+RESIDENTIAL_ARM_M = (60.0, 150.0)
+# Share of a residential street's blocks with a row of street trees along the kerb (each side; 0.6 elsewhere):
+# crowns at the kerb hide the facades further along the street, and with 0.6 the pose landscape at the true pose
+# had no bounded peak in 11 of 40 pairs (0.25: 7 of 40; the real KITTI 00 pairs: 0 of 20).
+RESIDENTIAL_STREET_TREES = 0.25
 FAMILIES = ("mixed", "street", "turn")
 # Reflectivity at the LiDARs' 905 nm (what sensors.SensorModel.reach_m reads): green leaves reflect about half of
 # the near infrared (their NIR plateau), plaster, brick and concrete facades 0.3-0.8; bark, asphalt and dark paint
@@ -286,7 +301,7 @@ class _Side:
         (a residential street's rows are irregular, unlike a lot's 6.3 m grid)."""
         r = self.rng
         sp = s0 + r.uniform(0, 4)
-        occupancy = r.uniform(0.3, 1.0)  # how full this block's kerb is
+        occupancy = r.uniform(*RESIDENTIAL_KERB_OCCUPANCY)  # how full this block's kerb is
         while sp < s1:
             if r.random() < 0.12 or r.random() > occupancy:  # a driveway, a hydrant, or just a free space
                 sp += r.uniform(4, 12)
@@ -398,7 +413,8 @@ class _Side:
                 self.building_line = float(r.uniform(1.0, 5.0))
             if style != "open" or r.random() < 0.3:
                 self.furniture(s, end, dense=style == "city")
-            if style in ("suburb", "city") and r.random() < 0.6:  # street trees
+            street_trees = RESIDENTIAL_STREET_TREES if self.residential else 0.6
+            if style in ("suburb", "city") and r.random() < street_trees:
                 spacing = r.uniform(7, 15)
                 for sp in np.arange(s + r.uniform(0, spacing), end, spacing):
                     x, y, _ = self.at(sp, self.edge - self.road.sidewalk / 2)
@@ -495,6 +511,25 @@ def _terrain(occ: _Occupancy, rng, res: float = 2.0) -> Terrain:
     return Terrain(occ.lo.astype(float), res, height, g)
 
 
+def _side_streets(rng, main: Path) -> list[Road]:
+    """The junctions of a residential street: a side street every block (RESIDENTIAL_JUNCTION_M), to one side (a T)
+    or through (a crossing), most near square, some diagonal; each a residential street of its own."""
+    roads = []
+    s = float(rng.uniform(0.0, RESIDENTIAL_JUNCTION_M[1]))
+    while s < main.length - 20.0:
+        x, y, yaw = (float(v) for v in main.pose_at(s))
+        diagonal = rng.random() < RESIDENTIAL_DIAGONAL
+        ang = yaw + np.radians(rng.uniform(*((30, 60) if diagonal else (80, 100)))) * rng.choice([-1, 1])
+        arm = float(rng.uniform(*RESIDENTIAL_ARM_M))
+        if rng.random() < RESIDENTIAL_CROSSING:  # through the main road
+            c = straight((x - arm * np.cos(ang), y - arm * np.sin(ang)), ang, 2 * arm)
+        else:  # a T: from the main road's centre line out to one side
+            c = straight((x, y), ang, arm)
+        roads.append(Road(c, 1, 3.0, 2.0, float(rng.uniform(1.5, 3.0))))
+        s += float(rng.uniform(*RESIDENTIAL_JUNCTION_M))
+    return roads
+
+
 def generate_world(
     rng: np.random.Generator, main_length_m: float = 650.0, traffic: float | None = None, family: str = "mixed"
 ) -> World:
@@ -524,7 +559,7 @@ def generate_world(
             float(rng.uniform(2, 4)),
         )
     ]
-    for _ in range(int(rng.integers(1, 4))):
+    for _ in range(0 if street else int(rng.integers(1, 4))):
         s_x = float(rng.uniform(120, main.length - 120))
         x, y, yaw = (float(v) for v in main.pose_at(s_x))
         ang = yaw + np.radians(rng.uniform(65, 115)) * rng.choice([-1, 1])
@@ -533,13 +568,15 @@ def generate_world(
         roads.append(
             Road(c, int(rng.integers(1, 3)), 3.5, float(rng.choice([0.0, 2.5], p=[0.4, 0.6])), float(rng.uniform(2, 4)))
         )
+    if street:
+        roads += _side_streets(rng, main)
     occ = _Occupancy(roads)
     sh = Shapes()
     parked: list[tuple[float, float, float]] = []
     styles: list[str] = []
     for i, road in enumerate(roads):
         for side in (-1, 1):
-            if street and i == 0:
+            if street:  # the side streets are residential too
                 styles += _Side(
                     sh, occ, rng, road, i, side, parked, RESIDENTIAL_WEIGHTS, RESIDENTIAL_LINE_GAPS, residential=True
                 ).walk()
@@ -554,7 +591,8 @@ def generate_world(
 
     traffic = float(rng.uniform(0.2, 1.0)) if traffic is None else float(traffic)
     vehicles: list[Vehicle] = []
-    keep = rng.random(len(parked)) < 0.35 + 0.65 * traffic
+    # residents' cars stay at the kerb whatever the traffic (the real street's kerbs are nearly full)
+    keep = rng.random(len(parked)) < (RESIDENTIAL_PARKED_KEPT if street else 0.35 + 0.65 * traffic)
     for (x, y, yaw), k in zip(parked, keep):
         if k:
             l, w, h, kind = _vehicle_dims(rng)
