@@ -88,3 +88,20 @@ def test_bad_input_names_the_field(kwargs, field):
         deskew_sweep(np.zeros((5, 4)), **kwargs)
     with pytest.raises(ValueError, match="points"):
         deskew_sweep(np.zeros((5, 2)), (1.0, 0.0))
+
+
+def test_a_frame_encoded_with_the_cars_motion_carries_the_de_skewed_image():
+    from bb_align.engine.bev import make_bev
+    from bb_align.engine.config import BevConfig
+    from bb_align_client import encode_frame
+    from bb_align_client.encode import make_frame
+
+    torn = cast_sweep(_walls_world(15.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0)).points
+    frame = make_frame(torn, vehicle_id="car1", stamp=1.0, velocity=(15.0, 0.0))
+    assert frame.png == make_bev(deskew_sweep(torn, (15.0, 0.0)), BevConfig()).to_png(6)
+    assert frame.png != make_frame(torn, vehicle_id="car1", stamp=1.0).png
+    assert encode_frame(torn, vehicle_id="car1", stamp=1.0, velocity=(15.0, 0.0)) != encode_frame(
+        torn, vehicle_id="car1", stamp=1.0
+    )
+    with pytest.raises(ValueError, match="velocity"):
+        make_frame(make_bev(torn, BevConfig()), vehicle_id="car1", stamp=1.0, velocity=(15.0, 0.0))
