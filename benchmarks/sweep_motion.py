@@ -81,13 +81,13 @@ def align(aligners: dict[str, Aligner], name: str, ego_pts, peer_pts, T) -> list
 
 def family(out: Path) -> list[dict]:
     travel0 = Aligner(AlignConfig(covariance={"sweep_travel_m": 0.0}))
-    default = Aligner(AlignConfig())
+    travel1 = Aligner(AlignConfig(covariance={"sweep_travel_m": 1.0}))
     records = []
     for i in tqdm(range(N), desc="turn family"):
         name = f"sim_{SEED}_{i:04d}/000000"
         flat = BASE.model_copy(update={"distortion": False})
         renders = {
-            "as simulated": (scenario(i), False, {"travel 0": travel0, "default": default}),
+            "as simulated": (scenario(i), False, {"travel 0": travel0, "travel 1 m": travel1}),
             "without distortion": (scenario(i, flat), False, {"travel 0": travel0}),
             "de-skewed": (scenario(i), True, {"travel 0": travel0}),
         }
@@ -152,7 +152,7 @@ def plot(records: list[dict], path: Path) -> None:
     axes[0].set_ylabel("yaw error, deg (with the prior)")
     axes[0].axhline(0, color="k", lw=0.5)
     axes[0].legend(fontsize=8)
-    for engine, colour in (("travel 0", "tab:orange"), ("default", "tab:purple")):
+    for engine, colour in (("travel 0", "tab:orange"), ("travel 1 m", "tab:purple")):
         rs = [r for r in records if r["render"] == "as simulated" and r["engine"] == engine and r["success"]]
         z = sorted(abs(r["yaw_err_deg"]) / r["sigma_yaw_deg"] for r in rs)
         axes[1].plot(z, np.arange(1, len(z) + 1) / len(z), color=colour, label=f"sweep_travel_m: {engine}")

@@ -356,13 +356,13 @@ class CovarianceConfig(_Frozen):
         "centres are quantised: 0.4 m / sqrt(12) = 0.12 m for a uniform offset)",
     )
     sweep_travel_m: float = Field(
-        1.0,
+        0.0,
         ge=0,
         le=10,
-        description="1-sigma of how far each car travelled during a sweep its sender did not de-skew, metres (10 m/s "
-        "x 0.1 s): the shear this leaves in each image biases the pose without widening the landscape, so its "
-        "effect at the answer is added to the covariance (engine.covariance.motion_covariance). 0 when both cars "
-        "send de-skewed sweeps (bb_align_client.deskew)",
+        description="1-sigma of how far each car travelled during a sweep its sender did not de-skew, metres (e.g. "
+        "1.0: 10 m/s x 0.1 s): the shear this leaves in each image biases the pose without widening the landscape, "
+        "so its effect at the answer is added to the covariance (engine.covariance.motion_covariance). 0 (the "
+        "default): the senders de-skew (bb_align_client.deskew_sweep, encode_frame(velocity=...))",
     )
 
 
