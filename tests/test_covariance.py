@@ -181,3 +181,22 @@ def test_motion_response_predicts_what_an_unskewed_sweep_does_to_the_refined_pos
     cov += np.diag([np.radians(0.05) ** 2, 0.02**2, 0.02**2])  # the refinement's own noise at the pixel scale
     assert mahalanobis2(cov, err) <= CHI2_3_99
     assert motion_covariance(ego_clean, (clean, None), T_world_peer, rf.gates_m[-1], 0.0).sum() == 0.0
+
+
+def test_the_aligner_adds_the_sweep_travel_term_to_its_answer_and_nothing_else():
+    """covariance.sweep_travel_m only widens the answer's covariance (the difference is positive semi-definite, the
+    yaw wider) and leaves the pose as it was; 0 is the default."""
+    pts_w, _ = synthetic_world(seed=3)
+    T_world_peer = se2(0.3, 18.0, 3.0)
+    ego_pts = view_from(pts_w, np.eye(4), seed=0)
+    peer_pts = view_from(pts_w, se3_from_se2(T_world_peer), seed=1, sensor_height=1.5)
+    bev = BevConfig(range_m=RANGE)
+    plain, widened = Aligner(AlignConfig(bev=bev)), Aligner(AlignConfig(bev=bev, covariance={"sweep_travel_m": 1.0}))
+    assert plain.config.covariance.sweep_travel_m == 0.0
+    a = plain.align(plain.prepare(ego_pts), plain.prepare(peer_pts))
+    b = widened.align(widened.prepare(ego_pts), widened.prepare(peer_pts))
+    assert a.success and b.success
+    np.testing.assert_array_equal(a.T_ego_peer, b.T_ego_peer)
+    extra = np.asarray(b.covariance) - np.asarray(a.covariance)
+    assert np.linalg.eigvalsh(extra).min() >= -1e-12
+    assert extra[0, 0] > 0
