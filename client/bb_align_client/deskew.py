@@ -5,7 +5,7 @@ not de-skew reports each point in the sensor frame of its own firing time. At 15
 sweep: the wall behind it is torn by that much and, seen from another car, the image is sheared about the seam.
 The two cars' shears differ (different speeds, headings and seams), and the pose between them is biased: on the
 simulated turn family (`bb-align sim --family turn`, seed 7) one pair came out 1.0 deg off with a yaw 1-sigma of
-0.32 deg, 0.035 deg off with the same scene rendered without distortion, and 0.05 deg off once the two sweeps are
+0.32 deg, 0.035 deg off with the same scene rendered without distortion, and 0.039 deg off once the two sweeps are
 de-skewed with this module (docs/engine.md, "Self-motion distortion").
 
 Only the car that drove knows its motion, so the sender undoes it: every point is moved into the sensor frame at the
