@@ -10,8 +10,14 @@ import pytest
 from bb_align import AlignConfig, Aligner
 from bb_align.engine.bev import BevImage, make_bev
 from bb_align.engine.config import BevConfig
-from bb_align.engine.covariance import mahalanobis2, params_covariance, pose_covariance
-from bb_align.engine.geometry import se2, se2_params, se3_from_se2, worst_sigma_m
+from bb_align.engine.covariance import (
+    mahalanobis2,
+    motion_covariance,
+    motion_response,
+    params_covariance,
+    pose_covariance,
+)
+from bb_align.engine.geometry import log_left, se2, se2_params, se3_from_se2, worst_sigma_m
 from bb_align.engine.refine import bev_cloud, bev_points, refine_icp
 from bb_align.engine.result import AlignResult
 from synthetic import synthetic_world, view_from
@@ -124,3 +130,73 @@ def test_fuse_poses_by_hand():
     np.testing.assert_allclose(se2_params(T), (0.0, 1.6, 0.0), atol=1e-12)
     np.testing.assert_allclose(np.diag(C), (5e-5, 0.8, 0.01 / 1.01), rtol=1e-9)
     assert fuse_poses(se2(0.0, 0.0, 0.0), C_a, se2(0.0, 20.0, 0.0), C_b, CHI2_3_99) is None
+
+
+def _sheared(points: np.ndarray, travel_m: float) -> np.ndarray:
+    """A sweep as a car that travelled ``travel_m`` forward during it reports it without de-skewing (a clockwise
+    spin, seam behind, mid-sweep facing forward: the point at azimuth a fired a / (2 pi) of a sweep before
+    mid-sweep, when the car was that much of its travel further back)."""
+    out = points.copy()
+    out[:, 0] += travel_m * np.arctan2(points[:, 1], points[:, 0]) / (2 * np.pi)
+    return out
+
+
+@pytest.mark.parametrize("who", ["peer", "ego"])
+def test_motion_response_predicts_what_an_unskewed_sweep_does_to_the_refined_pose(who):
+    """The independent truth is the refinement itself: one car's sweep sheared as 1.5 m of travel leaves it
+    (``_sheared``), refined from the true pose. The yaw it reaches must be the linear response's prediction
+    (the peer's within a quarter; the ego's between half and all of it), and the motion covariance for 1 m of
+    travel per car must cover the error."""
+    cfg = AlignConfig()
+    bev_cfg = BevConfig(range_m=60.0)
+    pts_w, _ = synthetic_world(seed=21)
+    T_world_peer = se2(1.1, 28.0, 9.0)
+    ego_pts = view_from(pts_w, np.eye(4), seed=1)
+    peer_pts = view_from(pts_w, se3_from_se2(T_world_peer), seed=2, sensor_height=1.5)
+    travel = 1.5
+    if who == "peer":
+        peer_pts = _sheared(peer_pts, travel)
+    else:
+        ego_pts = _sheared(ego_pts, travel)
+    ego = bev_cloud(make_bev(ego_pts, bev_cfg))
+    rf = cfg.refine
+    peer = bev_points(make_bev(peer_pts, bev_cfg), max_points=rf.max_peer_points, seed=0)
+    ref = refine_icp(ego, peer, T_world_peer, rf)
+    moved = log_left(ref.T, T_world_peer)
+    # the response at the truth, from the unsheared view of the sheared car: the model a receiver would use
+    clean = bev_points(make_bev(view_from(pts_w, se3_from_se2(T_world_peer), seed=2, sensor_height=1.5), bev_cfg),
+                       max_points=rf.max_peer_points, seed=0)  # fmt: skip
+    ego_clean = bev_cloud(make_bev(view_from(pts_w, np.eye(4), seed=1), bev_cfg))
+    predicted = travel * motion_response(ego_clean, clean, T_world_peer, rf.gates_m[-1])[0 if who == "peer" else 1]
+    assert abs(np.degrees(predicted[0])) > 0.1  # a shear this size turns the pose measurably
+    ratio = moved[0] / predicted[0]
+    # The peer's shear is predicted to a few per cent; the ego's is over-predicted (the torn seam behind the ego
+    # pushes some of its matches beyond the refinement's gate, where they stop pulling): 0.66 here.
+    assert (0.75 if who == "peer" else 0.5) <= ratio <= 1.25, (np.degrees(moved), np.degrees(predicted))
+    cov = motion_covariance(ego_clean, (clean, None), T_world_peer, rf.gates_m[-1], 1.0)
+    assert np.all(np.linalg.eigvalsh(cov) >= -1e-12)
+    y, x, t = se2_params(ref.T)
+    y0, x0, t0 = se2_params(T_world_peer)
+    err = np.array([(y - y0 + np.pi) % (2 * np.pi) - np.pi, x - x0, t - t0])
+    cov += np.diag([np.radians(0.05) ** 2, 0.02**2, 0.02**2])  # the refinement's own noise at the pixel scale
+    assert mahalanobis2(cov, err) <= CHI2_3_99
+    assert motion_covariance(ego_clean, (clean, None), T_world_peer, rf.gates_m[-1], 0.0).sum() == 0.0
+
+
+def test_the_aligner_adds_the_sweep_travel_term_to_its_answer_and_nothing_else():
+    """covariance.sweep_travel_m only widens the answer's covariance (the difference is positive semi-definite, the
+    yaw wider) and leaves the pose as it was; 0 is the default."""
+    pts_w, _ = synthetic_world(seed=3)
+    T_world_peer = se2(0.3, 18.0, 3.0)
+    ego_pts = view_from(pts_w, np.eye(4), seed=0)
+    peer_pts = view_from(pts_w, se3_from_se2(T_world_peer), seed=1, sensor_height=1.5)
+    bev = BevConfig(range_m=RANGE)
+    plain, widened = Aligner(AlignConfig(bev=bev)), Aligner(AlignConfig(bev=bev, covariance={"sweep_travel_m": 1.0}))
+    assert plain.config.covariance.sweep_travel_m == 0.0
+    a = plain.align(plain.prepare(ego_pts), plain.prepare(peer_pts))
+    b = widened.align(widened.prepare(ego_pts), widened.prepare(peer_pts))
+    assert a.success and b.success
+    np.testing.assert_array_equal(a.T_ego_peer, b.T_ego_peer)
+    extra = np.asarray(b.covariance) - np.asarray(a.covariance)
+    assert np.linalg.eigvalsh(extra).min() >= -1e-12
+    assert extra[0, 0] > 0

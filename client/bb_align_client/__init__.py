@@ -13,6 +13,7 @@ first used (a REST-only harness never loads it).
 
 from bb_align.protocol import Result
 
+from .deskew import deskew_sweep
 from .encode import decode_result, encode_frame, sign_frame
 from .errors import FrameRefused, ServiceError
 from .rest import AlignClient, AsyncAlignClient
@@ -26,6 +27,7 @@ __all__ = [
     "ServiceError",
     "ZenohPeer",
     "decode_result",
+    "deskew_sweep",
     "encode_frame",
     "sign_frame",
 ]

@@ -26,6 +26,8 @@ from bb_align.protocol import (
     wrap_yaw,
 )
 
+from .deskew import deskew_sweep
+
 
 def as_pose(pose: Any) -> Pose | None:
     """A Pose, a 4x4 T_world_sensor, a dict, or (x, y, z, roll, pitch, yaw) in metres and radians -> Pose."""
@@ -52,17 +54,27 @@ def make_frame(
     odometry: Any = None,
     scores=None,
     png_compression: int = 6,
+    velocity=None,
+    yaw_rate: float = 0.0,
     **bev_options,
 ) -> Frame:
     """A sweep (N, 3+) in the sensor frame, or a ready BevImage, and its boxes [x, y, z, l, w, h, yaw] -> Frame.
     Any finite yaw is taken (a dataset's [0, 2 pi) or degrees-turned-radians beyond it) and wrapped into
     [-pi, pi); a non-finite box number is a ValueError naming the box and the component.
     ``pose``: the reported (GNSS-grade) T_world_sensor; ``odometry``: the car's odometry pose T_odom_sensor (as
-    :func:`as_pose` reads either), which lets the service track the peer through time."""
+    :func:`as_pose` reads either), which lets the service track the peer through time. ``velocity`` (vx, vy in
+    the sensor frame, m/s) and ``yaw_rate`` (rad/s): the car's motion during the sweep; when given, the sweep is
+    de-skewed to mid-sweep before it is encoded (:func:`bb_align_client.deskew.deskew_sweep`, firing times from
+    the azimuth of a clockwise sweep; call it yourself for per-point times). Leave it out for a sweep the driver
+    already de-skewed."""
     if isinstance(points, BevImage):
+        if velocity is not None:
+            raise ValueError("velocity: a ready BevImage cannot be de-skewed; pass the sweep's points")
         bev, num_points = points, None
     else:
         pts = np.asarray(points)
+        if velocity is not None:
+            pts = deskew_sweep(pts, velocity, yaw_rate)
         bev, num_points = make_bev(pts, BevConfig(**bev_options)), int(len(pts))
     rows = [[*row[:6], wrap_yaw(row[6])] for row in as_boxes(boxes).tolist()]
     return Frame(
@@ -96,7 +108,8 @@ def encode_frame(
     """The bytes a car sends for one sweep: msgpack (default) or JSON (``encoding="application/json"``).
     ``key``: sign the frame: a vehicle Credential (Ed25519, the recommended way), or HMAC-SHA256 with the fleet
     key (``key_id="fleet"``) or the car's own key (``key_id=vehicle_id``). ``bev_options`` are BevConfig fields
-    (range_m, resolution_m, ...) plus ``scores`` and ``png_compression``."""
+    (range_m, resolution_m, ...) plus ``scores``, ``png_compression`` and the
+    de-skewing motion ``velocity`` / ``yaw_rate`` (:func:`make_frame`)."""
     frame = make_frame(
         points, boxes, vehicle_id=vehicle_id, stamp=stamp, seq=seq, pose=pose, odometry=odometry, **bev_options
     )

@@ -355,6 +355,15 @@ class CovarianceConfig(_Frozen):
         description="floor of the point-to-line residual sigma (pixel "
         "centres are quantised: 0.4 m / sqrt(12) = 0.12 m for a uniform offset)",
     )
+    sweep_travel_m: float = Field(
+        0.0,
+        ge=0,
+        le=10,
+        description="1-sigma of how far each car travelled during a sweep its sender did not de-skew, metres (e.g. "
+        "1.0: 10 m/s x 0.1 s): the shear this leaves in each image biases the pose without widening the landscape, "
+        "so its effect at the answer is added to the covariance (engine.covariance.motion_covariance). 0 (the "
+        "default): the senders de-skew (bb_align_client.deskew_sweep, encode_frame(velocity=...))",
+    )
 
 
 class LandscapeConfig(_Frozen):

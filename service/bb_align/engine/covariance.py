@@ -78,6 +78,63 @@ def pose_covariance(
     return 0.5 * (cov + cov.T)
 
 
+def motion_response(
+    ego: BevCloud,
+    pts_peer: np.ndarray,
+    T: np.ndarray,
+    gate: float,
+    normals_peer: np.ndarray | None = None,
+    min_cos: float = -1.0,
+) -> np.ndarray:
+    """(2, 3): how the pose (left increment: yaw rad, tx m, ty m) at T moves per metre that the peer (row 0) or the
+    ego (row 1) travelled, forward, during a sweep its sender did not de-skew. A rotating LiDAR that spins from the
+    back through the front fires azimuth a at -a / (2 pi) of a sweep from mid-sweep (the seam behind the car), so
+    a point is reported a / (2 pi) metres per metre of travel further forward than it was at mid-sweep (the
+    other spin gives the opposite sign, the same covariance): each image is sheared about its own seam. The
+    response is the Gauss-Newton step that this shear of the peer's points, or of the ego's structure, causes in
+    the point-to-line problem at T (the refinement's correspondences and facing test)."""
+    R, t = T[:2, :2], T[:2, 2]
+    p = np.ascontiguousarray(pts_peer @ R.T + t, dtype=np.float64)
+    _, j = ego.nearest(p, gate)
+    keep = j >= 0
+    n = ego.normals[j[keep]]
+    if normals_peer is not None:  # the two pixels are one face of one thing (bb_align.engine.refine)
+        keep[keep] = np.sum(n * (np.asarray(normals_peer)[keep] @ R.T), axis=1) >= min_cos
+        n = ego.normals[j[keep]]
+    p_ego, p_peer = p[keep], np.asarray(pts_peer, dtype=np.float64)[keep]
+    if len(p_ego) <= 3:
+        return np.zeros((2, 3))
+    r = np.sum(n * (p_ego - ego.xy[j[keep]]), axis=1)
+    w = 1.0 / np.maximum(1.0, np.abs(r) / (0.25 * gate))  # the covariance's Huber weights
+    J = np.stack([n[:, 1] * p_ego[:, 0] - n[:, 0] * p_ego[:, 1], n[:, 0], n[:, 1]], axis=1)
+    H = (J * w[:, None]).T @ J
+    shear_peer = np.arctan2(p_peer[:, 1], p_peer[:, 0]) / (2.0 * np.pi)  # along the peer's x, in metres per metre
+    shear_ego = np.arctan2(p_ego[:, 1], p_ego[:, 0]) / (2.0 * np.pi)  # along the ego's x
+    dr = np.stack([shear_peer * (n @ R[:, 0]), -shear_ego * n[:, 0]])  # residual change per metre of travel
+    try:
+        return -np.linalg.solve(H, (J.T @ (w * dr).T)).T
+    except np.linalg.LinAlgError:  # no information at all: the pose's own covariance is then unbounded anyway
+        return np.zeros((2, 3))
+
+
+def motion_covariance(
+    ego: BevCloud,
+    peer_sample: tuple[np.ndarray, np.ndarray | None],
+    T: np.ndarray,
+    gate: float,
+    travel_m: float,
+    min_cos: float = -1.0,
+) -> np.ndarray:
+    """3x3 covariance of T's own parameters (yaw, tx, ty) that each car's unknown travel during a sweep it did not
+    de-skew (``travel_m``, 1-sigma, independent per car) adds to the pose at T (3x3 ego <- peer): a model error the
+    images cannot reveal, since a sheared image still fits (docs/engine.md, "Self-motion distortion")."""
+    if travel_m <= 0:
+        return np.zeros((3, 3))
+    pts, normals = peer_sample
+    A = motion_response(ego, pts, T, gate, normals, min_cos)
+    return params_covariance(travel_m**2 * A.T @ A, T)
+
+
 def mahalanobis2(cov: np.ndarray, err: np.ndarray) -> float:
     """Squared Mahalanobis distance of an error (yaw rad, tx m, ty m) under cov."""
     err = np.asarray(err, dtype=float)

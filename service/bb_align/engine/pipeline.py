@@ -25,7 +25,7 @@ from .acquisition import Acquirer, PriorWindow, SearchMemo
 from .bev import BevImage, make_bev
 from .boxes import BoxStage, as_boxes, box_measurement
 from .config import AlignConfig
-from .covariance import fuse_poses, left_covariance, params_covariance, pose_uncertainty
+from .covariance import fuse_poses, left_covariance, motion_covariance, params_covariance, pose_uncertainty
 from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2_params
@@ -219,6 +219,7 @@ class Aligner:
             or self._stage1(pair, T_prior)  # lines 9-11: matches, P_src / P_dest, T_bv, Inliers_bv; refined
             or self._judge(pair)  # not in the paper: the pose landscape's peak and covariance (never fails)
             or self._stage2(pair)  # lines 12-15: boxes under T_bv, corner pairs, T_box, Inliers_box; fused
+            or self._sweep_motion(pair)  # not in the paper: what the sweeps' self-motion may leave (never fails)
             or self._uncertain(pair)  # not in the paper: a degenerate final pose is refused
         )
         return pair, reason
@@ -352,6 +353,20 @@ class Aligner:
                 self.config.covariance,
                 self.config.refine.facing_min_cos,
             )
+        return None
+
+    def _sweep_motion(self, pair: _Pair) -> None:
+        """The final pose's covariance widened by what each car's travel during a sweep it did not de-skew may move it
+        (``covariance.sweep_travel_m``; engine.covariance.motion_covariance): a shear the images cannot reveal."""
+        r, cc = pair.result, self.config.covariance
+        if r.covariance is None or pair.peer_sample is None or cc.sweep_travel_m <= 0:
+            return None
+        with _timed(r.timings_ms, "covariance"):
+            gate, min_cos = self.config.refine.gates_m[-1], self.config.refine.facing_min_cos
+            extra = motion_covariance(
+                pair.ego.cloud(self.config.refine), pair.peer_sample, r.T_box @ r.T_bv, gate, cc.sweep_travel_m, min_cos
+            )
+            r.covariance = np.asarray(r.covariance, dtype=float) + extra
         return None
 
     def _uncertain(self, pair: _Pair) -> FailureReason | None:
