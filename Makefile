@@ -47,12 +47,13 @@ bench-real: $(STAMP)
 # Simulated far pairs beside the real KITTI 00 ones: the street family (a car following another 73-81 m ahead on a
 # straight residential street), the turn family (the peer turned into a crossing street 40-70 m; HDL-64 on all
 # away) and the accuracy benchmark's pairs >= 70 m (run bench-accuracy first); table, JSON and plot into
-# docs/real_pairs/ (docs/real_pairs.md).
+# docs/real_pairs/ (docs/real_pairs.md). The two families are rendered de-skewed, as KITTI odometry's scans are.
 bench-sim-real: $(STAMP)
 	rm -rf out/sim_street out/sim_turn
 	$(VENV)/bin/bb-align sim out/sim_street --family street --scenarios 20 --seed 7 --fleet hdl64 \
-		--min-distance 73 --max-distance 81 --workers 2
-	$(VENV)/bin/bb-align sim out/sim_turn --family turn --scenarios 20 --seed 7 --fleet hdl64 --workers 2
+		--min-distance 73 --max-distance 81 --no-distortion --workers 2
+	$(VENV)/bin/bb-align sim out/sim_turn --family turn --scenarios 20 --seed 7 --fleet hdl64 --no-distortion \
+		--workers 2
 	$(PY) benchmarks/sim_vs_real.py --data $(SHARED_DATA) --sim "mixed, >= 70 m=$(BENCH_ACC_DIR)@70" \
 		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn"
 
