@@ -6,11 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bb_align.lab.sim.paths import straight
 from bb_align.lab.sim.raycast import Mount, cast_sweep
 from bb_align.lab.sim.sensors import SensorModel
-from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align_client.deskew import deskew_sweep, firing_times
+from sim_support import walls_world
 
 SENSOR = SensorModel(
     name="ideal",
@@ -50,20 +49,10 @@ def test_firing_time_follows_a_clockwise_sweep_with_its_seam_behind():
     np.testing.assert_allclose(firing_times(pts, 0.1, clockwise=False), [0.0, 0.025, -0.025, 0.05, -0.05], atol=1e-8)
 
 
-def _walls_world(speed: float) -> World:
-    """Walls facing the car at x = +10 m and x = -10 m (5 m high); the car drives along +x at ``speed``."""
-    sh = Shapes()
-    sh.prism(10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
-    sh.prism(-10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
-    terrain = Terrain(np.array([-200.0, -200.0]), 2.0, np.zeros((201, 201)), np.zeros((201, 201)))
-    car = Vehicle(0, 4.5, 1.8, 1.5, "car", path=straight((-100.0, 0.0), 0.0, 200.0), s0=100.0, speed=speed)
-    return World([], sh.arrays(), [car], terrain, [])
-
-
 def test_the_simulators_torn_sweep_is_mended_with_the_cars_velocity():
     """The simulator's sweep at 15 m/s (not de-skewed: the wall behind the car torn by 1.5 m) de-skewed with the
     car's velocity and the azimuth's firing time lies where the undistorted sweep puts the walls."""
-    world = _walls_world(15.0)
+    world = walls_world(15.0)
     torn = cast_sweep(world, 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0), distortion=True).points
     rear = (torn[:, 0] < -5) & (np.abs(torn[:, 1]) < 3)
     front = (torn[:, 0] > 5) & (np.abs(torn[:, 1]) < 3)
@@ -96,7 +85,7 @@ def test_a_frame_encoded_with_the_cars_motion_carries_the_de_skewed_image():
     from bb_align_client import encode_frame
     from bb_align_client.encode import make_frame
 
-    torn = cast_sweep(_walls_world(15.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0)).points
+    torn = cast_sweep(walls_world(15.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0)).points
     frame = make_frame(torn, vehicle_id="car1", stamp=1.0, velocity=(15.0, 0.0))
     assert frame.png == make_bev(deskew_sweep(torn, (15.0, 0.0)), BevConfig()).to_png(6)
     assert frame.png != make_frame(torn, vehicle_id="car1", stamp=1.0).png

@@ -14,6 +14,7 @@ from bb_align.lab.sim.sensors import SENSOR_MODELS, SensorModel
 from bb_align.lab.sim.streets import generate_world
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
+from sim_support import walls_world
 
 SENSOR = SensorModel(
     name="ideal",
@@ -27,18 +28,8 @@ SENSOR = SensorModel(
 )
 
 
-def _walls_world(speed: float) -> World:
-    """Walls facing the car at x = +10 m and x = -10 m (5 m high); the car drives along +x at ``speed``."""
-    sh = Shapes()
-    sh.prism(10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
-    sh.prism(-10.5, 0.0, 0.5, 30.0, 0.0, 0.0, 5.0)
-    terrain = Terrain(np.array([-200.0, -200.0]), 2.0, np.zeros((201, 201)), np.zeros((201, 201)))
-    car = Vehicle(0, 4.5, 1.8, 1.5, "car", path=straight((-100.0, 0.0), 0.0, 200.0), s0=100.0, speed=speed)
-    return World([], sh.arrays(), [car], terrain, [])
-
-
 def test_ray_caster_ranges_on_a_hand_built_scene():
-    sweep = cast_sweep(_walls_world(0.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0))
+    sweep = cast_sweep(walls_world(0.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0))
     p = sweep.points
     np.testing.assert_allclose(sweep.T_world_sensor[:3, 3], [0, 0, 2])
     front = (p[:, 0] > 5) & (np.abs(p[:, 1]) < 5)
@@ -64,7 +55,7 @@ def test_self_motion_distortion_tears_the_scan_behind_a_moving_car(distortion):
     # pose: rear wall 9.5 m away) and ends facing backwards 0.05 s after (10.5 m away); the front wall is
     # swept at mid-sweep (10 m).
     sweep = cast_sweep(
-        _walls_world(10.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0), distortion=distortion
+        walls_world(10.0), 0, SENSOR, Mount(height_m=2.0), 0.0, np.random.default_rng(0), distortion=distortion
     )
     p = sweep.points
     front = (p[:, 0] > 5) & (np.abs(p[:, 1]) < 0.3)
