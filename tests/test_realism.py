@@ -38,3 +38,45 @@ def test_landscape_at_truth_sees_a_corridor_only_where_nothing_crosses_the_stree
     assert not landscape_at_truth(*pair((7.0,)), T_ego_peer)[0]
     bounded, sigma = landscape_at_truth(*pair((-23.0, 7.0, 31.0, 44.0)), T_ego_peer)
     assert bounded and sigma < 1.0  # 0.43 m here: within the engine's default 1 m answer bound
+
+
+def _alias_anatomy():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "alias_anatomy.py"
+    spec = importlib.util.spec_from_file_location("bench_alias_anatomy_t", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_alias_anatomy_counts_keypoint_support_as_worked_by_hand():
+    """Three peer keypoints, a pose moving them 10 m along x: the first's nearest candidate is its true partner, the
+    second's true partner is only its second candidate, the third has an ego keypoint 1 m off its image (within the
+    2 m threshold) that is none of its candidates."""
+    bench = _alias_anatomy()
+    kp_ego = np.array([[10.0, 0.0], [15.0, 5.0], [50.0, 50.0], [31.0, 0.0]])
+    kp_peer = np.array([[0.0, 0.0], [5.0, 5.0], [20.0, 0.0]])
+    cand = np.array([[0, 2], [2, 1], [2, 0]])
+    T = np.array([[1.0, 0.0, 10.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    s = bench.support(T, kp_peer, kp_ego, cand, 2.0)
+    assert (s["geometric"], s["top1"], s["topk"]) == (3, 1, 2)
+    assert s["mask"].tolist() == [True, True, False]
+
+
+def test_alias_anatomy_classifies_low_things_walls_and_crowns():
+    """Ground everywhere, a 1.5 m high box (a car), a 6 m straight wall and a 6 m round crown on a trunk."""
+    bench = _alias_anatomy()
+    g = np.arange(-10.0, 30.0, 0.25)
+    gx, gy = np.meshgrid(g, g)
+    parts = [np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)]
+    bx, by, bz = np.meshgrid(np.arange(0.0, 4.5, 0.1), np.arange(0.0, 1.8, 0.1), np.arange(0.2, 1.5, 0.1))
+    parts.append(np.stack([bx.ravel(), by.ravel(), bz.ravel()], 1))
+    wx, wz = np.meshgrid(np.arange(-10.0, 30.0, 0.1), np.arange(0.2, 6.0, 0.2))
+    parts.append(np.stack([wx.ravel(), np.full(wx.size, 20.0), wz.ravel()], 1))
+    a, r, z = np.meshgrid(np.linspace(0, 2 * np.pi, 60), np.linspace(0.2, 2.5, 12), np.arange(2.5, 6.0, 0.3))
+    parts.append(np.stack([15 + (r * np.cos(a)).ravel(), 5 + (r * np.sin(a)).ravel(), z.ravel()], 1))
+    pts = np.concatenate(parts)
+    xy = np.array([[2.0, 0.9], [5.0, 20.0], [15.0, 5.0]])
+    assert bench.classify(pts, xy).tolist() == ["low", "wall", "tall"]
