@@ -1,11 +1,23 @@
-"""A hand-built scene for the simulator's tests: two walls and one car driving between them."""
+"""A hand-built scene for the simulator's tests: an ideal sensor, two walls and one car driving between them."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from bb_align.lab.sim.paths import straight
+from bb_align.lab.sim.sensors import SensorModel
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
+
+SENSOR = SensorModel(  # four beams, no noise, no dropout
+    name="ideal",
+    elevations_deg=(-10.0, -5.0, 0.0, 5.0),
+    columns=3600,
+    max_range_m=100,
+    range_noise_m=0.0,
+    dropout=0.0,
+    far_falloff=60.0,
+    elevation_jitter_deg=0.0,
+)
 
 
 def walls_world(speed: float) -> World:

@@ -7,20 +7,8 @@ import numpy as np
 import pytest
 
 from bb_align.lab.sim.raycast import Mount, cast_sweep
-from bb_align.lab.sim.sensors import SensorModel
 from bb_align_client.deskew import deskew_sweep, firing_times
-from sim_support import walls_world
-
-SENSOR = SensorModel(
-    name="ideal",
-    elevations_deg=(-10.0, -5.0, 0.0, 5.0),
-    columns=3600,
-    max_range_m=100,
-    range_noise_m=0.0,
-    dropout=0.0,
-    far_falloff=60.0,
-    elevation_jitter_deg=0.0,
-)
+from sim_support import SENSOR, walls_world
 
 
 def test_a_point_seen_from_a_turning_car_returns_to_where_it_was_at_mid_sweep():

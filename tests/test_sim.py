@@ -10,22 +10,11 @@ from bb_align.io.dataset import iter_frames
 from bb_align.lab.sim import DetectionModel, Scenario, SimConfig, detect, simulate_sequence
 from bb_align.lab.sim.paths import straight
 from bb_align.lab.sim.raycast import Mount, cast_sweep
-from bb_align.lab.sim.sensors import SENSOR_MODELS, SensorModel
+from bb_align.lab.sim.sensors import SENSOR_MODELS
 from bb_align.lab.sim.streets import generate_world
 from bb_align.lab.sim.world import Shapes, Terrain, Vehicle, World
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed, write_scenario
-from sim_support import walls_world
-
-SENSOR = SensorModel(
-    name="ideal",
-    elevations_deg=(-10.0, -5.0, 0.0, 5.0),
-    columns=3600,
-    max_range_m=100,
-    range_noise_m=0.0,
-    dropout=0.0,
-    far_falloff=60.0,
-    elevation_jitter_deg=0.0,
-)
+from sim_support import SENSOR, walls_world
 
 
 def test_ray_caster_ranges_on_a_hand_built_scene():
