@@ -25,12 +25,13 @@ LANES = ("ego", "signed", "unverified")
 
 
 # ---- the service's counters ------------------------------------------------------------------------------------
-def read_metrics(rest: str, token: str | None = None) -> dict[str, float]:
+def read_metrics(rest: str, token: str | None = None, timeout: float = 10.0) -> dict[str, float]:
+    """Every sample of the service's /metrics, by its name with labels."""
     import httpx
 
     headers = {"authorization": f"Bearer {token}"} if token else {}
     out: dict[str, float] = {}
-    for line in httpx.get(rest + "/metrics", timeout=10, headers=headers).text.splitlines():
+    for line in httpx.get(rest + "/metrics", timeout=timeout, headers=headers).text.splitlines():
         if line and not line.startswith("#"):
             name, value = line.rsplit(" ", 1)
             out[name] = float(value)

@@ -428,14 +428,12 @@ def _metrics(svc: ServiceProcess) -> dict[str, float]:
     """The service's intake, door, drop and rejection counters (/metrics), summed over their peer labels."""
     import re
 
-    import httpx
+    from ..soak_phases import read_metrics
 
     out: dict[str, float] = defaultdict(float)
-    text = httpx.get(svc.rest + "/metrics", timeout=10).text
-    for line in text.splitlines():
-        if line.startswith(("bbalign_frames", "bbalign_intake", "bbalign_door", "bbalign_alignments_total")):
-            name, _, value = line.rpartition(" ")
-            out[re.sub(r'peer="[^"]*",?', "", name).replace(",}", "}").replace("{}", "")] += float(value)
+    for name, value in read_metrics(svc.rest).items():
+        if name.startswith(("bbalign_frames", "bbalign_intake", "bbalign_door", "bbalign_alignments_total")):
+            out[re.sub(r'peer="[^"]*",?', "", name).replace(",}", "}").replace("{}", "")] += value
     return dict(out)
 
 
@@ -444,22 +442,18 @@ def _heap(svc: ServiceProcess) -> dict[str, float]:
     service does not answer (being killed, restarting) or its C library has no mallinfo2."""
     import httpx
 
+    from ..soak_phases import read_metrics
+
     names = {
         'bbalign_heap_bytes{state="in_use"}': ("heap_in_use_mb", 2**-20),
         'bbalign_heap_bytes{state="free"}': ("heap_free_mb", 2**-20),
         "bbalign_python_blocks": ("python_blocks", 1.0),
     }
     try:
-        text = httpx.get(svc.rest + "/metrics", timeout=2).text
+        metrics = read_metrics(svc.rest, timeout=2.0)
     except httpx.HTTPError:
         return {}
-    out = {}
-    for line in text.splitlines():
-        name, _, value = line.rpartition(" ")
-        if name in names:
-            key, scale = names[name]
-            out[key] = float(value) * scale
-    return out
+    return {key: metrics[name] * scale for name, (key, scale) in names.items() if name in metrics}
 
 
 def _cached(folder: Path | None, key: tuple, build: Callable[[], list[CarStream]]) -> list[CarStream]:
