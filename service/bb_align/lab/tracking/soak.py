@@ -568,16 +568,11 @@ def _rss(samples: list[dict], lives: list[Life], warmup_s: float) -> list[dict]:
             if len(floor_t) >= 3:
                 row["floor_slope_mb_per_min"], row["floor_slope_se_mb_per_min"] = _slope(floor_t, floor_m)
                 row["floor_mb"] = [round(float(v), 1) for v in floor_m]
-            for key, unit in (
-                ("anon_mb", "mb"),
-                ("heap_in_use_mb", "mb"),
-                ("heap_free_mb", "mb"),
-                ("python_blocks", ""),
-            ):
+            for key in ("anon_mb", "heap_in_use_mb", "heap_free_mb", "python_blocks"):  # a slope each, per minute
                 pts = [(s["t_s"] / 60.0, s[key]) for s in late if s.get(key) is not None]
                 if len(pts) >= 3:
-                    name = key.removesuffix("_mb")
-                    row[f"{name}_slope{'_mb' if unit else ''}_per_min"] = _slope(*map(np.array, zip(*pts)))[0]
+                    name, unit = key.removesuffix("_mb"), "_mb" if key.endswith("_mb") else ""
+                    row[f"{name}_slope{unit}_per_min"] = _slope(*map(np.array, zip(*pts)))[0]
                     row[f"{name}_first"], row[f"{name}_last"] = pts[0][1], pts[-1][1]
         out.append(row)
     return out
