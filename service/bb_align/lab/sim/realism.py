@@ -118,15 +118,7 @@ def real_hdl64_scans(data: Path, folder: str) -> list[np.ndarray]:
 
 def street_scans(n: int, seed: int = 7) -> list[np.ndarray]:
     """Both cars' scans of n street-family scenarios, HDL-64E, 73-81 m apart (make bench-sim-real's set)."""
-    from .scenario import Scenario, SimConfig
-
-    cfg = SimConfig(family="street", fleet=("hdl64",))
-    out = []
-    for i in range(n):
-        d = 73.0 + 8.0 * (i + 0.5) / n
-        frame = Scenario(seed * 100003 + i, 2, d, cfg).frame(0)
-        out += [a.points for a in frame.agents.values()]
-    return out
+    return [pts for pts_ego, pts_peer, _ in street_pairs(n, seed) for pts in (pts_ego, pts_peer)]
 
 
 def bev_stats(points: np.ndarray, config: BevConfig | None = None) -> dict:
@@ -332,8 +324,6 @@ def landscape_table(args) -> None:
 
 def alias_table(args) -> None:
     """along_street_alias on KITTI 00 pairs (frames 0, 3, 6, 9 against 94, 95) and as many street-family pairs."""
-    from .scenario import Scenario, SimConfig
-
     far = args.data / "kitti00_run_far"
     rows = {"KITTI 00, 73-80 m": [], "sim street family, 73-81 m": []}
     scans = real_hdl64_scans(args.data, "kitti00_run_far")
@@ -341,14 +331,8 @@ def alias_table(args) -> None:
         for j, b in enumerate((94, 95)):
             T = np.loadtxt(far / f"T_{a}_{b}.txt")
             rows["KITTI 00, 73-80 m"].append(along_street_alias(scans[a], scans[10 + j], T))
-    for i in range(args.alias):
-        frame = Scenario(
-            7 * 100003 + i, 2, 73.0 + 8.0 * (i + 0.5) / args.alias, SimConfig(family="street", fleet=("hdl64",))
-        ).frame(0)
-        e, p = frame.agents["0"], frame.agents["1"]
-        rows["sim street family, 73-81 m"].append(
-            along_street_alias(e.points, p.points, np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor)
-        )
+    for pts_ego, pts_peer, T in street_pairs(args.alias):
+        rows["sim street family, 73-81 m"].append(along_street_alias(pts_ego, pts_peer, T))
     out = {
         k: np.median(np.array(v), axis=0).tolist() + [int(sum(b > t for t, b in v)), len(v)] for k, v in rows.items()
     }
