@@ -158,23 +158,20 @@ def measure(aligner: Aligner, name: str, T_ref: np.ndarray, pts_ego, pts_peer) -
 
 def real_pairs(data: Path, n: int):
     from bb_align.io.clouds import load_cloud
-    from bb_align.lab.realpairs import discover
+    from bb_align.lab.realpairs import kitti00_far
 
-    far = [p for p in discover(data) if p.group == "far" and p.folder == "kitti00_run_far"]
+    far = kitti00_far(data)
     for p in far[:: max(1, len(far) // n)][:n]:
         yield p.name, p.T_ref, load_cloud(p.ego), load_cloud(p.peer)
 
 
 def sim_pairs(root: Path, n: int, min_m: float = 73.0):
-    from bb_align.io.dataset import iter_frames
+    from itertools import islice
 
-    k = 0
-    for g in iter_frames(root):
-        e, p = list(g.agents.values())[:2]
-        T = np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor
-        if np.hypot(T[0, 3], T[1, 3]) >= min_m and k < n:
-            k += 1
-            yield f"{g.scenario}/{g.timestamp}", T, e.load_points(), p.load_points()
+    from bb_align.lab.realpairs import simulated_pairs
+
+    for pair, pts_ego, pts_peer in islice(simulated_pairs(root, min_m), n):
+        yield pair.name, pair.T_ref, pts_ego, pts_peer
 
 
 def summary(rows: list[dict]) -> dict:

@@ -29,8 +29,7 @@ from bb_align import AlignConfig, Aligner
 from bb_align.engine.geometry import ground_se2, pose_error, se2
 from bb_align.engine.landscape import Fields, score_grid
 from bb_align.engine.refine import overlap_fitness
-from bb_align.io.dataset import iter_frames
-from bb_align.lab.realpairs import RealPair, discover, score, seeded_prior
+from bb_align.lab.realpairs import RealPair, kitti00_far, score, seeded_prior, simulated_pairs
 from bb_align.lab.sim.realism import lit_by_band
 
 REAL = "real: KITTI 00, 73-80 m"
@@ -75,18 +74,7 @@ def measure(aligner: Aligner, pair: RealPair, pts_ego, pts_peer) -> dict:
 def real_pairs(data: Path) -> list[tuple[RealPair, np.ndarray, np.ndarray]]:
     from bb_align.io.clouds import load_cloud
 
-    far = [p for p in discover(data) if p.group == "far" and p.folder == "kitti00_run_far"]
-    return [(p, load_cloud(p.ego), load_cloud(p.peer)) for p in far]
-
-
-def sim_pairs(root: Path, min_m: float):
-    """(pair, ego points, peer points) for each simulated scenario's first two agents at least min_m apart."""
-    for g in iter_frames(root):
-        e, p = list(g.agents.values())[:2]
-        T = np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor
-        if np.hypot(T[0, 3], T[1, 3]) >= min_m:
-            pair = RealPair(f"{g.scenario}/{g.timestamp}", "sim", Path(), Path(), T)
-            yield pair, e.load_points(), p.load_points()
+    return [(p, load_cloud(p.ego), load_cloud(p.peer)) for p in kitti00_far(data)]
 
 
 def outcomes(rows: list[dict], key: str) -> str:
@@ -174,7 +162,7 @@ def main() -> None:
     for spec in args.sim:
         label, _, where = spec.rpartition("=")
         root, _, min_m = where.partition("@")
-        pairs = list(sim_pairs(Path(root), float(min_m or 40.0)))
+        pairs = list(simulated_pairs(Path(root), float(min_m or 40.0)))
         sets[label] = [measure(aligner, *p) for p in tqdm(pairs, desc=label)]
     if kept:  # the measured sets replace their namesakes; the others stay as they were measured
         sets = {name: sets.get(name, rows) for name, rows in kept.items()} | sets

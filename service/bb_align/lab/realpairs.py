@@ -115,6 +115,23 @@ def discover(data: Path) -> list[RealPair]:
     return pairs
 
 
+def kitti00_far(data: Path) -> list[RealPair]:
+    """The real far pairs: KITTI 00's car behind against the car 73-80 m ahead (the "far" group)."""
+    return [p for p in discover(data) if p.group == "far" and p.folder == "kitti00_run_far"]
+
+
+def simulated_pairs(root: Path, min_m: float):
+    """(pair, ego points, peer points) for each simulated frame's first two agents at least ``min_m`` apart, the
+    pair named and scored as a real one (the simulated truth as its reference)."""
+    from bb_align.io.dataset import iter_frames
+
+    for g in iter_frames(root):
+        e, p = list(g.agents.values())[:2]
+        T = np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor
+        if np.hypot(T[0, 3], T[1, 3]) >= min_m:
+            yield RealPair(f"{g.scenario}/{g.timestamp}", "sim", Path(), Path(), T), e.load_points(), p.load_points()
+
+
 def seeded_prior(pair: RealPair) -> np.ndarray:
     """The pair's reference (or poses) moved PRIOR_M in a direction and turned PRIOR_DEG either way, both drawn
     from a seed fixed by the pair's name: the same prior on every run and machine."""
