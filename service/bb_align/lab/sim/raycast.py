@@ -60,7 +60,39 @@ def T_world_sensor_at(world: World, vehicle: int, mount: Mount, t: float) -> np.
     return T
 
 
-def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None, dt: np.ndarray):
+def _footprint_hits(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None, dt: np.ndarray, sectors: int = 32):
+    """``_footprint_hits_dense``'s arrays, computed per sector of ``sectors`` runs of columns for only the footprints
+    whose bounding circle (grown by how far the sensor and the footprint move within the sweep) reaches into the
+    sector; a footprint left out could not have been hit, so the arrays are the dense ones wherever a ray meets a
+    footprint, and the sweep the same to the bit (tested)."""
+    n, m = len(ox), len(shapes)
+    t_in, t_out, cos_in = np.full((n, m), np.inf), np.full((n, m), -np.inf), np.ones((n, m))
+    if m == 0 or n == 0:
+        return t_in, t_out, cos_in
+    x0, y0 = float(ox[n // 2]), float(oy[n // 2])
+    moved = float(np.hypot(ox - x0, oy - y0).max())
+    if vel is not None and len(vel):
+        moved += float(np.hypot(vel[:, 0], vel[:, 1]).max() * np.abs(dt).max())
+    rel = shapes.xy - (x0, y0)
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    reach = shapes.radius + moved + 1e-6
+    half = np.where(dist > reach, np.arcsin(np.clip(reach / np.maximum(dist, 1e-9), 0.0, 1.0)), np.pi)
+    bearing = np.arctan2(rel[:, 1], rel[:, 0])
+    phi = np.arctan2(dy, dx)
+    for cols in np.array_split(np.arange(n), min(sectors, n)):
+        centre = float(np.arctan2(dy[cols].sum(), dx[cols].sum()))
+        span = float(np.abs(np.angle(np.exp(1j * (phi[cols] - centre)))).max())
+        sel = np.flatnonzero(np.abs(np.angle(np.exp(1j * (bearing - centre)))) <= half + span + 1e-9)
+        if len(sel):
+            part = _footprint_hits_dense(
+                ox[cols], oy[cols], dx[cols], dy[cols], shapes.take(sel), None if vel is None else vel[sel], dt[cols]
+            )
+            for full, sub in zip((t_in, t_out, cos_in), part, strict=True):
+                full[np.ix_(cols, sel)] = sub
+    return t_in, t_out, cos_in
+
+
+def _footprint_hits_dense(ox, oy, dx, dy, shapes: ShapeArrays, vel: np.ndarray | None, dt: np.ndarray):
     """Entry/exit distances (n_cols, M) of horizontal rays (origin o, unit direction d per column), and the cosine
     between each ray and the normal of the side face it enters by (1 for a ray that starts inside)."""
     cx = shapes.xy[None, :, 0]
@@ -158,11 +190,44 @@ def cast_sweep(
 ) -> Sweep:
     """One full revolution of ``sensor`` on car ``vehicle`` centred on time ``t_mid``.
 
-    ``distortion=False`` freezes the world at t_mid for the whole sweep (an ideal, de-skewed scan).
+    ``distortion=False`` freezes the world at t_mid for the whole sweep (an ideal, de-skewed scan). The lasers fire
+    at ``sensor.azimuth_phases`` distinct azimuths per column step (``SensorModel.beam_phases``): each phase's beams
+    are cast as one set of columns.
     """
+    elev = np.asarray(sensor.elevations_deg, dtype=float)
+    err = np.zeros_like(elev) if beam_error_deg is None else np.asarray(beam_error_deg, dtype=float)
+    phases = sensor.beam_phases()
+    parts = [
+        _cast_columns(world, vehicle, sensor, mount, t_mid, rng, elev[phases == ph], err[phases == ph], ph, distortion)
+        for ph in np.unique(phases)
+    ]
+    t = np.concatenate([p[2] for p in parts])
+    order = np.argsort(t, kind="stable")  # firing order, as the sensor streams them
+    return Sweep(
+        np.concatenate([p[0] for p in parts])[order],
+        np.concatenate([p[1] for p in parts])[order],
+        t[order],
+        T_world_sensor_at(world, vehicle, mount, t_mid),
+    )
+
+
+def _cast_columns(
+    world: World,
+    vehicle: int,
+    sensor: SensorModel,
+    mount: Mount,
+    t_mid: float,
+    rng: np.random.Generator,
+    elev_deg: np.ndarray,
+    err_deg: np.ndarray,
+    phase: float,
+    distortion: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, owners and firing times of the beams ``elev_deg`` (calibration errors ``err_deg``) firing ``phase``
+    column steps into each column."""
     n = sensor.columns
     period = 1.0 / sensor.spin_hz if distortion else 0.0
-    frac = (np.arange(n) + 0.5) / n
+    frac = (np.arange(n) + phase) / n
     t_col = t_mid + (frac - 0.5) * period
     az = np.pi - 2 * np.pi * frac  # sensor-frame azimuth of each column (clockwise spin)
     ox, oy, yaw = sensor_pose(world, vehicle, mount, t_col)
@@ -199,8 +264,8 @@ def cast_sweep(
         own = np.zeros((n, 0), dtype=np.int64)
 
     # Beam geometry (true directions include calibration error and the residual tilt).
-    elev = np.radians(np.asarray(sensor.elevations_deg))
-    err = np.zeros_like(elev) if beam_error_deg is None else np.radians(beam_error_deg)
+    elev = np.radians(elev_deg)
+    err = np.radians(err_deg)
     e_true = elev[None, :] + err[None, :] - mount.pitch * np.cos(az)[:, None] + mount.roll * np.sin(az)[:, None]
     slope = np.tan(e_true)  # (n, B)
     z0 = mount.height_m + float(world.terrain.height_at(np.array([x0, y0])))
@@ -270,4 +335,4 @@ def cast_sweep(
     pts[:, 1] = rr * np.cos(e_rep) * np.sin(a_rep)
     pts[:, 2] = rr * np.sin(e_rep)
     pts[:, 3] = np.clip(reflect[ci, bi] * rng.uniform(0.8, 1.2, len(ci)), 0.0, 1.0)
-    return Sweep(pts, owner[ci, bi].astype(np.int64), t_col[ci], T_world_sensor_at(world, vehicle, mount, t_mid))
+    return pts, owner[ci, bi].astype(np.int64), t_col[ci]

@@ -24,6 +24,7 @@ from bb_align.engine.keypoints import detect_keypoints
 RINGS = ((0, 20), (20, 40), (40, 60), (60, 80))
 BANDS = ((0, 20), (20, 40), (40, 70), (70, 100))  # the far-pair bands of benchmarks/sim_vs_real.py
 CARRIAGEWAY_M = 7.0  # half the kerb-to-kerb width of a street with parking both sides, m
+TALL_M = 2.0  # taller than a car: what lines a street (facades, hedges, crowns, poles), m above the local ground
 TUNED = {"KITTI 00 street (tuned on)": "kitti00_run_far"}
 HELD_OUT = {
     "KITTI 08 street (held out)": "kitti08_run",
@@ -41,6 +42,22 @@ def lit_by_band(bev, within_y_m: float = np.inf) -> list[int]:
     return [int(((r >= lo) & (r < hi) & near_axis).sum()) for lo, hi in BANDS]
 
 
+def nearest_tall_m(bev, reach_m: float = 40.0, slice_m: float = 4.0, max_lateral_m: float = 25.0):
+    """The street's cross-section as a scan shows it: in each ``slice_m`` slice along the sensor's x axis within
+    ``reach_m``, the lateral distance to the nearest pixel over TALL_M above the local ground (facades, hedges, crowns,
+    poles: taller than a car), on the left and on the right; slices with none are left out."""
+    xy = bev.pixel_to_metre(np.argwhere(bev.heights_m() > TALL_M))
+    left, right = [], []
+    for x0 in np.arange(-reach_m, reach_m, slice_m):
+        y = xy[(xy[:, 0] >= x0) & (xy[:, 0] < x0 + slice_m), 1]
+        y = y[np.abs(y) < max_lateral_m]
+        if (y > 0.5).any():
+            left.append(float(y[y > 0.5].min()))
+        if (y < -0.5).any():
+            right.append(float(-y[y < -0.5].max()))
+    return left, right
+
+
 def band_profile(clouds) -> dict:
     """Median and quartiles of lit pixels by band over HDL-64E scans, through the engine's own preparation, and the
     median of those within CARRIAGEWAY_M of the sensor's x axis (on a street the car drives along: its carriageway,
@@ -51,12 +68,14 @@ def band_profile(clouds) -> dict:
     bevs = [aligner.prepare(p).bev for p in clouds]
     rows = np.array([lit_by_band(b) for b in bevs])
     lane = np.array([lit_by_band(b, CARRIAGEWAY_M) for b in bevs])
+    sides = [nearest_tall_m(b) for b in bevs]
     return {
         "scans": len(rows),
         "median": np.median(rows, 0).astype(int).tolist(),
         "q25": np.percentile(rows, 25, 0).astype(int).tolist(),
         "q75": np.percentile(rows, 75, 0).astype(int).tolist(),
         "carriageway_median": np.median(lane, 0).astype(int).tolist(),
+        "nearest_tall_median_m": [round(float(np.median(sum((sd[k] for sd in sides), []))), 1) for k in (0, 1)],
     }
 
 
@@ -267,12 +286,16 @@ def street_profiles(args) -> None:
         cols=3,
     )
     (args.out_dir / "street_profile.json").write_text(json.dumps(sets, indent=2))
-    print("| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile | within 7 m of the axis |")
-    print("| --- | ---: | --- | --- | --- |")
+    print(
+        "| scans | n | lit 0-20 / 20-40 / 40-70 / 70-100 m, median | 25th-75th percentile | within 7 m of the axis |"
+        " nearest tall thing left / right, m |"
+    )
+    print("| --- | ---: | --- | --- | --- | --- |")
     for name, p in sets.items():
         quart = " / ".join(f"{a}-{b}" for a, b in zip(p["q25"], p["q75"]))
         lane = " / ".join(map(str, p["carriageway_median"]))
-        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} |")
+        side = " / ".join(map(str, p["nearest_tall_median_m"]))
+        print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} | {side} |")
 
 
 def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0):

@@ -38,11 +38,28 @@ class SensorModel(BaseModel):
         "reproduce (docs/simulation.md)",
     )
     elevation_jitter_deg: float = Field(0.03, ge=0, description="per-beam calibration error, 1 sigma")
+    azimuth_phases: int = Field(
+        8,
+        ge=1,
+        le=64,
+        description="the lasers fire at this many distinct azimuths within one column step: a real laser's azimuth "
+        "offset is no multiple of the step (in a 1 deg window of real scans, 63-93 % of the returns have an azimuth "
+        "of their own: HDL-64E on KITTI and Apollo, HDL-32E on nuScenes, DAIR-V2X's vehicle and roadside LiDARs). "
+        "1: every laser at the column's azimuth, which draws a wall seen at a grazing angle as a dotted line (one "
+        "hit per column: 1.8 m apart on a facade 10 m aside, 75 m ahead); 8 puts one every 0.23 m, under a pixel",
+    )
     spin_hz: float = Field(10.0, gt=0)
 
     @property
     def beams(self) -> int:
         return len(self.elevations_deg)
+
+    def beam_phases(self) -> np.ndarray:
+        """When each beam fires within its column, in column steps, in (0, 1) (the middle for one phase; so a sweep
+        stays within its revolution): neighbouring beams at phases far apart."""
+        g = self.azimuth_phases
+        stride = next(k for k in range(g // 2 + 1, g + 1) if np.gcd(k, g) == 1) if g > 2 else 1
+        return ((np.arange(self.beams) * stride) % g + 0.5) / g
 
     @property
     def reflectivity_exponent(self) -> float:

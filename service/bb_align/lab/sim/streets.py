@@ -51,6 +51,13 @@ RESIDENTIAL_ARM_M = (60.0, 150.0)
 # crowns at the kerb hide the facades further along the street, and with 0.6 the pose landscape at the true pose
 # had no bounded peak in 11 of 40 pairs (0.25: 7 of 40; the real KITTI 00 pairs: 0 of 20).
 RESIDENTIAL_STREET_TREES = 0.25
+# Cross-section of a residential street beyond its carriageway and parking strip (metres): sidewalk width and the
+# houses' building line behind it (drawn per block). Chosen on the nearest thing taller than a car beside each scan's
+# axis (realism.nearest_tall_m, median left / right): KITTI 00's street 8.6 / 5.4 m, the street family 11.0 / 8.2
+# with a 2-4 m sidewalk and a 1-5 m building line, 9.8 / 6.4 with these; held out, KITTI 08's street 8.6 / 4.6 and
+# its loop 7.0 / 4.2 (docs/simulation.md).
+RESIDENTIAL_SIDEWALK_M = (1.5, 2.5)
+RESIDENTIAL_BUILDING_LINE_M = (0.0, 2.5)
 FAMILIES = ("mixed", "street", "turn")
 # Reflectivity at the LiDARs' 905 nm (what sensors.SensorModel.reach_m reads): green leaves reflect about half of
 # the near infrared (their NIR plateau), plaster, brick and concrete facades 0.3-0.8; bark, asphalt and dark paint
@@ -139,7 +146,8 @@ class _Side:
             parked,
         )
         self.edge = road.half_width + road.sidewalk  # property line, from the centre line
-        self.building_line = float(rng.uniform(1.0, 5.0)) if residential else 0.0  # setback of this side's houses
+        # setback of this side's houses
+        self.building_line = float(rng.uniform(*RESIDENTIAL_BUILDING_LINE_M)) if residential else 0.0
 
     def at(self, s: float, lat: float) -> tuple[float, float, float]:
         """World (x, y, road heading) at arc length s, ``lat`` metres out from the centre line on this side."""
@@ -410,7 +418,7 @@ class _Side:
             styles.append(style)
             end = min(L, s + (r.uniform(*RESIDENTIAL_BLOCK_M) if self.residential else 150.0))
             if self.residential:  # each block its own building line
-                self.building_line = float(r.uniform(1.0, 5.0))
+                self.building_line = float(r.uniform(*RESIDENTIAL_BUILDING_LINE_M))
             if style != "open" or r.random() < 0.3:
                 self.furniture(s, end, dense=style == "city")
             street_trees = RESIDENTIAL_STREET_TREES if self.residential else 0.6
@@ -556,7 +564,7 @@ def generate_world(
             1 if street else int(rng.integers(1, 3)),
             3.5,
             2.5 if street else float(rng.choice([0.0, 2.5], p=[0.4, 0.6])),
-            float(rng.uniform(2, 4)),
+            float(rng.uniform(*(RESIDENTIAL_SIDEWALK_M if street else (2, 4)))),
         )
     ]
     for _ in range(0 if street else int(rng.integers(1, 4))):
