@@ -54,7 +54,7 @@ RESIDENTIAL_STREET_TREES = 0.25
 # Cross-section of a residential street beyond its carriageway and parking strip (metres): sidewalk width and the
 # houses' building line behind it (drawn per block). Chosen on the nearest thing taller than a car beside each scan's
 # axis (realism.nearest_tall_m, median left / right): KITTI 00's street 8.6 / 5.4 m, the street family 11.0 / 8.2
-# with a 2-4 m sidewalk and a 1-5 m building line, 9.8 / 6.4 with these; held out, KITTI 08's street 8.6 / 4.6 and
+# with a 2-4 m sidewalk and a 1-5 m building line, 9.8 / 6.2 with these; held out, KITTI 08's street 8.6 / 4.6 and
 # its loop 7.0 / 4.2 (docs/simulation.md).
 RESIDENTIAL_SIDEWALK_M = (1.5, 2.5)
 RESIDENTIAL_BUILDING_LINE_M = (0.0, 2.5)
