@@ -197,8 +197,11 @@ def cast_sweep(
     elev = np.asarray(sensor.elevations_deg, dtype=float)
     err = np.zeros_like(elev) if beam_error_deg is None else np.asarray(beam_error_deg, dtype=float)
     phases = sensor.beam_phases()
+    vehicles = world.vehicle_shapes(t_mid, exclude={vehicle})  # every phase sees the cars where they are at t_mid
     parts = [
-        _cast_columns(world, vehicle, sensor, mount, t_mid, rng, elev[phases == ph], err[phases == ph], ph, distortion)
+        _cast_columns(
+            world, vehicle, vehicles, sensor, mount, t_mid, rng, elev[phases == ph], err[phases == ph], ph, distortion
+        )
         for ph in np.unique(phases)
     ]
     t = np.concatenate([p[2] for p in parts])
@@ -214,6 +217,7 @@ def cast_sweep(
 def _cast_columns(
     world: World,
     vehicle: int,
+    vehicles: tuple[ShapeArrays, np.ndarray],
     sensor: SensorModel,
     mount: Mount,
     t_mid: float,
@@ -224,7 +228,7 @@ def _cast_columns(
     distortion: bool,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points, owners and firing times of the beams ``elev_deg`` (calibration errors ``err_deg``) firing ``phase``
-    column steps into each column."""
+    column steps into each column; ``vehicles``: the other cars' prisms and velocities at t_mid."""
     n = sensor.columns
     period = 1.0 / sensor.spin_hz if distortion else 0.0
     frac = (np.arange(n) + phase) / n
@@ -240,7 +244,7 @@ def _cast_columns(
     x0, y0 = float(ox[n // 2]), float(oy[n // 2])
     st = world.static
     near = np.hypot(st.xy[:, 0] - x0, st.xy[:, 1] - y0) < reach + st.radius
-    veh, vel = world.vehicle_shapes(t_mid, exclude={vehicle})
+    veh, vel = vehicles
     vnear = np.hypot(veh.xy[:, 0] - x0, veh.xy[:, 1] - y0) < reach + veh.radius + 5.0
     st, veh, vel = st.take(near), veh.take(vnear), vel[vnear]
     tin_s, tout_s, cos_s = _footprint_hits(ox, oy, dx, dy, st, None, dt)
