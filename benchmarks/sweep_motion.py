@@ -26,7 +26,7 @@ from tqdm import tqdm
 from bb_align import AlignConfig, Aligner
 from bb_align.engine.geometry import se2_params
 from bb_align.lab.realpairs import RealPair, score, seeded_prior
-from bb_align.lab.sim.raycast import sensor_pose
+from bb_align.lab.sim.raycast import sensor_twist
 from bb_align.lab.sim.scenario import Scenario, SimConfig
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed
 from bb_align_client import deskew_sweep
@@ -39,17 +39,11 @@ def scenario(index: int, config: SimConfig = BASE) -> Scenario:
     return Scenario(scenario_seed(SEED, index), 2, scenario_distance(SEED, index, N, BASE), config)
 
 
-def twist(sc: Scenario, agent: int, t: float, h: float = 1e-3) -> tuple[np.ndarray, float]:
-    """(vx, vy) of an agent's sensor in its own frame at time t, and its yaw rate (central differences)."""
+def twist(sc: Scenario, agent: int, t: float) -> tuple[np.ndarray, float]:
+    """(vx, vy) of an agent's sensor in its own frame at time t, and its yaw rate (what the simulator writes)."""
     spec = sc.agents[agent]
-    (x0, y0, a0), (x1, y1, a1) = (
-        (float(np.ravel(v)[0]) for v in sensor_pose(sc.world, spec.vehicle, spec.mount, np.array([t + d])))
-        for d in (-h, h)
-    )
-    am = 0.5 * (a0 + a1)
-    vw = np.array([x1 - x0, y1 - y0]) / (2 * h)
-    v = np.array([np.cos(am) * vw[0] + np.sin(am) * vw[1], -np.sin(am) * vw[0] + np.cos(am) * vw[1]])
-    return v, float(np.arctan2(np.sin(a1 - a0), np.cos(a1 - a0)) / (2 * h))
+    vx, vy, w = sensor_twist(sc.world, spec.vehicle, spec.mount, t)
+    return np.array([vx, vy]), w
 
 
 def clouds(sc: Scenario, deskew: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[float]]:

@@ -230,6 +230,12 @@ def register(app: typer.Typer) -> None:
             help="simulate every agent's detections from its ground-truth labels (detector model); without it, "
             "agents with no detections have none and stage 2 is skipped",
         ),
+        deskew: bool = typer.Option(
+            True,
+            "--deskew/--no-deskew",
+            help="de-skew each cloud whose yaml carries its sweep's motion ('sweep_twist': the simulator's sweeps "
+            "rendered with self-motion distortion), as a sender with odometry does before it encodes",
+        ),
         system_error_offset: bool = typer.Option(
             False,
             "--system-error-offset",
@@ -258,6 +264,7 @@ def register(app: typer.Typer) -> None:
         if detections is not None and simulate_detections:
             raise typer.BadParameter("give --detections DIR or --simulate-detections, not both")
         cfg = EvalConfig(
+            deskew=deskew,
             pose_noise_t_m=sigma_t,
             pose_noise_deg=sigma_deg,
             seed=seed,

@@ -34,6 +34,7 @@ from bb_align.engine.pipeline import Aligner
 from bb_align.engine.verdict import STAGE2_FAILURES
 from bb_align.io.dataset import AgentFrame, FrameGroup, iter_frames
 from bb_align.io.detections import DetectionDir, load_detection_file
+from bb_align_client.deskew import deskew_sweep, firing_times
 
 from ..sim.detections import DetectionModel, detect, frame_rng, points_per_vehicle, vehicles_in_sensor
 from .ap import match_frame, nms_bev
@@ -63,6 +64,11 @@ class EvalConfig(BaseModel):
     pose_noise_t_m: float = Field(2.0, ge=0, description="sigma_t of the peer pose noise for the AP test")
     pose_noise_deg: float = Field(2.0, ge=0, description="sigma_theta of the peer pose noise for the AP test")
     use_prior: bool = Field(False, description="give the engine the noisy pose as a GNSS-grade prior (T_prior)")
+    deskew: bool = Field(
+        True,
+        description="de-skew each cloud whose yaml carries its sweep's motion ('sweep_twist', the simulator's "
+        "distorted sweeps) as a sender with odometry does (bb_align_client.deskew_sweep); its boxes move with it",
+    )
     common_min_points: int = Field(10, ge=1, description="a car is 'seen' by an agent with this many points")
     nms_iou: float = Field(0.15, gt=0, le=1, description="late-fusion NMS threshold (OpenCOOD's)")
     system_error_offset: bool = Field(
@@ -111,6 +117,7 @@ class PairRecord:
     oracle_correct_matches: int = 0
     ego_detections: str = ""  # where the boxes came from: yaml, folder, simulated or none
     peer_detections: str = ""
+    deskewed: bool = False  # both clouds were de-skewed with their sweep's motion before prepare
     # The result's 3x3 covariance of (yaw rad, tx m, ty m) and the true error in those parameters (truth minus
     # estimate, yaw wrapped): what the covariance claims and what it should cover.
     covariance: list | None = None
@@ -139,12 +146,49 @@ class _Agent:
     prepared: object
     prepare_ms: float
     detection_source: str  # yaml, folder, simulated or none
+    gt_ids: dict[str, int]  # the labels in the sensor frame (de-skewed with the cloud): id -> row of gt
+    gt: np.ndarray
+    deskewed: bool
+
+
+def _sweep_twist(agent: AgentFrame) -> tuple[tuple[float, float], float, float] | None:
+    """((vx, vy) m/s, yaw rate rad/s, period s) from the yaml's ``sweep_twist``, or None (a de-skewed cloud)."""
+    tw = agent.extra.get("sweep_twist")
+    if not isinstance(tw, dict):
+        return None
+    return (float(tw["vx_mps"]), float(tw["vy_mps"])), float(tw["yaw_rate_rps"]), float(tw["period_s"])
+
+
+def deskew_boxes(boxes: np.ndarray, velocity, yaw_rate: float, period_s: float) -> np.ndarray:
+    """(K, 7) boxes drawn on a sweep that was not de-skewed, moved as ``deskew_sweep`` moves the points at their
+    centres: the centre and a point 1 m ahead of it along the heading are de-skewed, the heading follows them."""
+    boxes = np.array(boxes, dtype=np.float64, copy=True).reshape(-1, 7)
+    if not len(boxes):
+        return boxes
+    ahead = boxes[:, :3].copy()
+    ahead[:, 0] += np.cos(boxes[:, 6])
+    ahead[:, 1] += np.sin(boxes[:, 6])
+    # the nose takes the centre's firing time: both points are moved by one rigid motion
+    times = firing_times(boxes[:, :3], period_s)
+    centre = deskew_sweep(boxes[:, :3], velocity, yaw_rate, times_s=times, period_s=period_s)
+    nose = deskew_sweep(ahead, velocity, yaw_rate, times_s=times, period_s=period_s)
+    boxes[:, :2] = centre[:, :2]
+    boxes[:, 6] = np.arctan2(nose[:, 1] - centre[:, 1], nose[:, 0] - centre[:, 0])
+    return boxes
 
 
 def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: str, ts: str) -> _Agent:
     pts = agent.load_points()
     ids, gt = vehicles_in_sensor(agent)
     seen = points_per_vehicle(agent, pts, gt, ids)
+    twist = _sweep_twist(agent) if cfg.deskew else None
+    if twist is not None:
+        pts = deskew_sweep(pts, *twist[:2], period_s=twist[2]).astype(pts.dtype)
+        # the simulator labels a car its sweep hit where the distorted sweep shows it, the others at mid-sweep
+        hit = np.array([seen.get(i, 0) > 0 for i in ids], dtype=bool)
+        if hit.any():
+            gt = gt.copy()
+            gt[hit] = deskew_boxes(gt[hit], *twist[:2], twist[2])
     if cfg.simulate_detections:
         counts = np.array([seen[i] for i in ids], dtype=np.int64)
         det = detect(gt, counts, pts, _frame_rng(cfg, scenario, agent.agent, ts), cfg.detection)
@@ -163,14 +207,17 @@ def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: 
             source = str(agent.extra.get("detections_from", "yaml"))  # DAIR-V2X-C: its labels
         else:  # no detections: stage 2 is skipped, late fusion has no boxes from this agent
             boxes, scores, source = np.zeros((0, 7)), np.zeros(0), "none"
+        if twist is not None and source != "simulated":  # a detector run on the de-skewed cloud finds them here
+            boxes = deskew_boxes(boxes, *twist[:2], twist[2])
     t0 = time.perf_counter()
     prepared = aligner.prepare(pts, boxes)
-    return _Agent(agent, pts, boxes, scores, seen, prepared, (time.perf_counter() - t0) * 1e3, source)
+    ms = (time.perf_counter() - t0) * 1e3
+    return _Agent(agent, pts, boxes, scores, seen, prepared, ms, source, ids, gt, twist is not None)
 
 
 def _ap_material(ego: _Agent, peer: _Agent, T_ego_peer_by_pose: dict[str, np.ndarray], cfg: EvalConfig) -> dict:
     """Late fusion per pose: ego boxes + peer boxes moved into the ego frame, NMS, TP flags per range/IoU."""
-    ids, gt = vehicles_in_sensor(ego.frame)
+    ids, gt = ego.gt_ids, ego.gt
     visible = np.array([ego.seen.get(i, 0) + peer.seen.get(i, 0) > 0 for i in ids], dtype=bool)
     gt = gt[visible] if len(gt) else gt
     out = {}
@@ -287,6 +334,7 @@ def evaluate_group(group: FrameGroup, aligner: Aligner, cfg: EvalConfig) -> list
                 oracle_correct_matches=correct,
                 ego_detections=ego.detection_source,
                 peer_detections=peer.detection_source,
+                deskewed=ego.deskewed and peer.deskewed,
                 covariance=None if res.covariance is None else np.asarray(res.covariance, float).tolist(),
                 error_params=[float(v) for v in err],
                 ap=_ap_material(ego, peer, {"noisy": T_noisy, "recovered": se3_from_se2(T_rec), "true": T_true}, cfg),

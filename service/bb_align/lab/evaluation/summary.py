@@ -210,6 +210,7 @@ def summarize(records: list[PairRecord]) -> dict:
         "stage1_only": _block(records, "stage1"),
         "baseline_graph_matching": _block(records, "baseline"),
         "detections_used": dict(sorted(sources.items())),
+        "pairs_deskewed": sum(x.deskewed for x in records),
         "failure_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         "stage1_diagnosis_by_distance": _diagnosis(records),
         "covariance_coverage": covariance_coverage(records),

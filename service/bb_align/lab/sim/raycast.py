@@ -52,6 +52,19 @@ def sensor_pose(world: World, vehicle: int, mount: Mount, t) -> tuple[np.ndarray
     return x + np.cos(yaw) * mount.x_offset_m, y + np.sin(yaw) * mount.x_offset_m, yaw
 
 
+def sensor_twist(world: World, vehicle: int, mount: Mount, t: float, h_s: float = 1e-3) -> tuple[float, float, float]:
+    """(vx, vy) of the sensor in its own frame at time t, m/s, and its yaw rate, rad/s (central differences over
+    +-h_s): what the car's odometry tells a sender that de-skews its sweep (bb_align_client.deskew_sweep)."""
+    (x0, y0, a0), (x1, y1, a1) = (
+        (float(np.ravel(v)[0]) for v in sensor_pose(world, vehicle, mount, np.array([t + d]))) for d in (-h_s, h_s)
+    )
+    am = 0.5 * (a0 + a1)
+    vx_w, vy_w = (x1 - x0) / (2 * h_s), (y1 - y0) / (2 * h_s)
+    vx = np.cos(am) * vx_w + np.sin(am) * vy_w
+    vy = -np.sin(am) * vx_w + np.cos(am) * vy_w
+    return float(vx), float(vy), float(np.arctan2(np.sin(a1 - a0), np.cos(a1 - a0)) / (2 * h_s))
+
+
 def T_world_sensor_at(world: World, vehicle: int, mount: Mount, t: float) -> np.ndarray:
     x, y, yaw = (float(v) for v in sensor_pose(world, vehicle, mount, t))
     T = np.eye(4)

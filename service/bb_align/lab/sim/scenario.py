@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .detections import DetectionModel, detect
 from .paths import Path
-from .raycast import Mount, T_world_sensor_at, cast_sweep
+from .raycast import Mount, T_world_sensor_at, cast_sweep, sensor_twist
 from .sensors import DEFAULT_FLEET, SENSOR_MODELS, SensorModel, pick_sensors
 from .streets import generate_world
 from .world import Vehicle, World
@@ -68,6 +68,10 @@ class SimAgent:
     points_on: dict[int, int] = field(default_factory=dict)  # vehicle id -> LiDAR points on it
     seen_boxes: dict[int, np.ndarray] = field(default_factory=dict)  # vehicle id -> box where the (distorted)
     # sweep shows it, sensor frame: what an annotator labelling this cloud would draw
+    # (vx m/s, vy m/s, yaw rate rad/s) of the sensor at mid-sweep, its own frame, and the sweep's period: what
+    # the car's odometry gives a sender that de-skews; None when the sweep is rendered frozen (already de-skewed)
+    twist: tuple[float, float, float] | None = None
+    period_s: float = 0.1
 
 
 @dataclass
@@ -272,6 +276,8 @@ class Scenario:
                 vehicle_id=spec.vehicle,
                 points_on={int(i): int(c) for i, c in zip(ids, counts)},
                 seen_boxes={int(i): true_boxes[j] for j, i in enumerate(ids)},
+                twist=sensor_twist(w, spec.vehicle, spec.mount, t_mid) if cfg.distortion else None,
+                period_s=1.0 / spec.sensor.spin_hz,
             )
         ego_xy = agents["0"].T_world_sensor[:2, 3]
         vehicles = {}

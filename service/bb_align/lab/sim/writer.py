@@ -1,7 +1,10 @@
 """Write simulated scenarios in the OPV2V / V2V4Real layout (see ``bb_align.io.dataset``).
 
 Each agent's ``vehicles`` are the labels an annotator of its own cloud would give: a car the agent's LiDAR hit
-is boxed where the (distorted, not de-skewed) sweep shows it, as in V2V4Real; other cars at their true pose.
+is boxed where the (distorted, not de-skewed) sweep shows it, as in V2V4Real; other cars at their true pose. A
+sweep rendered with self-motion distortion also carries ``sweep_twist`` (the sensor's velocity and yaw rate at
+mid-sweep, and the sweep's period): what the car's odometry gives a sender to de-skew it with; ``bb-align eval``
+de-skews with it as such a sender would.
 
 Scenario i of a benchmark seeded S is ``Scenario(seed=S * 100_003 + i)``; its agents' spacing is stratified
 over [min_distance_m, max_distance_m] so every distance bucket gets its share of pairs.
@@ -84,6 +87,14 @@ def write_scenario_frames(
                 "vehicle_points": {int(k): int(n) for k, n in agent.points_on.items() if k in vehicles},
                 **(extra(agent_id, agent) if extra is not None else {}),
             }
+            if agent.twist is not None:  # a sweep not de-skewed carries the motion a sender would de-skew it with
+                vx, vy, w = agent.twist
+                fields["sweep_twist"] = {
+                    "vx_mps": round(vx, 6),
+                    "vy_mps": round(vy, 6),
+                    "yaw_rate_rps": round(w, 6),
+                    "period_s": agent.period_s,
+                }
             write_agent_frame(
                 root,
                 name,
