@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bb_align.lab.sim.realism import landscape_at_truth
+from bb_align.engine.config import BevConfig
+from bb_align.lab.sim.realism import LATERAL_BANDS, landscape_at_truth, shared_by_lateral
 
 
 def _scene(cross_walls_x: tuple[float, ...]) -> np.ndarray:
@@ -38,6 +39,29 @@ def test_landscape_at_truth_sees_a_corridor_only_where_nothing_crosses_the_stree
     assert not landscape_at_truth(*pair((7.0,)), T_ego_peer)[0]
     bounded, sigma = landscape_at_truth(*pair((-23.0, 7.0, 31.0, 44.0)), T_ego_peer)
     assert bounded and sigma < 1.0  # 0.43 m here: within the engine's default 1 m answer bound
+
+
+def test_shared_by_lateral_counts_what_only_one_car_sees():
+    """The peer 40 m ahead on the street between two facades at 8 m: the facades between the cars (20-60 m from the
+    peer towards the ego) lie in the 7-10 m band and both cars see them (shared 1). A wall only the peer's cloud has,
+    25 m from the street's axis between the cars, is in the 20-40 m band, shared by nobody; the ego has no pixel
+    there. Nothing lies in the bands between."""
+    T_ego_peer = np.eye(4)
+    T_ego_peer[0, 3] = 40.0
+    scene = _scene(())
+    v, z = np.meshgrid(np.arange(-5.0, 15.0, 0.2), np.arange(0.4, 4.0, 0.4))  # world x -5..15: 25-45 m from the peer
+    only_peer = np.stack([v.ravel(), np.full(v.size, 25.0), z.ravel()], 1).astype(np.float32)
+    pts_peer = np.concatenate([scene, only_peer]) - np.array([40.0, 0.0, 0.0], np.float32)
+    rows = shared_by_lateral(scene, pts_peer, T_ego_peer)
+    by_band = {tuple(r["band_m"]): r for r in rows}
+    assert [tuple(r["band_m"]) for r in rows] == [tuple(b) for b in LATERAL_BANDS]
+    facade, lone = by_band[(7, 10)], by_band[(20, 40)]
+    assert facade["peer_px"] > 100 and facade["shared"] == 1.0 and facade["ego_px"] == facade["peer_px"]
+    res = BevConfig().resolution_m
+    assert lone["peer_px"] == round(20.0 / res)  # 20 m of wall, one pixel wide
+    assert lone["shared"] == 0.0 and lone["ego_px"] == 0
+    for band in ((0, 4), (4, 7), (10, 14), (14, 20)):
+        assert by_band[band]["peer_px"] == by_band[band]["ego_px"] == 0
 
 
 def _alias_anatomy():

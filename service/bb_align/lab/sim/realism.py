@@ -1,6 +1,6 @@
 """How simulated BV images compare with real ones: statistics and a side-by-side figure.
 
-    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data] [--street 12]
+    python -m bb_align.lab.sim.realism docs/sim [--data ../shared/data] [--street 12] [--landscape N] [--shared N]
 
 Statistics per cloud (engine's default BevConfig): points, lit BV pixels, lit pixels per 100 m^2 in range
 rings (sparsity with range), the share of lit pixels that are low clutter (0.3-1.5 m above the local ground:
@@ -106,6 +106,48 @@ def along_street_alias(pts_ego, pts_peer, T_ego_peer, reach_m: float = 90.0) -> 
                 t = G[:2, 2] + du * along + dv * across
                 best = max(best, overlap_fitness(cloud, sample, se2(yaw + turn, t[0], t[1]), gate)[0])
     return float(truth), float(best)
+
+
+LATERAL_BANDS = ((0, 4), (4, 7), (7, 10), (10, 14), (14, 20), (20, 40))  # metres from the baseline
+
+
+def shared_by_lateral(
+    pts_ego, pts_peer, T_ego_peer, zone_m: tuple[float, float] = (20.0, 60.0), tol_m: float = 0.4
+) -> list[dict]:
+    """What the two cars share between them, by distance from the line joining them. The peer's lit BV pixels
+    ``zone_m`` from it towards the ego (on a straight street: the stretch both see at similar ranges), per band of
+    lateral distance from the baseline (LATERAL_BANDS): how many (``peer_px``), the share within ``tol_m`` of an ego
+    lit pixel under the true pose (``shared``), and the ego's lit pixels in the same place (``ego_px``)."""
+    from scipy.spatial import cKDTree
+
+    from bb_align.engine.geometry import ground_se2
+
+    G = ground_se2(T_ego_peer)
+    ego, peer = make_bev(pts_ego), make_bev(pts_peer)
+    a = ego.pixel_to_metre(np.argwhere(ego.image > 0))
+    b = peer.pixel_to_metre(np.argwhere(peer.image > 0))
+    G_inv = np.linalg.inv(G)
+    toward = G_inv[:2, 2] / np.linalg.norm(G_inv[:2, 2])  # from the peer towards the ego, peer frame
+    a_in_peer = a @ G_inv[:2, :2].T + G_inv[:2, 2]
+    shared = cKDTree(a).query(b @ G[:2, :2].T + G[:2, 2])[0] <= tol_m
+
+    def place(xy):  # (distance towards the ego, lateral distance from the baseline)
+        return xy @ toward, np.abs(xy[:, 0] * toward[1] - xy[:, 1] * toward[0])
+
+    (sb, lb), (sa, la) = place(b), place(a_in_peer)
+    in_b, in_a = (sb >= zone_m[0]) & (sb < zone_m[1]), (sa >= zone_m[0]) & (sa < zone_m[1])
+    rows = []
+    for lo, hi in LATERAL_BANDS:
+        mb, ma = in_b & (lb >= lo) & (lb < hi), in_a & (la >= lo) & (la < hi)
+        rows.append(
+            {
+                "band_m": [lo, hi],
+                "peer_px": int(mb.sum()),
+                "shared": float(shared[mb].mean()) if mb.any() else 0.0,
+                "ego_px": int(ma.sum()),
+            }
+        )
+    return rows
 
 
 def landscape_at_truth(pts_ego, pts_peer, T_ego_peer) -> tuple[bool, float]:
@@ -243,6 +285,9 @@ def main(argv=None) -> None:
     ap.add_argument(
         "--landscape", type=int, default=0, help="street pairs for the landscape at the truth (and all real far pairs)"
     )
+    ap.add_argument(
+        "--shared", type=int, default=0, help="street pairs (de-skewed) for what two cars share, by lateral band"
+    )
     args = ap.parse_args(argv)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     street_profiles(args)
@@ -250,6 +295,8 @@ def main(argv=None) -> None:
         alias_table(args)
     if args.landscape:
         landscape_table(args)
+    if args.shared:
+        shared_table(args)
     real = real_clouds(args.data) if args.data.is_dir() else {}
     sim = simulated_clouds()
     stats = {"real": {k: bev_stats(v) for k, v in real.items()}, "sim": {k: bev_stats(v) for k, v in sim.items()}}
@@ -298,13 +345,14 @@ def street_profiles(args) -> None:
         print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} | {side} |")
 
 
-def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0):
+def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0, distortion: bool = True):
     """(ego points, peer points, T_ego_peer) of n street-family pairs, HDL-64E, spaced evenly over [lo, hi] m."""
     from .scenario import Scenario, SimConfig
 
+    cfg = SimConfig(family="street", fleet=("hdl64",), distortion=distortion)
     for i in range(n):
         d = lo + (hi - lo) * (i + 0.5) / n
-        frame = Scenario(seed * 100003 + i, 2, d, SimConfig(family="street", fleet=("hdl64",))).frame(0)
+        frame = Scenario(seed * 100003 + i, 2, d, cfg).frame(0)
         e, p = frame.agents["0"], frame.agents["1"]
         yield e.points, p.points, np.linalg.inv(e.T_world_sensor) @ p.T_world_sensor
 
@@ -362,6 +410,34 @@ def alias_table(args) -> None:
     (args.out_dir / "street_alias.json").write_text(json.dumps(out, indent=2))
     for k, (t, b, above, n) in out.items():
         print(f"| {k} | {t:.3f} | {b:.3f} | {above} / {n} |")
+
+
+def shared_table(args) -> None:
+    """shared_by_lateral summed over the real KITTI 00 far pairs and over street-family pairs (de-skewed, as the
+    real scans are): per lateral band the peer's pixels per pair, their shared share and the ego's pixels per pair."""
+    from tqdm import tqdm
+
+    from bb_align.io.clouds import load_cloud as load
+
+    far = args.data / "kitti00_run_far"
+    sets = {"real: KITTI 00, 73-80 m": [], "sim street family, 73-81 m": []}
+    for a in tqdm(range(10), desc="real"):
+        for b in (94, 95):
+            pair = (load(far / f"{a:06d}.bin"), load(far / f"{b:06d}.bin"), np.loadtxt(far / f"T_{a}_{b}.txt"))
+            sets["real: KITTI 00, 73-80 m"].append(shared_by_lateral(*pair))
+    for pair in tqdm(street_pairs(args.shared, distortion=False), total=args.shared, desc="street"):
+        sets["sim street family, 73-81 m"].append(shared_by_lateral(*pair))
+    (args.out_dir / "shared_by_lateral.json").write_text(json.dumps(sets, indent=1))
+    print("| set | pairs | " + " | ".join(f"{lo}-{hi} m" for lo, hi in LATERAL_BANDS) + " |")
+    print("| --- | ---: |" + " --- |" * len(LATERAL_BANDS))
+    for name, rows in sets.items():
+        cells = []
+        for k in range(len(LATERAL_BANDS)):
+            peer = sum(r[k]["peer_px"] for r in rows)
+            hit = sum(r[k]["peer_px"] * r[k]["shared"] for r in rows)
+            ego = sum(r[k]["ego_px"] for r in rows)
+            cells.append(f"{peer / len(rows):.0f} ({hit / max(peer, 1):.2f}) / {ego / len(rows):.0f}")
+        print(f"| {name} | {len(rows)} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
