@@ -288,3 +288,19 @@ def test_eval_de_skews_a_distorted_simulated_sweep_with_the_motion_its_yaml_carr
     assert (
         Scenario(30, n_agents=2, distance_m=15.0, config=SimConfig(distortion=False)).frame(0).agents["0"].twist is None
     )
+
+
+@pytest.mark.parametrize(
+    "twist", [{"vx_mps": 1.0}, "fast", {"vx_mps": "a", "vy_mps": 0, "yaw_rate_rps": 0, "period_s": 0.1}]
+)
+def test_a_malformed_sweep_twist_is_refused_by_name(twist):
+    """A yaml whose sweep_twist is not the four numbers is refused naming the frame and the field, never guessed."""
+    from pathlib import Path
+
+    from bb_align.io.dataset import AgentFrame
+    from bb_align.lab.evaluation.runner import _sweep_twist
+
+    frame = AgentFrame("sc", "1", "000000", Path("x.pcd"), np.eye(4), {}, extra={"sweep_twist": twist})
+    with pytest.raises(ValueError, match="sc/1/000000: sweep_twist"):
+        _sweep_twist(frame)
+    assert _sweep_twist(AgentFrame("sc", "1", "000000", Path("x.pcd"), np.eye(4), {})) is None

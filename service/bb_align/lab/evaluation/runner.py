@@ -154,9 +154,15 @@ class _Agent:
 def _sweep_twist(agent: AgentFrame) -> tuple[tuple[float, float], float, float] | None:
     """((vx, vy) m/s, yaw rate rad/s, period s) from the yaml's ``sweep_twist``, or None (a de-skewed cloud)."""
     tw = agent.extra.get("sweep_twist")
-    if not isinstance(tw, dict):
+    if tw is None:
         return None
-    return (float(tw["vx_mps"]), float(tw["vy_mps"])), float(tw["yaw_rate_rps"]), float(tw["period_s"])
+    try:
+        return (float(tw["vx_mps"]), float(tw["vy_mps"])), float(tw["yaw_rate_rps"]), float(tw["period_s"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{agent.scenario}/{agent.agent}/{agent.timestamp}: sweep_twist must map vx_mps, vy_mps, yaw_rate_rps and "
+            f"period_s to numbers, got {tw!r}"
+        ) from exc
 
 
 def deskew_boxes(boxes: np.ndarray, velocity, yaw_rate: float, period_s: float) -> np.ndarray:
