@@ -49,6 +49,7 @@ BANDS = (20.0, 40.0)  # peer keypoint range bands: 0-20, 20-40, 40+ m
 CLASSES = ("low", "wall", "tall")
 LOW_M = 2.3  # taller than any car or van above the local ground
 NEAR_M = 25.0
+RANGES = ((0.0, 20.0), (20.0, 40.0), (40.0, 60.0), (60.0, np.inf))  # peer keypoint range, the truth's breakdown
 POSES = ("truth", "alias", "overlay")  # an alias placing the peer this close to the ego is a near-field overlay
 
 
@@ -150,6 +151,15 @@ def measure(aligner: Aligner, name: str, T_ref: np.ndarray, pts_ego, pts_peer) -
             **where(s["mask"], kp_peer, classes, s["ego_range"]),
             "geometric_classes": {c: int((classes[s["geo_mask"]] == c).sum()) for c in CLASSES},
         }
+        if key == "truth":  # per class and peer range: keypoints, how many coincide, how many the vote counts
+            r = np.linalg.norm(kp_peer, axis=1)
+            row["truth_by_range"] = {
+                c: [
+                    [int(m.sum()), int((m & s["geo_mask"]).sum()), int((m & s["mask"]).sum())]
+                    for m in ((classes == c) & (r >= lo) & (r < hi) for lo, hi in RANGES)
+                ]
+                for c in CLASSES
+            }
     row["near_field_alias"] = bool(row["alias"] and np.hypot(*row["alias"]["pose"][1:]) < NEAR_M)
     row["classes_all"] = {c: int((classes == c).sum()) for c in CLASSES}
     row["success"] = bool(result.success)
@@ -189,6 +199,10 @@ def summary(rows: list[dict]) -> dict:
     out["alias_geometric_above_truth"] = sum(
         bool(r["alias"] and r["alias"]["geometric"] > r["truth"]["geometric"]) for r in rows
     )
+    out["truth_by_range"] = {
+        c: [[sum(r["truth_by_range"][c][k][j] for r in rows) for j in range(3)] for k in range(len(RANGES))]
+        for c in CLASSES
+    }
     n_all = {c: sum(r["classes_all"][c] for r in rows) for c in CLASSES}
     out["classes_all"] = {c: round(v / max(1, sum(n_all.values())), 3) for c, v in n_all.items()}
     return out
@@ -230,6 +244,20 @@ def table(sets: dict[str, dict], command: str) -> str:
             f"| {name} | {s['pairs']} | {s['near_field_alias']} | {s['alias_topk_above_truth']} | "
             f"{s['alias_geometric_above_truth']} | {s['overlay_topk_above_truth']} | {shares(s['classes_all'])} |"
         )
+    lines += [
+        "",
+        "The truth's keypoints by the peer keypoint's range and class, summed over the pairs: peer keypoints / with an",
+        "ego keypoint within 2 m at the truth / of those, found by their descriptor candidates (top-k).",
+        "",
+        "| set | class | "
+        + " | ".join(f"{lo:.0f}-{hi:.0f} m" if np.isfinite(hi) else f"{lo:.0f}+ m" for lo, hi in RANGES)
+        + " |",
+        "| --- | --- |" + " --- |" * len(RANGES),
+    ]
+    for name, s in sets.items():
+        for c in CLASSES:
+            cells = " | ".join(" / ".join(map(str, v)) for v in s["truth_by_range"][c])
+            lines.append(f"| {name} | {c} | {cells} |")
     return "\n".join(lines) + "\n"
 
 
