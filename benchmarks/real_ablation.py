@@ -13,6 +13,7 @@ docs/real_pairs/ablation.md and .json.
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 from multiprocessing import Pool
@@ -30,6 +31,7 @@ MODES = ("none", "wall", "tall", "random")
 RADIUS_M = 0.6  # points this close to a removed pixel's centre go with it (a 0.4 m pixel and its neighbours' edges)
 
 
+@functools.cache  # once per worker process
 def _classify():
     path = Path(__file__).resolve().with_name("alias_anatomy.py")
     spec = importlib.util.spec_from_file_location("bench_alias_anatomy_for_ablation", path)
@@ -67,10 +69,14 @@ def ablate(points: np.ndarray, mode: str, classify) -> np.ndarray:
     return points[d > RADIUS_M]
 
 
+@functools.cache  # once per worker process
+def _aligner() -> Aligner:
+    return Aligner(AlignConfig())
+
+
 def _run(job: tuple[str, object]) -> dict:
     mode, pair = job
-    classify = _classify()
-    aligner = Aligner(AlignConfig())
+    classify, aligner = _classify(), _aligner()
     pts_ego, pts_peer = (ablate(load_cloud(p), mode, classify) for p in (pair.ego, pair.peer))
     ego, peer = aligner.prepare(pts_ego), aligner.prepare(pts_peer)
     plain, prior = aligner.align(ego, peer), aligner.align(ego, peer, T_prior=seeded_prior(pair))

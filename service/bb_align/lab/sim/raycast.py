@@ -55,14 +55,12 @@ def sensor_pose(world: World, vehicle: int, mount: Mount, t) -> tuple[np.ndarray
 def sensor_twist(world: World, vehicle: int, mount: Mount, t: float, h_s: float = 1e-3) -> tuple[float, float, float]:
     """(vx, vy) of the sensor in its own frame at time t, m/s, and its yaw rate, rad/s (central differences over
     +-h_s): what the car's odometry tells a sender that de-skews its sweep (bb_align_client.deskew_sweep)."""
-    (x0, y0, a0), (x1, y1, a1) = (
-        (float(np.ravel(v)[0]) for v in sensor_pose(world, vehicle, mount, np.array([t + d]))) for d in (-h_s, h_s)
-    )
-    am = 0.5 * (a0 + a1)
-    vx_w, vy_w = (x1 - x0) / (2 * h_s), (y1 - y0) / (2 * h_s)
+    x, y, a = (np.ravel(v) for v in sensor_pose(world, vehicle, mount, np.array([t - h_s, t + h_s])))
+    am = 0.5 * (a[0] + a[1])
+    vx_w, vy_w = (x[1] - x[0]) / (2 * h_s), (y[1] - y[0]) / (2 * h_s)
     vx = np.cos(am) * vx_w + np.sin(am) * vy_w
     vy = -np.sin(am) * vx_w + np.cos(am) * vy_w
-    return float(vx), float(vy), float(np.arctan2(np.sin(a1 - a0), np.cos(a1 - a0)) / (2 * h_s))
+    return float(vx), float(vy), float(np.arctan2(np.sin(a[1] - a[0]), np.cos(a[1] - a[0])) / (2 * h_s))
 
 
 def T_world_sensor_at(world: World, vehicle: int, mount: Mount, t: float) -> np.ndarray:

@@ -345,6 +345,15 @@ def street_profiles(args) -> None:
         print(f"| {name} | {p['scans']} | {' / '.join(map(str, p['median']))} | {quart} | {lane} | {side} |")
 
 
+def kitti00_far_pairs(data: Path):
+    """(ego points, peer points, T_ego_peer) of the real KITTI 00 pairs 73-80 m apart (lab.realpairs.kitti00_far)."""
+    from bb_align.io.clouds import load_cloud
+    from bb_align.lab.realpairs import kitti00_far
+
+    for pair in kitti00_far(data):
+        yield load_cloud(pair.ego), load_cloud(pair.peer), pair.T_ref
+
+
 def street_pairs(n: int, seed: int = 7, lo: float = 73.0, hi: float = 81.0, distortion: bool = True):
     """(ego points, peer points, T_ego_peer) of n street-family pairs, HDL-64E, spaced evenly over [lo, hi] m."""
     from .scenario import Scenario, SimConfig
@@ -364,16 +373,13 @@ def landscape_table(args) -> None:
 
     from bb_align.io.clouds import load_cloud as load
 
-    far, k08 = args.data / "kitti00_run_far", args.data / "kitti_seq08_pair"
-    sets = {"KITTI 00, 73-80 m (tuned on)": [], "KITTI 08, 16 m (held out)": []}
-    for a in range(10):
-        for b in (94, 95):
-            sets["KITTI 00, 73-80 m (tuned on)"].append(
-                (load(far / f"{a:06d}.bin"), load(far / f"{b:06d}.bin"), np.loadtxt(far / f"T_{a}_{b}.txt"))
-            )
-    sets["KITTI 08, 16 m (held out)"].append(
-        (load(k08 / "000000.bin"), load(k08 / "000049.bin"), np.loadtxt(k08 / "T_velo0_velo49_icp_refined.txt"))
-    )
+    k08 = args.data / "kitti_seq08_pair"
+    sets = {
+        "KITTI 00, 73-80 m (tuned on)": kitti00_far_pairs(args.data),
+        "KITTI 08, 16 m (held out)": [
+            (load(k08 / "000000.bin"), load(k08 / "000049.bin"), np.loadtxt(k08 / "T_velo0_velo49_icp_refined.txt"))
+        ],
+    }
     sets["sim street family, 73-81 m"] = street_pairs(args.landscape)
     sets["sim street family, 16 m"] = street_pairs(max(1, args.landscape // 4), lo=15.5, hi=16.5)
     out = {}
@@ -417,16 +423,13 @@ def shared_table(args) -> None:
     real scans are): per lateral band the peer's pixels per pair, their shared share and the ego's pixels per pair."""
     from tqdm import tqdm
 
-    from bb_align.io.clouds import load_cloud as load
-
-    far = args.data / "kitti00_run_far"
-    sets = {"real: KITTI 00, 73-80 m": [], "sim street family, 73-81 m": []}
-    for a in tqdm(range(10), desc="real"):
-        for b in (94, 95):
-            pair = (load(far / f"{a:06d}.bin"), load(far / f"{b:06d}.bin"), np.loadtxt(far / f"T_{a}_{b}.txt"))
-            sets["real: KITTI 00, 73-80 m"].append(shared_by_lateral(*pair))
-    for pair in tqdm(street_pairs(args.shared, distortion=False), total=args.shared, desc="street"):
-        sets["sim street family, 73-81 m"].append(shared_by_lateral(*pair))
+    sets = {
+        "real: KITTI 00, 73-80 m": [shared_by_lateral(*p) for p in tqdm(kitti00_far_pairs(args.data), desc="real")],
+        "sim street family, 73-81 m": [
+            shared_by_lateral(*p)
+            for p in tqdm(street_pairs(args.shared, distortion=False), total=args.shared, desc="street")
+        ],
+    }
     (args.out_dir / "shared_by_lateral.json").write_text(json.dumps(sets, indent=1))
     print("| set | pairs | " + " | ".join(f"{lo}-{hi} m" for lo, hi in LATERAL_BANDS) + " |")
     print("| --- | ---: |" + " --- |" * len(LATERAL_BANDS))
