@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test run bench-accuracy bench-real bench-sim-real bench-engine bench-flood clean
+.PHONY: venv test run bench-accuracy bench-real bench-sim-real bench-sim-places bench-engine bench-flood clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -56,6 +56,11 @@ bench-sim-real: $(STAMP)
 		--workers 2
 	$(PY) benchmarks/sim_vs_real.py --data $(SHARED_DATA) --sim "mixed, >= 70 m=$(BENCH_ACC_DIR)@70" \
 		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn"
+
+# Simulated street places, each rendered as the real KITTI 00 run is (10 follower sweeps against 2 sweeps of the car
+# 73-81 m ahead), and the real place's standing among them (docs/sim/places.*; about 15 minutes on 2 cores).
+bench-sim-places: $(STAMP)
+	$(PY) benchmarks/sim_places.py --data $(SHARED_DATA) --places 40
 
 # The engine's departures from the paper, measured (docs/engine.md; real rows need ../shared/data).
 bench-engine: $(STAMP)

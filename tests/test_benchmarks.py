@@ -50,3 +50,27 @@ def test_sim_vs_real_measures_a_pair_against_its_truth():
     assert row["truth_fitness"] > 0.2
     assert row["ramp"] > -0.01
     assert len(row["lit_peer"]) == 4 and sum(row["lit_peer"]) > 500
+
+
+def test_sim_places_runs_a_place_as_the_real_run_and_ranks_the_real_place():
+    """A simulated place is rendered as the real run is: the follower's consecutive sweeps against the leader's, the
+    follower moving between them, the cars 73-81 m apart; the real place's standing is worked by hand."""
+    bench = _load(BENCHMARKS / "sim_places.py")
+    pairs = bench.place_pairs(11 * 100003, ego_sweeps=2, peer_sweeps=1)
+    assert [p.name for p, _, _ in pairs] == ["place1100033/0<-0", "place1100033/1<-0"]
+    (first, ego0, peer0), (second, ego1, peer1) = pairs
+    assert peer0 is peer1 and ego0 is not ego1  # one leader sweep against two follower sweeps
+    assert 72.0 < first.distance_m < 83.0  # 73-81 m drawn, the follower one sweep back
+    closed_in = first.distance_m - second.distance_m  # one sweep (0.1 s) at the street family's 5-16 m/s
+    assert 0.4 < closed_in < 1.7
+    rows = [{"place": "real", "no_prior": {"right": 8}, "prior": {"right": 18}}] + [
+        {"place": f"sim {k}", "no_prior": {"right": v}, "prior": {"right": 20 - v}} for k, v in enumerate([0, 3, 8, 9])
+    ]
+    assert bench.standing([0, 3, 8, 9], 8) == 0.5  # places 8 and 9 do at least as well
+    assert bench.standing([20, 17, 12, 11], 18) == 0.25
+    for row in rows[1:]:
+        for path in bench.PATHS:
+            row[path].update(wrong=0, refused=20 - row[path]["right"])
+    summ = bench.summary(rows)
+    assert summ["places"] == 4 and summ["no_prior"]["sim_places_at_least_real"] == 0.5
+    assert summ["prior"]["sim_places_none_right"] == 0 and summ["no_prior"]["sim_places_none_right"] == 1
