@@ -314,6 +314,19 @@ class AcquireConfig(_Frozen):
         description="success needs relative fitness >= this (replaces success.min_refine_fitness in multi mode)",
     )
     min_fitness: float = Field(0.0, ge=0, le=1, description="absolute dense-overlap floor in multi mode")
+    near_m: float = Field(
+        10.0,
+        ge=0,
+        description="two LiDARs closer than this (m) see nearly one scene: a pose placing the peer this near must "
+        "reach near_min_fitness (0: off)",
+    )
+    near_min_fitness: float = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description="the dense overlap a pose within near_m needs. Right poses within 10 m: 0.47-0.93 (real scans "
+        "0.66-0.93); two far places' near fields laid over each other: 0.20-0.33 (docs/acquisition.md)",
+    )
     stage2_required: bool = Field(
         True,
         description="multi mode: False lets a densely verified pose succeed when "

@@ -162,6 +162,11 @@ class Verdict:
             notes.append(f"acquired on box evidence: {best.box_pairs} cars on cars, distinct poses fewer")
         if best.fitness < a.min_fitness or best.relative_fitness < a.min_relative_fitness:
             return FailureReason.inconsistent_overlap
+        separation_m = float(np.hypot(best.T[0, 2], best.T[1, 2]))
+        if separation_m < a.near_m and best.fitness < a.near_min_fitness:
+            # Two LiDARs this near see nearly one scene; so little of it shared is two places' near fields overlaid
+            notes.append(f"the peer placed {separation_m:.1f} m away shares only {best.fitness:.2f} of its image")
+            return FailureReason.inconsistent_overlap
         if fs.enabled and best.conflict > (fs.gave_way_max_conflict if d.gave_way else fs.max_conflict):
             notes.append(f"free-space conflict {best.conflict:.2f}: structure where the other car saw through")
             return FailureReason.free_space_conflict
