@@ -58,7 +58,7 @@ bench-sim-real: $(STAMP)
 		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn"
 
 # Simulated street places, each rendered as the real KITTI 00 run is (10 follower sweeps against 2 sweeps of the car
-# 73-81 m ahead), and the real place's standing among them (docs/sim/places.*; about 15 minutes on 2 cores).
+# 73-81 m ahead), and the real place's standing among them (docs/sim/places.*; about 10 minutes on 2 cores).
 bench-sim-places: $(STAMP)
 	$(PY) benchmarks/sim_places.py --data $(SHARED_DATA) --places 40
 

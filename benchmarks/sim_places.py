@@ -63,7 +63,7 @@ def _aligner() -> Aligner:
 def outcomes(pairs) -> dict:
     """Each pair aligned without and with its seeded prior: the outcome strings per path (clouds prepared once)."""
     aligner = _aligner()
-    prepared: dict[int, object] = {}
+    prepared: dict[int, object] = {}  # by the cloud array's identity: a place's pairs share their sweeps
 
     def prep(points):
         key = id(points)

@@ -324,7 +324,7 @@ class AcquireConfig(_Frozen):
         0.4,
         ge=0,
         le=1,
-        description="the dense overlap a pose within near_m needs. Right poses within 10 m: 0.47-0.93 (real scans "
+        description="the dense overlap a pose within near_m needs. Right poses within 10 m: 0.50-0.93 (real scans "
         "0.66-0.93); two far places' near fields laid over each other: 0.20-0.33 (docs/acquisition.md)",
     )
     stage2_required: bool = Field(
