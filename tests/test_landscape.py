@@ -84,13 +84,29 @@ def test_the_peak_is_the_known_transform_and_its_covariance_covers_the_start():
     assert sig[1] < 0.5 and sig[2] < 0.5
 
 
+def test_a_window_whose_peak_lies_at_its_edge_moves_onto_the_peak():
+    T_true = se2(np.radians(2.0), 12.0, 0.5)
+    ego, pts = _pair(_street(None), T_true)
+    fields = Fields.of(ego, CFG)
+    T_start = se2(np.radians(2.0), 9.0, 0.5)  # 3 m short along the street: the peak lies 0.2 m inside the window
+    fixed = landscape(ego, fields, pts, T_start, CFG.model_copy(update={"follow_steps": 0}))
+    assert fixed.at_edge  # the window that stays put sees no bounded peak
+    land = landscape(ego, fields, pts, T_start, CFG)
+    assert not land.at_edge
+    err = np.array(se2_params(land.T)) - np.array(se2_params(T_true))
+    assert np.hypot(err[1], err[2]) < 0.25 and abs(np.degrees(err[0])) < 0.2, err
+    assert np.all(np.abs(err) <= 3 * np.sqrt(np.diag(land.covariance)))
+
+
 def test_a_corridor_without_cross_structure_is_unbounded_along_it():
     walls = np.concatenate([_segment((-35, 8), (35, 8)), _segment((-35, -8), (35, -8))])
     T_true = se2(0.0, 10.0, 0.0)
     ego, pts = _pair(walls, T_true)
-    land = landscape(ego, Fields.of(ego, CFG), pts, se2(0.0, 10.5, 0.2), CFG)
+    T_start = se2(0.0, 10.5, 0.2)
+    land = landscape(ego, Fields.of(ego, CFG), pts, T_start, CFG)
     assert land.at_edge
     assert np.sqrt(land.covariance[1, 1]) > 100.0  # unbounded along the walls: never a confident answer
+    assert np.allclose(land.T, T_start)  # following the corridor's peak led nowhere: the pose stays put
 
 
 def test_a_street_repeating_every_6_m_counts_its_repeats_as_modes():

@@ -18,8 +18,10 @@ wall are one measurement seen many times (calibrated, see LandscapeConfig).
 
 Further modes widen that covariance: the coarse grid's mass away from the peak, other poses the search found
 (``with_rivals``) and the refinement's own pose when the landscape rules it out (``with_refinement``: the two
-estimators disagree). A landscape whose mass reaches the edge of its window has no bounded peak there (a
-corridor): its covariance is unbounded and the pose stays where the refinement put it.
+estimators disagree). A window whose peak lies near its edge moves onto the peak (``follow_steps`` times at most):
+a refinement that stopped a few metres off puts the peak, not a corridor, at the edge. A landscape whose mass still
+reaches the edge of its window has no bounded peak there (a corridor): its covariance is unbounded and the pose
+stays where the refinement put it.
 """
 
 from __future__ import annotations
@@ -137,19 +139,27 @@ def landscape(
     """Score the grid around T (3x3 ego <- peer) and take its peak and distribution (module doc). Coarse to fine:
     the whole window on cells twice ``step_m`` and three times ``step_deg``, then ``fine_cells`` fine cells each way
     around the coarse peak. The fine grid gives the peak's shape; the coarse grid's mass outside it (other modes)
-    widens the covariance about the answer."""
-    pts_peer = _inside(ego, pts_peer, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
-    coarse = _grid(
-        fields.coarse,
-        ego,
-        pts_peer,
-        T,
-        cfg.half_width_m,
-        2 * cfg.step_m,
-        cfg.half_yaw_deg,
-        3 * cfg.step_deg,
-        cfg.effective_points,
-    )
+    widens the covariance about the answer. When the coarse mass reaches the window's edge and its peak is off
+    the centre, the window moves onto the peak (at most ``follow_steps`` times) before the verdict."""
+    T_start = np.array(T, dtype=float)
+    pts_all = pts_peer
+    for step in range(cfg.follow_steps + 1):
+        pts_peer = _inside(ego, pts_all, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
+        coarse = _grid(
+            fields.coarse,
+            ego,
+            pts_peer,
+            T,
+            cfg.half_width_m,
+            2 * cfg.step_m,
+            cfg.half_yaw_deg,
+            3 * cfg.step_deg,
+            cfg.effective_points,
+        )
+        off_centre = np.any(np.abs(coarse.peak - coarse.centre) > coarse.step + 1e-9)
+        if coarse.edge_mass() <= cfg.max_edge_mass or not off_centre or step == cfg.follow_steps:
+            break
+        T = se2(*coarse.peak)  # the peak lies near the edge: look around it instead
     fine = _grid(
         fields.fine,
         ego,
@@ -173,7 +183,7 @@ def landscape(
     # for all its points (res^2 / 12 per image, two images), nor than the grid's yaw cells.
     cov += np.diag([fine.step[0] ** 2 / 12.0, ego.resolution_m**2 / 6.0, ego.resolution_m**2 / 6.0])
     if coarse.edge_mass() > cfg.max_edge_mass:  # no bounded peak: the pose stays where it was, unbounded
-        return Landscape(np.array(T, dtype=float), max(coarse.best, fine.best), np.diag([_UNBOUNDED] * 3), True)
+        return Landscape(T_start, max(coarse.best, fine.best), np.diag([_UNBOUNDED] * 3), True)
     return Landscape(se2(*answer), max(coarse.best, fine.best), 0.5 * (cov + cov.T), False)
 
 
@@ -271,13 +281,13 @@ def with_rivals(
     weighted ``exp(effective_points (S_rival - S_main))``; the mixture's spread about the answer is the covariance.
     A rival as good as the answer weighs as much as it: the covariance then spans both. ``prior``: each mode's weight
     is also multiplied by the prior's density there. Returns (covariance, the rivals' weights)."""
-    small = cfg.model_copy(update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg})
+    # A rival is weighed where the search left it (its small window does not follow its peak).
+    small = cfg.model_copy(update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg, "follow_steps": 0})
     y0, x0, t0 = se2_params(main.T)
     total_w, second = 1.0, main.covariance.copy()
     weights = []
     for T_r in rivals:
-        y, x, t = se2_params(T_r)
-        d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+        d = _offset(main.T, T_r)
         if (
             abs(d[1]) <= cfg.half_width_m
             and abs(d[2]) <= cfg.half_width_m
@@ -298,8 +308,7 @@ def with_rivals(
                 prior.log_density(np.array(se2_params(local.T)))[0] - prior.log_density(np.array([y0, x0, t0]))[0]
             )
         w = float(np.exp(min(50.0, log_w)))
-        y, x, t = se2_params(local.T)
-        d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+        d = _offset(main.T, local.T)
         second += w * (local.covariance if not local.at_edge else main.covariance) + w * np.outer(d, d)
         total_w += w
         weights.append(w)
@@ -307,16 +316,27 @@ def with_rivals(
     return 0.5 * (cov + cov.T), weights
 
 
+def _offset(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """(yaw rad wrapped, tx m, ty m) of ``T_to`` minus ``T_from`` (3x3 each)."""
+    y0, x0, t0 = se2_params(T_from)
+    y, x, t = se2_params(T_to)
+    return np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
+
+
+def mahalanobis_d2(main: Landscape, T: np.ndarray) -> float:
+    """Squared Mahalanobis distance of the pose ``T`` (3x3) from ``main``'s answer under its covariance."""
+    d = _offset(main.T, T)
+    return float(d @ np.linalg.solve(main.covariance, d))
+
+
 def with_refinement(main: Landscape, T_refined: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
-    """The answer and its covariance once the refinement's own pose (``T_refined``, the grid's centre) is weighed
+    """The answer and its covariance once the refinement's own pose (``T_refined``) is weighed
     against ``main``: within 1 sigma of the landscape's answer, the refinement's (continuous, finer than the grid's
     cells) pose stands; beyond ``max_d2`` (squared Mahalanobis distance) the two estimators disagree and both count
     as modes of equal weight (the landscape's score is biased where one car sees the near face of a thing and the
     other its far face); between the two, the landscape's answer."""
-    y0, x0, t0 = se2_params(main.T)
-    y, x, t = se2_params(T_refined)
-    d = np.array([np.arctan2(np.sin(y - y0), np.cos(y - y0)), x - x0, t - t0])
-    d2 = float(d @ np.linalg.solve(main.covariance, d))
+    d = _offset(main.T, T_refined)
+    d2 = mahalanobis_d2(main, T_refined)
     if d2 <= 1.0:
         return np.array(T_refined, dtype=float), main.covariance
     if d2 <= max_d2:

@@ -30,7 +30,7 @@ from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2_params
 from .keypoints import detect_keypoints
-from .landscape import Fields, GaussianPrior, landscape, with_refinement, with_rivals
+from .landscape import Fields, GaussianPrior, landscape, mahalanobis_d2, with_refinement, with_rivals
 from .loggabor import maximum_index_map
 from .matching import Matcher
 from .parallel import run_parts
@@ -328,6 +328,12 @@ class Aligner:
             main = landscape(ego_cloud, fields, pts, T_refined, lc)
             r.T_bv, r.covariance = main.T, main.covariance
             if lc.refinement_d2 is not None and not main.at_edge:
+                if mahalanobis_d2(main, T_refined) > lc.refinement_d2:
+                    # A local search started elsewhere may have stopped in another basin: ask the refinement
+                    # again from the landscape's answer before calling the two estimators in disagreement.
+                    again = self.refiner.refine(ego_cloud, pair.peer_sample, main.T)
+                    if again.accepted:
+                        T_refined = again.T
                 r.T_bv, r.covariance = with_refinement(main, T_refined, lc.refinement_d2)
                 main.T, main.covariance = r.T_bv, r.covariance  # the rivals below are weighed about the answer
             if main.at_edge:
