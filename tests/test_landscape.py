@@ -89,13 +89,22 @@ def test_a_window_whose_peak_lies_at_its_edge_moves_onto_the_peak():
     ego, pts = _pair(_street(None), T_true)
     fields = Fields.of(ego, CFG)
     T_start = se2(np.radians(2.0), 9.0, 0.5)  # 3 m short along the street: the peak lies 0.2 m inside the window
-    fixed = landscape(ego, fields, pts, T_start, CFG.model_copy(update={"follow_steps": 0}))
+    fixed = landscape(ego, fields, pts, T_start, CFG.model_copy(update={"follow_peak": False}))
     assert fixed.at_edge  # the window that stays put sees no bounded peak
     land = landscape(ego, fields, pts, T_start, CFG)
     assert not land.at_edge
     err = np.array(se2_params(land.T)) - np.array(se2_params(T_true))
     assert np.hypot(err[1], err[2]) < 0.25 and abs(np.degrees(err[0])) < 0.2, err
     assert np.all(np.abs(err) <= 3 * np.sqrt(np.diag(land.covariance)))
+
+
+def test_a_peak_beyond_the_first_window_is_not_climbed_to():
+    T_true = se2(np.radians(2.0), 12.0, 0.5)
+    ego, pts = _pair(_street(None), T_true)
+    T_start = se2(np.radians(2.0), 7.0, 0.5)  # 5 m short: the truth lies beyond the 3.2 m window
+    land = landscape(ego, Fields.of(ego, CFG), pts, T_start, CFG)
+    assert land.at_edge and np.sqrt(land.covariance[1, 1]) > 100.0  # no answer from a window that had to climb
+    assert np.allclose(land.T, T_start)
 
 
 def test_a_corridor_without_cross_structure_is_unbounded_along_it():

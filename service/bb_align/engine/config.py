@@ -416,12 +416,11 @@ class LandscapeConfig(_Frozen):
     max_edge_mass: float = Field(
         0.05, gt=0, le=1, description="more probability than this on the grid's faces: no bounded peak (a corridor)"
     )
-    follow_steps: int = Field(
-        2,
-        ge=0,
-        le=5,
-        description="times the window may move onto its own peak when that peak lies near the edge (0: never): a "
-        "refinement that stopped a few metres off puts the peak, not a corridor, at the edge",
+    follow_peak: bool = Field(
+        True,
+        description="when the peak lies near the window's edge off its centre in x / y, move the window's translation "
+        "onto it once (a refinement that stopped a few metres off along a street puts the peak, not a corridor, at "
+        "the edge); the answer must still lie inside the first window",
     )
 
 

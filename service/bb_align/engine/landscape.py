@@ -18,10 +18,10 @@ wall are one measurement seen many times (calibrated, see LandscapeConfig).
 
 Further modes widen that covariance: the coarse grid's mass away from the peak, other poses the search found
 (``with_rivals``) and the refinement's own pose when the landscape rules it out (``with_refinement``: the two
-estimators disagree). A window whose peak lies near its edge moves onto the peak (``follow_steps`` times at most):
+estimators disagree). A window whose peak lies near its edge in x / y moves onto the peak once (``follow_peak``):
 a refinement that stopped a few metres off puts the peak, not a corridor, at the edge. A landscape whose mass still
-reaches the edge of its window has no bounded peak there (a corridor): its covariance is unbounded and the pose
-stays where the refinement put it.
+reaches the edge of its window, or whose answer then lies outside the first window, has no bounded peak there (a
+corridor): its covariance is unbounded and the pose stays where the refinement put it.
 """
 
 from __future__ import annotations
@@ -140,26 +140,34 @@ def landscape(
     the whole window on cells twice ``step_m`` and three times ``step_deg``, then ``fine_cells`` fine cells each way
     around the coarse peak. The fine grid gives the peak's shape; the coarse grid's mass outside it (other modes)
     widens the covariance about the answer. When the coarse mass reaches the window's edge and its peak is off
-    the centre, the window moves onto the peak (at most ``follow_steps`` times) before the verdict."""
+    the centre in x / y, the window moves onto that peak's translation once (``follow_peak``) to see the whole of
+    it; the answer must still lie inside the first window: the grid recentres on a peak it saw and never climbs."""
     T_start = np.array(T, dtype=float)
     pts_all = pts_peer
-    for step in range(cfg.follow_steps + 1):
-        pts_peer = _inside(ego, pts_all, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
-        coarse = _grid(
+
+    def coarse_grid(T_centre: np.ndarray) -> tuple[_Grid, np.ndarray]:
+        pts = _inside(ego, pts_all, [T_centre], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
+        grid = _grid(
             fields.coarse,
             ego,
-            pts_peer,
-            T,
+            pts,
+            T_centre,
             cfg.half_width_m,
             2 * cfg.step_m,
             cfg.half_yaw_deg,
             3 * cfg.step_deg,
             cfg.effective_points,
         )
-        off_centre = np.any(np.abs(coarse.peak - coarse.centre) > coarse.step + 1e-9)
-        if coarse.edge_mass() <= cfg.max_edge_mass or not off_centre or step == cfg.follow_steps:
-            break
-        T = se2(*coarse.peak)  # the peak lies near the edge: look around it instead
+        return grid, pts
+
+    first, pts_peer = coarse_grid(T_start)
+    coarse = first
+    shift = first.peak[1:] - first.centre[1:]
+    if cfg.follow_peak and first.edge_mass() > cfg.max_edge_mass and np.any(np.abs(shift) > first.step[1] + 1e-9):
+        # The peak lies near the edge, off the centre in x / y: look around it. Only the translation follows (the
+        # refinement's known failure is to stop short along a street); a peak at the yaw edge is a disagreement
+        # in yaw, left to the verdict.
+        coarse, pts_peer = coarse_grid(se2(first.centre[0], *first.peak[1:]))
     fine = _grid(
         fields.fine,
         ego,
@@ -182,7 +190,8 @@ def landscape(
     # Neither can the answer be finer than the images: a wall is quantised to one pixel in each image, the same
     # for all its points (res^2 / 12 per image, two images), nor than the grid's yaw cells.
     cov += np.diag([fine.step[0] ** 2 / 12.0, ego.resolution_m**2 / 6.0, ego.resolution_m**2 / 6.0])
-    if coarse.edge_mass() > cfg.max_edge_mass:  # no bounded peak: the pose stays where it was, unbounded
+    if coarse.edge_mass() > cfg.max_edge_mass or not first.covers(answer[None, :])[0]:
+        # No bounded peak (or one only beyond the first window): the pose stays where it was, unbounded.
         return Landscape(T_start, max(coarse.best, fine.best), np.diag([_UNBOUNDED] * 3), True)
     return Landscape(se2(*answer), max(coarse.best, fine.best), 0.5 * (cov + cov.T), False)
 
@@ -282,7 +291,9 @@ def with_rivals(
     A rival as good as the answer weighs as much as it: the covariance then spans both. ``prior``: each mode's weight
     is also multiplied by the prior's density there. Returns (covariance, the rivals' weights)."""
     # A rival is weighed where the search left it (its small window does not follow its peak).
-    small = cfg.model_copy(update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg, "follow_steps": 0})
+    small = cfg.model_copy(
+        update={"half_width_m": 4 * cfg.step_m, "half_yaw_deg": 3 * cfg.step_deg, "follow_peak": False}
+    )
     y0, x0, t0 = se2_params(main.T)
     total_w, second = 1.0, main.covariance.copy()
     weights = []
