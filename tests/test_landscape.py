@@ -107,6 +107,17 @@ def test_a_peak_beyond_the_first_window_is_not_climbed_to():
     assert np.allclose(land.T, T_start)
 
 
+def test_a_peak_at_the_yaw_edge_is_a_disagreement_not_followed():
+    T_true = se2(np.radians(2.0), 12.0, 0.5)
+    ego, pts = _pair(_street(None), T_true)
+    T_start = se2(np.radians(3.4), 12.0, 0.5)  # 1.4 deg off, at the yaw window's edge (1.5 deg)
+    land = landscape(ego, Fields.of(ego, CFG), pts, T_start, CFG)
+    # The refinement's known failure is to stop short along a street, not a turn: the window does not move in yaw,
+    # and a peak it cannot bound leaves the pose unanswered (a yaw-following window answered two simulated poses
+    # 1.1 deg off whose refined yaw was right).
+    assert land.at_edge and np.allclose(land.T, T_start)
+
+
 def test_a_corridor_without_cross_structure_is_unbounded_along_it():
     walls = np.concatenate([_segment((-35, 8), (35, 8)), _segment((-35, -8), (35, -8))])
     T_true = se2(0.0, 10.0, 0.0)

@@ -143,31 +143,7 @@ def landscape(
     the centre in x / y, the window moves onto that peak's translation once (``follow_peak``) to see the whole of
     it; the answer must still lie inside the first window: the grid recentres on a peak it saw and never climbs."""
     T_start = np.array(T, dtype=float)
-    pts_all = pts_peer
-
-    def coarse_grid(T_centre: np.ndarray) -> tuple[_Grid, np.ndarray]:
-        pts = _inside(ego, pts_all, [T_centre], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
-        grid = _grid(
-            fields.coarse,
-            ego,
-            pts,
-            T_centre,
-            cfg.half_width_m,
-            2 * cfg.step_m,
-            cfg.half_yaw_deg,
-            3 * cfg.step_deg,
-            cfg.effective_points,
-        )
-        return grid, pts
-
-    first, pts_peer = coarse_grid(T_start)
-    coarse = first
-    shift = first.peak[1:] - first.centre[1:]
-    if cfg.follow_peak and first.edge_mass() > cfg.max_edge_mass and np.any(np.abs(shift) > first.step[1] + 1e-9):
-        # The peak lies near the edge, off the centre in x / y: look around it. Only the translation follows (the
-        # refinement's known failure is to stop short along a street); a peak at the yaw edge is a disagreement
-        # in yaw, left to the verdict.
-        coarse, pts_peer = coarse_grid(se2(first.centre[0], *first.peak[1:]))
+    first, coarse, pts_peer = _coarse_window(ego, fields, pts_peer, T_start, cfg)
     fine = _grid(
         fields.fine,
         ego,
@@ -194,6 +170,35 @@ def landscape(
         # No bounded peak (or one only beyond the first window): the pose stays where it was, unbounded.
         return Landscape(T_start, max(coarse.best, fine.best), np.diag([_UNBOUNDED] * 3), True)
     return Landscape(se2(*answer), max(coarse.best, fine.best), 0.5 * (cov + cov.T), False)
+
+
+def _coarse(ego: BevCloud, fields: Fields, pts_peer: np.ndarray, T: np.ndarray, cfg: LandscapeConfig):
+    """The whole window around T on coarse cells, scored on the peer points that stay on the ego image."""
+    pts = _inside(ego, pts_peer, [T], cfg.half_width_m + np.radians(cfg.half_yaw_deg) * ego.range_m)
+    grid = _grid(
+        fields.coarse,
+        ego,
+        pts,
+        T,
+        cfg.half_width_m,
+        2 * cfg.step_m,
+        cfg.half_yaw_deg,
+        3 * cfg.step_deg,
+        cfg.effective_points,
+    )
+    return grid, pts
+
+
+def _coarse_window(ego: BevCloud, fields: Fields, pts_peer: np.ndarray, T: np.ndarray, cfg: LandscapeConfig):
+    """(the first coarse grid, the one the answer is read from, its points). When the first grid's mass reaches its
+    edge with the peak off the centre in x / y, the window's translation moves onto the peak once. Only the
+    translation follows (the refinement's known failure is to stop short along a street); a peak at the yaw edge is
+    a disagreement in yaw, left to the verdict."""
+    first, pts = _coarse(ego, fields, pts_peer, T, cfg)
+    shift = first.peak[1:] - first.centre[1:]
+    if cfg.follow_peak and first.edge_mass() > cfg.max_edge_mass and np.any(np.abs(shift) > first.step[1] + 1e-9):
+        return first, *_coarse(ego, fields, pts_peer, se2(first.centre[0], *first.peak[1:]), cfg)
+    return first, first, pts
 
 
 def _inside(ego: BevCloud, pts_peer: np.ndarray, poses: list[np.ndarray], margin_m: float) -> np.ndarray:
