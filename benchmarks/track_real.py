@@ -1,6 +1,6 @@
 """Tracking on the real 10 Hz KITTI runs in ../shared/data (bb_align.lab.tracking.real_runs says how two cars are
-made of one car's sweeps): the follower through every step, with and without odometry, every answer scored
-against the runs' reference poses.
+made of one car's sweeps): the follower through every step, with and without odometry, with and without a
+GNSS-grade reported pose (a seeded 2 m / 2 deg random walk), every answer scored against the runs' reference poses.
 
     python benchmarks/track_real.py --data ../shared/data --out docs/tracking/real_runs
 
@@ -21,14 +21,17 @@ from bb_align.lab.tracking.real_runs import RUNS, records, summary, track_run
 
 def table(rows: dict[str, dict]) -> str:
     lines = [
-        "| run | odometry | steps | successful | wrong | worst successful error | refused (reason: steps) |",
-        "| --- | --- | ---: | ---: | ---: | --- | --- |",
+        "| run | odometry | GNSS pose | steps | successful | wrong | worst successful error | refused (reason: steps) "
+        "|",
+        "| --- | --- | --- | ---: | ---: | ---: | --- | --- |",
     ]
     for key, o in rows.items():
-        run, odo = key.split(" ", 1)
+        run, odo, gnss = key.split(" ")
         worst = f"{o['worst_m']:.2f} m / {o['worst_deg']:.2f} deg" if o["successful"] else "-"
         refused = ", ".join(f"{k}: {v}" for k, v in sorted(o.get("refused", {}).items())) or "-"
-        lines.append(f"| {run} | {odo} | {o['steps']} | {o['successful']} | {o['wrong']} | {worst} | {refused} |")
+        lines.append(
+            f"| {run} | {odo} | {gnss} | {o['steps']} | {o['successful']} | {o['wrong']} | {worst} | {refused} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -39,17 +42,17 @@ def plot(all_steps: dict[str, list], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     runs = list(dict.fromkeys(k.split(" ")[0] for k in all_steps))
-    fig, axes = plt.subplots(2, len(runs), figsize=(4.2 * len(runs), 6), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(4, len(runs), figsize=(4.2 * len(runs), 11), sharey=True, squeeze=False)
     for key, steps in all_steps.items():
-        run, odo = key.split(" ", 1)
-        ax = axes[0 if odo == "with" else 1][runs.index(run)]
+        run, odo, gnss = key.split(" ")
+        ax = axes[2 * (odo != "with") + (gnss != "with")][runs.index(run)]
         ax.semilogy([s.step for s in steps], [max(s.t_err_m, 1e-3) for s in steps], "-", color="0.75", lw=0.8)
         for ok, style, colour, label in ((True, "o", "tab:blue", "successful"), (False, "x", "tab:red", "refused")):
             pts = [(s.step, max(s.t_err_m, 1e-3)) for s in steps if s.success == ok]
             if pts:
                 ax.semilogy(*zip(*pts), style, color=colour, ms=4, label=label)
         ax.axhline(1.0, color="k", lw=0.8, ls="--")
-        ax.set_title(f"{run}, {odo} odometry", fontsize=9)
+        ax.set_title(f"{run}, {odo} odometry, {gnss} GNSS", fontsize=9)
         ax.set_xlabel("step (0.1 s)")
         ax.legend(fontsize=7, loc="upper left")
     for row in axes:
@@ -64,9 +67,12 @@ def main(
     laps: int = typer.Option(3, min=1, max=10, help="passes over frames 0-9 (forward, back, ...)"),
 ) -> None:
     all_steps: dict[str, list] = {}
-    jobs = [(run, odo) for run in RUNS if (data / run).is_dir() for odo in (True, False)]
-    for run, odo in tqdm(jobs, desc="real runs", unit="run"):
-        all_steps[f"{run} {'with' if odo else 'without'}"] = track_run(data, run, laps=laps, odometry=odo)
+    jobs = [
+        (run, odo, gnss) for run in RUNS if (data / run).is_dir() for odo in (True, False) for gnss in (True, False)
+    ]
+    for run, odo, gnss in tqdm(jobs, desc="real runs", unit="run"):
+        key = f"{run} {'with' if odo else 'without'} {'with' if gnss else 'without'}"
+        all_steps[key] = track_run(data, run, laps=laps, odometry=odo, gnss=gnss)
     rows = {key: summary(steps)[key.split(" ")[0]] for key, steps in all_steps.items()}
     out.parent.mkdir(parents=True, exist_ok=True)
     command = f"python benchmarks/track_real.py --data {data} --out {out}"

@@ -96,9 +96,9 @@ def test_cli_align_exits_3_on_a_failed_alignment_and_config_files_drive_it(tmp_p
     assert dumped.exit_code == 0
     assert AlignConfig.model_validate_json(dumped.stdout) == AlignConfig()  # the dump is the defaults, loadable
     strict = json.loads(dumped.stdout)
-    strict["covariance"]["max_sigma_m"] = 1e-6
+    strict["answer"]["max_error_m"] = 1e-6
     (tmp_path / "strict.json").write_text(json.dumps(strict))
-    (tmp_path / "strict.yaml").write_text(yaml.safe_dump({"covariance": {"max_sigma_m": 1e-6}}))
+    (tmp_path / "strict.yaml").write_text(yaml.safe_dump({"answer": {"max_error_m": 1e-6}}))
     for cfg_file in ("strict.json", "strict.yaml"):
         failed = runner.invoke(app, [*args, "--config", str(tmp_path / cfg_file)])
         assert failed.exit_code == ALIGN_FAILED == 3, failed.output

@@ -355,13 +355,6 @@ class CovarianceConfig(_Frozen):
         description="variance factor for correlated neighbouring pixels and model error (calibrated so the true "
         "pose lies within the covariance's chi2(3) 99 % bound for almost every correct pair)",
     )
-    max_sigma_m: float = Field(
-        1.0,
-        gt=0,
-        description="refuse a pose whose 1-sigma translation along its worst direction exceeds this, metres "
-        "(degenerate scene, e.g. a straight corridor): the success bound",
-    )
-    max_sigma_deg: float = Field(1.0, gt=0, description="refuse a pose whose 1-sigma yaw exceeds this, degrees")
     min_residual_sigma_m: float = Field(
         0.1,
         gt=0,
@@ -486,6 +479,23 @@ class FreeSpaceConfig(_Frozen):
     )
 
 
+class AnswerRule(_Frozen):
+    """What ``success`` promises, for every answer (a single shot, a tracked frame; the CLI, the service,
+    ``recover``): the truth lies within ``max_error_m`` (the peer's position) and ``max_error_deg`` (its yaw) of it
+    with at least ``confidence``, by the answer's own covariance (a lower bound on that probability:
+    engine.covariance.probability_within)."""
+
+    max_error_m: float = Field(1.0, gt=0, description="the user's bound on a successful answer's position error, m")
+    max_error_deg: float = Field(1.0, gt=0, description="... and on its yaw error, degrees")
+    confidence: float = Field(
+        0.95,
+        gt=0,
+        lt=1,
+        description="an answer is successful only when its covariance puts the truth within max_error_m / _deg with "
+        "at least this probability (README, What success promises)",
+    )
+
+
 class TrackConfig(_Frozen):
     """Following a peer through time (bb_align.engine.tracker): process noise, gates, when to acquire again."""
 
@@ -531,19 +541,12 @@ class TrackConfig(_Frozen):
         "triggers an acquisition, and is not a valid answer on its own",
     )
     prior: Literal["check", "gate"] = Field(
-        "check",
-        description="what a reported-pose prior does to a track's acquisitions. check: the acquisition searches "
-        "every pose (multi-hypothesis, strongest at range) and its answer is refused when it lies farther from "
-        "the prior than prior.max_translation_m / max_yaw_deg (an alias along a street, a lying report); gate: "
-        "the prior gates the descriptor matches as in Aligner.align",
+        "gate",
+        description="what a reported-pose prior (GNSS) does to a track's acquisitions. gate: the acquisition searches "
+        "inside the prior's window and its rivals are weighed by the prior, as Aligner.align(T_prior=...) does; "
+        "check: it searches every pose and its answer is refused when it lies farther from the prior than "
+        "prior.max_translation_m / max_yaw_deg",
     )
-    answer_sigma_m: float = Field(
-        0.3,
-        gt=0,
-        description="a tracked answer is valid only while its worst-direction 1-sigma is within this (0.3: with an "
-        "honest covariance a valid answer is off by more than 1 m with probability < 0.5 %, exp(-1 / (2 0.3^2)))",
-    )
-    answer_sigma_deg: float = Field(0.35, gt=0, description="likewise for its yaw 1-sigma, degrees")
     measurement_inflation: float = Field(
         16.0,
         gt=0,
@@ -595,20 +598,27 @@ class TrackConfig(_Frozen):
         "of the track's recent valid evidence: a refinement caught in a local minimum near a wrong prediction (an "
         "odometry jump) finds a fraction of the overlap the right pose found",
     )
-    evidence_sigmas: float = Field(
-        3.0,
-        gt=0,
-        description="a tracked answer is valid only when this frame's own measurement, trusted to this many of its "
-        "own sigmas, puts the truth within evidence_bound_m / _deg of the answer: the answer's distance from the "
-        "measurement plus this many sigmas (worst direction of the peer's position; yaw)",
-    )
-    answer_own_measurement: bool = Field(
+    landscape: bool = Field(
         True,
-        description="with odometry, when the fused pose is not bounded by this frame's measurement but the "
-        "measurement itself is (by the same rules), the answer is the measurement with its own covariance",
+        description="a tracked frame's own evidence is the pose landscape around its refinement (as an acquisition's "
+        "answer is judged; its covariance covers its error at range, the refinement's curvature does not)",
     )
-    evidence_bound_m: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on position, metres")
-    evidence_bound_deg: float = Field(1.0, gt=0, description="see evidence_sigmas: the bound on yaw, degrees")
+    evidence_window_s: float = Field(
+        1.0,
+        gt=0,
+        le=10,
+        description="with odometry, the frames of the last this many seconds whose own measurements agree are fused "
+        "into the stream's evidence (engine.evidence), the answer of a tracked frame",
+    )
+    evidence_max_frames: int = Field(10, ge=1, le=100, description="... and at most this many frames")
+    evidence_correlation: float = Field(
+        0.8,
+        ge=0,
+        le=1,
+        description="the correlation between two frames' errors in the stream's evidence (the same buildings, the "
+        "same aliasing): n frames count as n / (1 + rho (n - 1)) independent ones (measured on simulated sweeps, "
+        "benchmarks/evidence_correlation.py)",
+    )
     reacquire_s: float = Field(
         1.0,
         ge=0,
@@ -632,6 +642,7 @@ class AlignConfig(_Frozen):
     free_space: FreeSpaceConfig = FreeSpaceConfig()
     landscape: LandscapeConfig = LandscapeConfig()
     track: TrackConfig = TrackConfig()
+    answer: AnswerRule = AnswerRule()
     min_points: int = Field(1000, ge=0, description="a cloud with fewer points is refused (too_few_points)")
     min_keypoints: int = Field(3, ge=2, description="a frame with fewer keypoints is refused (no_keypoints)")
     seed: int = Field(0, description="seeds every random choice (RANSAC samples, refinement subsets)")
@@ -670,9 +681,10 @@ USER_FACING = (
     "success.min_inliers_bv",
     "success.min_inliers_box",
     "success.require_boxes",
-    "covariance.max_sigma_m",
-    "covariance.max_sigma_deg",
     "track.enabled",
+    "answer.max_error_m",
+    "answer.max_error_deg",
+    "answer.confidence",
     "acquire.threads",
     "mim.threads",
     "features.threads",
@@ -727,6 +739,14 @@ RETIRED: dict[str, object] = {
     "acquire.coarse_iters_per_gate": 2,
     "acquire.merge_within_m": 4.0,  # acquisition.verification.MERGE_WITHIN_M, MERGE_WITHIN_DEG
     "acquire.merge_within_deg": 4.0,
+    "covariance.max_sigma_m": 1.0,  # replaced by the answer rule (answer.max_error_m, max_error_deg, confidence)
+    "covariance.max_sigma_deg": 1.0,
+    "track.evidence_sigmas": 3.0,  # replaced by the answer rule (answer.*) on the stream's evidence
+    "track.evidence_bound_m": 1.0,
+    "track.evidence_bound_deg": 1.0,
+    "track.answer_sigma_m": 0.3,
+    "track.answer_sigma_deg": 0.35,
+    "track.answer_own_measurement": True,
 }
 
 

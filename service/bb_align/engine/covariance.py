@@ -11,12 +11,12 @@ measurement seen many times, and the two cars' sensors differ (model error). ``C
 the variance for that; it is calibrated on seeded simulated pairs so that the Mahalanobis distance of the true error
 lies within the chi2(3) 99 % bound for about 97-99 % of the correct pairs (benchmarks/acquisition_range.py).
 A direction no line constrains (a long straight corridor) has almost no information: its variance is huge, and the
-success rule refuses a pose whose 1-sigma along its worst translation direction exceeds max_sigma_m.
+answer rule (``probability_within`` against answer.confidence) refuses such a pose.
 """
 
 from __future__ import annotations
 
-from math import erf, exp, radians, sqrt
+from math import erf, radians, sqrt
 
 import numpy as np
 from numba import njit
@@ -153,14 +153,32 @@ def left_covariance(cov_params: np.ndarray, T: np.ndarray) -> np.ndarray:
     return 0.5 * (cov + cov.T)
 
 
+# Gauss-Legendre nodes for the disc probability below: 48 nodes integrate its smooth integrand to ~1e-10.
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(48)
+
+
+def probability_in_disc(cov_t: np.ndarray, radius_m: float) -> float:
+    """P(|t| <= radius_m) for a zero-mean 2-D normal t of covariance ``cov_t`` (2x2): along the wider principal axis
+    (z in its sigmas, z = h sin(theta), h the disc's half-width) the normal density times the narrower axis's
+    probability of the chord, radius cos(theta); in theta the integrand is smooth, so Gauss-Legendre converges."""
+    lam = np.clip(np.linalg.eigvalsh(np.asarray(cov_t, dtype=float)), 1e-300, None)
+    narrow, wide = float(lam[0]), float(lam[1])
+    half = radius_m / sqrt(wide)
+    theta = 0.25 * np.pi * (_GL_NODES + 1.0)  # [0, pi / 2]
+    cos = np.cos(theta)
+    inner = np.array([erf(c) for c in radius_m * cos / sqrt(2.0 * narrow)])
+    density = np.exp(-0.5 * (half * np.sin(theta)) ** 2) / sqrt(2.0 * np.pi)
+    return float(min(1.0, 0.5 * np.pi * half * np.sum(_GL_WEIGHTS * density * cos * inner)))
+
+
 def probability_within(cov: np.ndarray, max_m: float, max_deg: float) -> float:
-    """A lower bound on the probability that a pose with this (yaw, tx, ty) covariance is within ``max_m`` and
-    ``max_deg`` of the truth: yaw by its normal law, translation as if both axes had the worst direction's variance
-    (Rayleigh), the two taken as independent."""
+    """A lower bound on the probability that a pose with this (yaw, tx, ty) covariance is within ``max_m`` (its
+    position) and ``max_deg`` (its yaw) of the truth: the yaw's and the position's own probabilities multiplied.
+    Both regions are convex and symmetric about the answer, so by the Gaussian correlation inequality (Royen 2014)
+    their product never exceeds the joint probability, whatever the correlation between yaw and position."""
     cov = np.asarray(cov, dtype=float)
     var_yaw = max(float(cov[0, 0]), 1e-300)
-    var_t = max(float(np.linalg.eigvalsh(cov[1:, 1:]).max()), 1e-300)
-    return erf(radians(max_deg) / sqrt(2.0 * var_yaw)) * (1.0 - exp(-(max_m**2) / (2.0 * var_t)))
+    return erf(radians(max_deg) / sqrt(2.0 * var_yaw)) * probability_in_disc(cov[1:, 1:], max_m)
 
 
 def params_covariance(cov_left: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -55,7 +55,7 @@ class Follower:
     def __init__(self, aligner: Aligner, cfg: TrackConfig | None = None):
         self.aligner = aligner
         self.cfg = cfg or aligner.config.track
-        self.track = PeerTrack(self.cfg)
+        self.track = PeerTrack(self.cfg, aligner.config.answer)
         # The last engine run's own pose (3x3) and covariance (of its parameters) before the track fused it:
         # for diagnostics and calibration (bb_align.lab.tracking).
         self.last_measured: tuple[np.ndarray, np.ndarray | None] | None = None
@@ -90,6 +90,8 @@ class Follower:
             runs.append(self.aligner.measure(ego, peer, T_pred))
             runs[-1].source = "tracking"
             m = as_measurement(runs[-1], inflation)
+            if m.ok and c.landscape:
+                m.evidence = self._judged(ego, peer, m.evidence, runs[-1])
             self.last_boxes = self._boxes(ego, peer, T_pred)
             if self.last_boxes.ok:
                 ev = m.evidence
@@ -116,6 +118,17 @@ class Follower:
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
+
+    def _judged(self, ego: PreparedFrame, peer: PreparedFrame, ev: Evidence, r: AlignResult) -> Evidence:
+        """This frame's own evidence judged on the pose landscape around its refinement (``Aligner.judge``), as an
+        acquisition's answer is: the refinement's curvature is over-confident at range (docs/tracking.md). A
+        landscape with no bounded peak (a corridor) leaves an unbounded covariance: no evidence of its own."""
+        t = time.perf_counter()
+        land = self.aligner.judge(ego, peer, ev.T_ego_peer)
+        r.timings_ms["landscape"] = (time.perf_counter() - t) * 1e3
+        if land.at_edge:
+            r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
+        return Evidence(land.T, left_covariance(land.covariance, land.T), ev.fitness)
 
     def _boxes(self, ego: PreparedFrame, peer: PreparedFrame, T_pred: np.ndarray) -> Measurement:
         """The boxes both cars detected, paired under the prediction, as a measurement (track.boxes)."""
@@ -194,7 +207,8 @@ class Follower:
         if a.why_not:
             r.notes.append(f"not valid on this frame's evidence: {a.why_not}")
         if not own:
-            p = 0.0 if r.covariance is None else probability_within(r.covariance, 1.0, 1.0)
+            rule = self.aligner.config.answer
+            p = 0.0 if r.covariance is None else probability_within(r.covariance, rule.max_error_m, rule.max_error_deg)
             cap = CAP_STAGE1_FAILED
             r.confidence = float(p if a.valid else min(p, cap))
         return r

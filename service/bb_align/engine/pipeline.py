@@ -30,7 +30,7 @@ from .descriptors import bvft_descriptors, flip_180, keypoint_orientations
 from .frame import PreparedFrame
 from .geometry import ground_se2, se2_params
 from .keypoints import detect_keypoints
-from .landscape import Fields, GaussianPrior, landscape, mahalanobis_d2, with_refinement, with_rivals
+from .landscape import Fields, GaussianPrior, Landscape, landscape, mahalanobis_d2, with_refinement, with_rivals
 from .loggabor import maximum_index_map
 from .matching import Matcher
 from .parallel import run_parts
@@ -317,33 +317,47 @@ class Aligner:
             return self._covariance(pair)
         r = pair.result
         with _timed(r.timings_ms, "landscape"):
-            ego_cloud = pair.ego.cloud(self.config.refine)
-            # Keyed by every setting the fields depend on: a frame may be judged by aligners of other configs.
-            key = ("landscape_fields", lc.sigma_m, lc.wide_sigma_m, lc.step_m)
-            fields = pair.ego.cached(key, lambda: Fields.of(ego_cloud, lc))
-            pts = pair.peer_sample[0][: lc.max_points]
-            pc = self.config.prior
-            prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)
-            T_refined = r.T_bv
-            main = landscape(ego_cloud, fields, pts, T_refined, lc)
+            main, fields, pts = self._landscape_about(pair.ego, pair.peer_sample, r.T_bv)
             r.T_bv, r.covariance = main.T, main.covariance
-            if lc.refinement_d2 is not None and not main.at_edge:
-                if mahalanobis_d2(main, T_refined) > lc.refinement_d2:
-                    # A local search started elsewhere may have stopped in another basin: ask the refinement
-                    # again from the landscape's answer before calling the two estimators in disagreement.
-                    again = self.refiner.refine(ego_cloud, pair.peer_sample, main.T)
-                    if again.accepted:
-                        T_refined = again.T
-                r.T_bv, r.covariance = with_refinement(main, T_refined, lc.refinement_d2)
-                main.T, main.covariance = r.T_bv, r.covariance  # the rivals below are weighed about the answer
             if main.at_edge:
                 r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
             if r.acquisition is not None and (pair.window is not None or r.acquisition.gave_way):
+                pc = self.config.prior
+                prior = None if pair.window is None else GaussianPrior(pair.window.T, pc.sigma_m, pc.sigma_deg)
                 rivals = r.acquisition.rivals()
+                ego_cloud = pair.ego.cloud(self.config.refine)
                 r.covariance, weights = with_rivals(main, ego_cloud, fields, pts, rivals, lc, prior)
                 if weights and max(weights) > 1e-3:
                     r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
         return None
+
+    def _landscape_about(self, ego: PreparedFrame, peer_sample, T_refined: np.ndarray):
+        """The landscape around a refined pose, weighed against the refinement (``with_refinement``): (the landscape
+        with the answer and covariance, the ego's fields, the peer points scored)."""
+        lc = self.config.landscape
+        ego_cloud = ego.cloud(self.config.refine)
+        # Keyed by every setting the fields depend on: a frame may be judged by aligners of other configs.
+        key = ("landscape_fields", lc.sigma_m, lc.wide_sigma_m, lc.step_m)
+        fields = ego.cached(key, lambda: Fields.of(ego_cloud, lc))
+        pts = peer_sample[0][: lc.max_points]
+        main = landscape(ego_cloud, fields, pts, T_refined, lc)
+        if lc.refinement_d2 is not None and not main.at_edge:
+            if mahalanobis_d2(main, T_refined) > lc.refinement_d2:
+                # A local search started elsewhere may have stopped in another basin: ask the refinement again
+                # from the landscape's answer before calling the two estimators in disagreement.
+                again = self.refiner.refine(ego_cloud, peer_sample, main.T)
+                if again.accepted:
+                    T_refined = again.T
+            main.T, main.covariance = with_refinement(main, T_refined, lc.refinement_d2)
+        return main, fields, pts
+
+    def judge(self, ego: PreparedFrame, peer: PreparedFrame, T_refined: np.ndarray) -> Landscape:
+        """A refined T_ego_peer (3x3, e.g. ``measure``'s) judged on its pose landscape as an acquisition's answer
+        is: the landscape's answer and covariance (of its parameters; unbounded, ``at_edge``, in a corridor). What a
+        tracker takes as a frame's own evidence: the refinement's curvature is over-confident at range."""
+        sample = peer.cached(("refine_sample", self.config.seed), lambda: self.refiner.sample(peer.bev))
+        with _single_threaded_blas():
+            return self._landscape_about(ego, sample, ground_se2(np.asarray(T_refined, dtype=float)))[0]
 
     def _covariance(self, pair: _Pair) -> None:
         """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""

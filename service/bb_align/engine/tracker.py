@@ -29,9 +29,10 @@ from enum import Enum
 
 import numpy as np
 
-from .config import TrackConfig
-from .covariance import fuse_poses, mahalanobis2, params_covariance
-from .geometry import log_left, pose_error, se2, se2_params, worst_sigma_m, wrap_angle
+from .config import AnswerRule, TrackConfig
+from .covariance import fuse_poses, mahalanobis2, params_covariance, probability_within
+from .evidence import OffsetSample, StreamEvidence
+from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
 
@@ -111,8 +112,12 @@ def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> 
 class PeerTrack:
     """The track of one ego-peer pair. ``step`` once per peer frame, in time order."""
 
-    def __init__(self, cfg: TrackConfig | None = None):
+    def __init__(self, cfg: TrackConfig | None = None, answer: AnswerRule | None = None):
         self.cfg = cfg or TrackConfig()
+        self.answer = answer or AnswerRule()
+        c = self.cfg
+        # With odometry, the answer is the stream's evidence: the recent frames' own measurements fused.
+        self.stream = StreamEvidence(c.evidence_window_s, c.evidence_max_frames, c.evidence_correlation, c.gate_chi2)
         self.state = TrackState.acquiring
         self.X: np.ndarray | None = None  # 3x3: T_egoodom_peerodom, or T_ego_peer without odometry
         self.P: np.ndarray | None = None  # state covariance: 3x3 (odometry) or 6x6 (pose and velocity)
@@ -208,56 +213,40 @@ class PeerTrack:
             )
         return None
 
-    def _judge(self, ev: Evidence | None, T: np.ndarray, P_T: np.ndarray) -> str | None:
-        """Why the tracked pose T (covariance P_T) is not a valid answer on this frame's own evidence, or None."""
-        why = self._supported(ev)
-        if why is not None:
-            return why
-        d2 = mahalanobis2(ev.covariance, log_left(T, ev.T_ego_peer))
-        if d2 > self.cfg.gate_chi2:
-            return f"the answer lies outside this frame's measurement (Mahalanobis^2 {d2:.1f})"
-        why = self._bounded(ev, T)
-        if why is not None:
-            return why
-        if not self._confident(P_T):
-            return "the track's uncertainty exceeds the answer bounds"
-        return None
+    def _evidence_answer(self, stamp: float, ev: Evidence, O_e: np.ndarray, O_p: np.ndarray):
+        """The answer this frame's own evidence gives, with the recent frames' (the stream's, with odometry): (T,
+        covariance of left increments, why it is not valid or None). Without odometry the relative motion between
+        frames is unknown, so the answer is this frame's own measurement."""
+        if not self.with_odometry:
+            return ev.T_ego_peer, ev.covariance, self._within(ev.T_ego_peer, ev.covariance)
+        A = adjoint(O_e)  # left increments of T_ego_peer -> of X = O_e T O_p^-1
+        Ad_T, q = adjoint(ev.T_ego_peer), self._drift_rate()
+        drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
+        X_i = O_e @ ev.T_ego_peer @ np.linalg.inv(O_p)
+        self.stream.add(OffsetSample(stamp, X_i, A @ ev.covariance @ A.T, drift))
+        fused = self.stream.fused(stamp)
+        H = adjoint(np.linalg.inv(O_e))
+        T, P_T = np.linalg.inv(O_e) @ fused.X @ O_p, H @ fused.covariance @ H.T
+        return T, P_T, self._within(T, P_T, fused.frames)
 
-    def _own_measurement_stands(self, ev: Evidence | None, T: np.ndarray) -> bool:
-        """With odometry, for a fused pose T that is not a valid answer: this frame's measurement is one instead.
-        The fused pose must lie inside the measurement's own gate (the two estimators agree; the measurement
-        found enough of the peer), and the measurement must pass every rule as the answer, with its own
-        covariance widened by the fused pose as a second mode: a measurement that sits 0.8 m from a fused pose
-        is not trusted to 3 of its own sigmas alone (in the demo scene such refinements were 0.56-0.84 m off at
-        33-47 m while their own 3 sigma claimed under 1 m)."""
-        if ev is None or not (self.cfg.answer_own_measurement and self.with_odometry):
-            return False
-        if self._supported(ev) is not None:
-            return False
-        d = log_left(T, ev.T_ego_peer)
-        if mahalanobis2(ev.covariance, d) > self.cfg.gate_chi2:
-            return False
-        # Two estimators of this pose that differ by d: the answer is the measurement, and the fused pose is a second
-        # mode of equal weight about it (as engine.landscape.with_refinement weighs two estimators that disagree).
-        cov = ev.covariance + 0.5 * np.outer(d, d)
-        return self._judge(Evidence(ev.T_ego_peer, cov, ev.fitness), ev.T_ego_peer, cov) is None
+    def _within(self, T: np.ndarray, P_T: np.ndarray, frames: int = 1) -> str | None:
+        """Why the answer T (covariance P_T of left increments) does not keep the answer rule's promise, or None."""
+        a = self.answer
+        p = probability_within(params_covariance(P_T, T), a.max_error_m, a.max_error_deg)
+        if p >= a.confidence:
+            return None
+        held = "this frame's evidence" if frames == 1 else f"the evidence of {frames} frames"
+        return (
+            f"{held} puts the answer within {a.max_error_m:g} m / {a.max_error_deg:g} deg with probability "
+            f"{p:.2f} only (answer.confidence {a.confidence:g})"
+        )
 
-    def _bounded(self, ev: Evidence, T: np.ndarray) -> str | None:
-        """Why this frame's measurement ``ev`` does not bound the error of the answer T within evidence_bound, or
-        None."""
+    def _drift_rate(self) -> np.ndarray:
+        """Each car's odometry drift per second, (yaw, tx, ty) variances in its own body frame."""
         c = self.cfg
-        # The farthest the truth can be from the answer if this frame's measurement is right to evidence_sigmas of
-        # its own covariance: the correction plus that many sigmas (of the peer's position and of the yaw).
-        t_off, r_off = pose_error(T, ev.T_ego_peer)
-        cov = params_covariance(ev.covariance, ev.T_ego_peer)
-        t_bound = t_off + c.evidence_sigmas * worst_sigma_m(cov)
-        r_bound = r_off + c.evidence_sigmas * np.degrees(np.sqrt(cov[0, 0]))
-        if t_bound > c.evidence_bound_m or r_bound > c.evidence_bound_deg:
-            return (
-                f"this frame's measurement bounds the answer's error by {t_bound:.2f} m / {r_bound:.2f} deg only "
-                f"(evidence_bound {c.evidence_bound_m:g} m / {c.evidence_bound_deg:g} deg)"
-            )
-        return None
+        return np.diag(
+            np.array([np.radians(c.odometry_drift_deg_per_s), c.odometry_drift_m_per_s, c.odometry_drift_m_per_s]) ** 2
+        )
 
     # ---- the cross-check beside the track ----------------------------------------------------------------------
     def crosscheck_due(self, stamp: float) -> bool:
@@ -301,11 +290,7 @@ class PeerTrack:
             # Each car's odometry drifts in its own body frame: the ego's error is a left increment of T_ego_peer,
             # the peer's a right one (at the peer, up to 100 m away: its yaw drift moves the peer sideways in the
             # ego frame). Both carried to left increments of X = O_e T O_p^-1.
-            q = np.diag(
-                np.array([np.radians(c.odometry_drift_deg_per_s), c.odometry_drift_m_per_s, c.odometry_drift_m_per_s])
-                ** 2
-                * dt
-            )
+            q = self._drift_rate() * dt
             T_prev = np.linalg.inv(O_e) @ self.X @ O_p
             Ad_T, A = adjoint(T_prev), adjoint(O_e)
             X, P = self.X, self.P + A @ (q + Ad_T @ q @ Ad_T.T) @ A.T  # the offset stays; its uncertainty grows
@@ -329,7 +314,7 @@ class PeerTrack:
         self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, source: str, crosscheck: bool = False
     ) -> TrackAnswer:
         """Kalman update on left increments; a measurement outside the Mahalanobis gate is rejected. The answer is
-        valid only on this frame's own evidence (``_judge``)."""
+        valid only on the evidence of this frame and the stream's (``_evidence_answer``)."""
         nu = log_left(m.T_ego_peer, T_pred)
         d2, dx, P_new = kalman_step(P, H, np.asarray(m.covariance, float), nu)
         ev = m.evidence
@@ -351,16 +336,14 @@ class PeerTrack:
             self.w = self.w + dx[3:]
         self._keep(stamp, X, P_new)
         self.last_fused = stamp
+        # The filter only predicts (where to refine from, what to gate); its pose is the answer only when no frame
+        # of the stream supports one, and then never a valid one.
         T, P_T = np.linalg.inv(O_e) @ X @ O_p, H @ self.P @ H.T
-        if not self.with_odometry and ev is not None:
-            # The constant-velocity model only predicts (where to refine from, what to gate): the relative motion
-            # may change at any moment, so the answer is this frame's own measurement, with its own covariance.
-            T, P_T = ev.T_ego_peer, ev.covariance
         if source == "acquisition" and ev is not None:
             self.support = ev.fitness  # a full acquisition that agrees: the reference the next frames are held to
-        why = self._judge(ev, T, P_T)
-        if why is not None and self._own_measurement_stands(ev, T):
-            T, P_T, why = ev.T_ego_peer, ev.covariance, None
+        why = self._supported(ev)
+        if why is None:
+            T, P_T, why = self._evidence_answer(stamp, ev, O_e, O_p)
         if why is None:
             self.misses = 0
             self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
@@ -402,10 +385,13 @@ class PeerTrack:
         if changed:
             event = (event + "; acquired") if event else "acquired"
         self.last_event = event or self.last_event
-        # The engine's verdict starts the track; the answer is held to the evidence bound like a tracked one.
-        why = None if m.evidence is None else self._bounded(m.evidence, m.T_ego_peer)
-        cov = np.asarray(m.covariance, float)
-        return self._answer(stamp, "acquisition", why is None, m.T_ego_peer, cov, event, None, why)
+        # The engine's verdict starts the track and the stream's evidence; the answer keeps the answer rule's promise
+        # like a tracked one.
+        self.stream.clear()
+        T, cov, why = m.T_ego_peer, np.asarray(m.covariance, float), None
+        if m.evidence is not None:
+            T, cov, why = self._evidence_answer(stamp, m.evidence, O_e, O_p)
+        return self._answer(stamp, "acquisition", why is None, T, cov, event, None, why)
 
     def _odometry_jump(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray) -> str | None:
         """Why a car's odometry step since the last frame cannot be motion (a relocalisation or reset), if so."""
@@ -422,12 +408,6 @@ class PeerTrack:
                 )
         return None
 
-    def _confident(self, P_T: np.ndarray) -> bool:
-        """A pose to act on: its 1-sigma within answer_sigma_m (worst translation direction) and answer_sigma_deg."""
-        return worst_sigma_m(P_T) <= self.cfg.answer_sigma_m and np.degrees(np.sqrt(P_T[0, 0])) <= (
-            self.cfg.answer_sigma_deg
-        )
-
     # ---- bookkeeping -------------------------------------------------------------------------------------------
     def _keep(self, stamp: float, X: np.ndarray, P: np.ndarray) -> None:
         self.stamp, self.X, self.P = stamp, X, P
@@ -439,6 +419,7 @@ class PeerTrack:
         self.state = TrackState.lost
         self.rejects = self.misses = 0
         self.support = None
+        self.stream.clear()
         self.last_event = f"lost: {why}"
         return self.last_event
 

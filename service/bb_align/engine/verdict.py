@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .config import AcquireConfig, AlignConfig, CovarianceConfig, FreeSpaceConfig, SuccessRule
+from .config import AcquireConfig, AlignConfig, AnswerRule, FreeSpaceConfig, SuccessRule
+from .covariance import probability_within
 from .geometry import se2_params, se3_from_se2, worst_sigma_m
 from .result import AlignResult
 
@@ -65,7 +66,7 @@ class Verdict:
     def __init__(
         self,
         rule: SuccessRule,
-        covariance: CovarianceConfig,
+        answer: AnswerRule,
         acquire: AcquireConfig,
         *,
         min_points: int,
@@ -75,7 +76,7 @@ class Verdict:
         refine_enabled: bool,
         free_space: FreeSpaceConfig | None = None,
     ):
-        self.rule, self.cov, self.acquire = rule, covariance, acquire
+        self.rule, self.answer, self.acquire = rule, answer, acquire
         self.min_points, self.min_keypoints = min_points, min_keypoints
         self.box_max_m, self.box_max_deg = box_max_correction_m, box_max_correction_deg
         self.refine_enabled = refine_enabled
@@ -86,7 +87,7 @@ class Verdict:
         """The verdict of an alignment configuration."""
         return cls(
             cfg.success,
-            cfg.covariance,
+            cfg.answer,
             cfg.acquire,
             min_points=cfg.min_points,
             min_keypoints=cfg.min_keypoints,
@@ -177,12 +178,20 @@ class Verdict:
         return FailureReason.inconsistent_overlap if r.refine_fitness < self.rule.min_refine_fitness else None
 
     def uncertain(self, r: AlignResult, max_sigma_m: float | None = None) -> FailureReason | None:
-        """A pose whose 1-sigma along its worst translation direction (or in yaw) exceeds the bounds is not a pose
-        to act on: a long straight street pins it across, not along. ``max_sigma_m``: a tighter translation bound
-        than covariance.max_sigma_m (a pose found inside a prior's window)."""
+        """A pose whose covariance does not put the truth within the answer rule's bound (answer.max_error_m /
+        max_error_deg) with at least answer.confidence is not a pose to act on: a long straight street pins it
+        across, not along. ``max_sigma_m``: also a bound on the worst-direction 1-sigma (a pose found inside a
+        prior's window without the landscape)."""
         cov = np.asarray(r.covariance)
-        bound = self.cov.max_sigma_m if max_sigma_m is None else min(max_sigma_m, self.cov.max_sigma_m)
-        if worst_sigma_m(cov) > bound or np.degrees(np.sqrt(max(0.0, cov[0, 0]))) > self.cov.max_sigma_deg:
+        a = self.answer
+        p = probability_within(cov, a.max_error_m, a.max_error_deg)
+        if p < a.confidence:
+            r.notes.append(
+                f"its covariance puts it within {a.max_error_m:g} m / {a.max_error_deg:g} deg with probability "
+                f"{p:.2f} (answer.confidence {a.confidence:g})"
+            )
+            return FailureReason.degenerate_pose
+        if max_sigma_m is not None and worst_sigma_m(cov) > max_sigma_m:
             return FailureReason.degenerate_pose
         return None
 

@@ -292,8 +292,8 @@ class Result(_Wire):
         min_length=3,
         max_length=3,
         description="3x3 covariance of (yaw rad, tx m, ty m) of T_ego_peer, row-major, from the dense refinement "
-        "(None when not computed, e.g. no refinement or a failure before it); a success has a worst-direction "
-        "1-sigma within the engine's covariance.max_sigma_m",
+        "(None when not computed, e.g. no refinement or a failure before it); a success's covariance puts the truth "
+        "within the engine's answer.max_error_m / max_error_deg with at least answer.confidence",
     )
     prior_used: bool = Field(False, description="roll, pitch, tz taken from the two reported poses")
     source: Literal["acquisition", "tracking", "prediction"] | None = Field(

@@ -183,6 +183,18 @@ def deskew_boxes(boxes: np.ndarray, velocity, yaw_rate: float, period_s: float) 
     return boxes
 
 
+def deskewed(agent: AgentFrame, pts: np.ndarray, boxes: np.ndarray | None):
+    """A simulated sweep and the boxes detected on it, de-skewed with the sweep's motion (the yaml's
+    ``sweep_twist``) as a sender with odometry does; unchanged when the yaml has none (a de-skewed cloud)."""
+    twist = _sweep_twist(agent)
+    if twist is None:
+        return pts, boxes
+    pts = deskew_sweep(pts, *twist[:2], period_s=twist[2]).astype(pts.dtype)
+    if boxes is not None and len(boxes):
+        boxes = deskew_boxes(np.asarray(boxes, dtype=float), *twist[:2], twist[2])
+    return pts, boxes
+
+
 def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: str, ts: str) -> _Agent:
     pts = agent.load_points()
     ids, gt = vehicles_in_sensor(agent)

@@ -17,6 +17,9 @@ def register(app: typer.Typer) -> None:
         records_out: Path | None = typer.Option(None, "--records", help="write every frame's record (JSON lines)"),
         odometry: bool = typer.Option(True, "--odometry/--no-odometry", help="fuse the yaml's odometry_pose"),
         gnss: bool = typer.Option(True, "--gnss/--no-gnss", help="the yaml's gnss_pose as the acquisitions' prior"),
+        deskew: bool = typer.Option(
+            True, "--deskew/--no-deskew", help="de-skew the sweeps with the yaml's sweep_twist, as a sender does"
+        ),
         limit: int | None = typer.Option(None, "--limit", min=1, help="replay at most this many sequences"),
         max_frames: int | None = typer.Option(None, "--frames", min=1, help="only the first frames of each"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes (one sequence each)"),
@@ -35,7 +38,11 @@ def register(app: typer.Typer) -> None:
 
         try:
             cfg = ReplayConfig(
-                align=load_align_config(config), use_odometry=odometry, use_gnss=gnss, max_frames=max_frames
+                align=load_align_config(config),
+                use_odometry=odometry,
+                use_gnss=gnss,
+                deskew=deskew,
+                max_frames=max_frames,
             )
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--config") from None

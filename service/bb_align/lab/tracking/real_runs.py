@@ -9,6 +9,10 @@ same poses). Every answer is scored against the run's reference poses:
   distortion): the peer is frame ``9 - k`` while the ego is at frame ``k``, 0-9 m apart;
 - ``kitti00_run_far``: the peer alternates between frames 94 and 95 (the car 73-80 m ahead), its odometry
   jumping back and forth by one sweep's travel, as the poses say.
+
+With ``gnss``, each frame also carries a GNSS-grade reported pose: the reference ``T_ego_peer`` moved by a smooth
+random walk (a first-order Gauss-Markov process, 2 m / 2 deg 1-sigma, 3 s correlation time, seeded), as two cars'
+GNSS errors drift together.
 """
 
 from __future__ import annotations
@@ -20,13 +24,27 @@ import numpy as np
 
 from bb_align.engine.config import AlignConfig
 from bb_align.engine.follow import Follower
-from bb_align.engine.geometry import pose_error
+from bb_align.engine.geometry import pose_error, se2
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.clouds import load_cloud
+from bb_align.lab.tracking.replay import stream_sample
 
 RUNS = ("kitti08_run", "kitti01_run", "kitti00_run_far")
 FAR_PEER_FRAMES = (94, 95)
 STEP_S = 0.1
+GNSS_SIGMA_M, GNSS_SIGMA_DEG, GNSS_TAU_S = 2.0, 2.0, 3.0
+
+
+def gnss_errors(steps: int, seed: int = 0) -> list[np.ndarray]:
+    """Per step, the reported pose's error (yaw rad, x m, y m): a stationary first-order Gauss-Markov process."""
+    rng = np.random.default_rng(seed)
+    sigma = np.array([np.radians(GNSS_SIGMA_DEG), GNSS_SIGMA_M, GNSS_SIGMA_M])
+    keep = np.exp(-STEP_S / GNSS_TAU_S)
+    e, out = rng.normal(size=3) * sigma, []
+    for _ in range(steps):
+        out.append(e.copy())
+        e = keep * e + np.sqrt(1.0 - keep**2) * rng.normal(size=3) * sigma
+    return out
 
 
 @dataclass
@@ -42,6 +60,11 @@ class Step:
     reason: str | None
     t_err_m: float
     r_err_deg: float
+    stamp: float = 0.0
+    event: str | None = None
+    # This frame's own evidence as the track's stream holds it (replay.stream_sample): error and covariance.
+    evidence_err: list[float] | None = None
+    evidence_cov: list[list[float]] | None = None
 
     @property
     def wrong(self) -> bool:
@@ -71,8 +94,17 @@ def schedule(run: str, laps: int = 3) -> list[tuple[int, int]]:
     return [(e, 9 - e) for e in ego]
 
 
-def track_run(data: Path, run: str, laps: int = 3, odometry: bool = True, config: AlignConfig | None = None):
-    """Every step of one run through a fresh follower; a Step per peer frame."""
+def track_run(
+    data: Path,
+    run: str,
+    laps: int = 3,
+    odometry: bool = True,
+    config: AlignConfig | None = None,
+    gnss: bool = False,
+    seed: int = 0,
+):
+    """Every step of one run through a fresh follower; a Step per peer frame. ``gnss``: each frame carries a
+    GNSS-grade reported pose (module doc; ``seed`` seeds its errors), the acquisitions' prior."""
     folder = data / run
     aligner, poses = Aligner(config or AlignConfig()), run_poses(folder)
     follower = Follower(aligner)
@@ -83,15 +115,31 @@ def track_run(data: Path, run: str, laps: int = 3, odometry: bool = True, config
             frames[(k, peer)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"), features=peer)
         return frames[(k, peer)]
 
-    steps = []
-    for i, (e, p) in enumerate(schedule(run, laps)):
+    steps, plan = [], schedule(run, laps)
+    errors = gnss_errors(len(plan), seed)
+    for i, (e, p) in enumerate(plan):
         T_true = np.linalg.inv(poses[e]) @ poses[p]
         O = {"O_ego": poses[e], "O_peer": poses[p]} if odometry else {}
+        if gnss:
+            O["T_prior"] = _lift(se2(*errors[i])) @ T_true
         r = follower.step(frame(e, False), frame(p, True), STEP_S * i, **O)
         t_err, r_err = pose_error(r.T_ego_peer, T_true)
         dist = float(np.hypot(T_true[0, 3], T_true[1, 3]))
-        steps.append(Step(run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err))
+        ev = stream_sample(follower, STEP_S * i, O.get("O_ego"), O.get("O_peer"), T_true)
+        steps.append(
+            Step(
+                run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err,
+                STEP_S * i, r.track_event, ev["evidence_err"], ev["evidence_cov"],
+            )
+        )  # fmt: skip
     return steps
+
+
+def _lift(T2: np.ndarray) -> np.ndarray:
+    """A 3x3 ground-plane transform as a 4x4."""
+    T = np.eye(4)
+    T[:2, :2], T[:2, 3] = T2[:2, :2], T2[:2, 2]
+    return T
 
 
 def summary(steps: list[Step]) -> dict:

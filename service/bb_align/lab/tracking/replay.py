@@ -19,9 +19,10 @@ from tqdm import tqdm
 
 from bb_align.engine.config import AlignConfig
 from bb_align.engine.follow import Follower
-from bb_align.engine.geometry import pose_error, se2_params, wrap_angle
+from bb_align.engine.geometry import ground_se2, log_left, pose_error, se2_params, wrap_angle
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.dataset import FrameGroup, iter_scenario_frames, parse_lidar_pose
+from bb_align.lab.evaluation.runner import deskewed
 
 
 class ReplayConfig(BaseModel):
@@ -31,6 +32,11 @@ class ReplayConfig(BaseModel):
     use_odometry: bool = Field(True, description="fuse the yaml's odometry_pose (else: constant-velocity model)")
     use_gnss: bool = Field(
         True, description="the yaml's gnss_pose (reported poses) as the acquisitions' prior, as the service does"
+    )
+    deskew: bool = Field(
+        True,
+        description="de-skew each sweep whose yaml carries its motion ('sweep_twist', the simulator's distorted "
+        "sweeps) as a sender with odometry does (README: De-skew your sweeps); False: as recorded",
     )
     frame_period_s: float = Field(0.1, gt=0, description="stamp of frame k when a yaml has no timestamp_s")
     max_frames: int | None = Field(None, ge=1, description="replay only the first frames of each sequence")
@@ -47,6 +53,12 @@ def _odometry(group: FrameGroup) -> tuple[np.ndarray | None, np.ndarray | None]:
     if "odometry_pose" not in ego.extra or "odometry_pose" not in peer.extra:
         return None, None
     return parse_lidar_pose(ego.extra["odometry_pose"]), parse_lidar_pose(peer.extra["odometry_pose"])
+
+
+def _cloud(agent, cfg: ReplayConfig) -> tuple[np.ndarray, np.ndarray | None]:
+    """An agent's points and detected boxes as its car sends them (de-skewed with ``cfg.deskew``)."""
+    pts, boxes = agent.load_points(), agent.detections
+    return deskewed(agent, pts, boxes) if cfg.deskew else (pts, boxes)
 
 
 def _reported(group: FrameGroup) -> np.ndarray | None:
@@ -84,6 +96,18 @@ def scored_frame(name: str, k: int, stamp: float, r, T_est: np.ndarray, T_true: 
     }
 
 
+def stream_sample(follower: Follower, stamp: float, O_ego, O_peer, T_true: np.ndarray) -> dict:
+    """This frame's own evidence as the stream holds it (a measurement of the odometry offset X, with odometry):
+    its error against the true offset (left increment, yaw rad / m / m) and covariance; what
+    benchmarks/evidence_correlation.py measures the frames' correlation on."""
+    samples = follower.track.stream.samples
+    if O_ego is None or not samples or samples[-1].stamp != stamp:
+        return {"evidence_err": None, "evidence_cov": None}
+    s = samples[-1]
+    X_true = ground_se2(O_ego) @ ground_se2(T_true) @ np.linalg.inv(ground_se2(O_peer))
+    return {"evidence_err": log_left(s.X, X_true).tolist(), "evidence_cov": np.asarray(s.covariance).tolist()}
+
+
 def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bool = False) -> list[dict]:
     """Every frame of one sequence through a fresh follower; one record per frame."""
     aligner = Aligner(cfg.align)
@@ -92,11 +116,11 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
     records = []
     for k, group in enumerate(tqdm(groups, desc=name, unit="frame", disable=not progress, leave=False)):
         ego, peer = group.ego, group.peers[0]
-        ego_frame = aligner.prepare(ego.load_points(), ego.detections, features=False)
+        ego_frame = aligner.prepare(*_cloud(ego, cfg), features=False)
         t0 = time.perf_counter()
         ego_frame.cloud(cfg.align.refine)  # per ego frame, shared by every peer (the service builds it on arrival)
         ego_ms = (time.perf_counter() - t0) * 1e3
-        peer_frame = aligner.prepare(peer.load_points(), peer.detections, features=False)
+        peer_frame = aligner.prepare(*_cloud(peer, cfg), features=False)
         O_ego, O_peer = _odometry(group) if cfg.use_odometry else (None, None)
         stamp = _stamp(group, k, cfg)
         T_prior = _reported(group) if cfg.use_gnss else None
@@ -122,6 +146,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "box_cov": np.asarray(follower.last_boxes.covariance).tolist() if follower.last_boxes.ok else None,
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
+                **stream_sample(follower, stamp, O_ego, O_peer, T_true),
                 "ran_acquisition": "acquire" in r.timings_ms,
                 "ms": float(r.timings_ms.get("track_total", math.nan)),
                 "ego_frame_ms": ego_ms,

@@ -1,0 +1,175 @@
+"""How correlated are successive frames' own measurements? The stream's evidence (bb_align.engine.evidence) fuses
+the last frames of a track and widens the fused covariance by ``1 + rho (n - 1)``; this measures ``rho`` on
+recorded tracks (`bb-align track ROOT --records R.jsonl`, sweeps with odometry; or the real runs of
+benchmarks/track_real.py), with the truth (the reference) known.
+
+    bb-align sim out/sweep101 --sweep --scenarios 4 --frames 150 --seed 101
+    bb-align track out/sweep101 --records out/sweep101.jsonl
+    python benchmarks/track_real.py --data ../shared/data --out docs/tracking/real_runs
+    python benchmarks/evidence_correlation.py out/sweep101.jsonl docs/tracking/real_runs.json \
+        --out docs/tracking/evidence_correlation
+
+For every frame whose own evidence entered the stream (``evidence_err``, ``evidence_cov``: a measurement of the
+odometry offset, its error against the true offset): the error whitened by its covariance's Cholesky factor.
+Between two frames of one track at most ``window_s`` apart, the pooled correlation of the whitened errors, per
+axis (not centred: a bias the frames share counts). The model has one ``rho`` for every axis and place, so it is
+the largest correlation measured, rounded up to a tenth. Then, for each ``rho`` of a grid, every frame's window
+fused as the stream fuses it, and the share of fused errors inside their chi2(3) 99 % ellipsoid (the plot).
+Writes OUT.json, OUT.md and OUT.png.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from bb_align.engine.config import TrackConfig
+
+CHI2_3_99 = 11.345
+RHOS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+BANDS = ((0.0, 40.0), (40.0, 70.0), (70.0, 1e9))
+
+
+def load(path: Path) -> list[dict]:
+    """Frame records: JSON lines from `bb-align track --records`, or benchmarks/track_real.py's OUT.json (its
+    runs with odometry, each step a frame of the sequence named by its row)."""
+    if path.suffix == ".json":
+        body = json.loads(path.read_text())
+        return [
+            s | {"sequence": key, "frame": s["step"]}
+            for key, steps in body["steps"].items()
+            if key.split(" ")[1] == "with"
+            for s in steps
+        ]
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def segments(records: list[dict]) -> list[list[dict]]:
+    """Runs of frames of one sequence and one track (a track ends at an acquisition or a loss) that carry evidence."""
+    out: list[list[dict]] = []
+    current: list[dict] = []
+    last_seq = None
+    for r in records:
+        new_track = r["sequence"] != last_seq or (r.get("event") or "").find("acquired") >= 0 or r["state"] == "lost"
+        if new_track and current:
+            out.append(current)
+            current = []
+        last_seq = r["sequence"]
+        if r.get("evidence_err") is not None:
+            current.append(r)
+    if current:
+        out.append(current)
+    return out
+
+
+def whitened(r: dict) -> np.ndarray:
+    L = np.linalg.cholesky(np.asarray(r["evidence_cov"]))
+    return np.linalg.solve(L, np.asarray(r["evidence_err"]))
+
+
+def correlation(segs: list[list[dict]], window_s: float) -> list[float]:
+    """Per axis (yaw, x, y), the pooled correlation of whitened errors of frame pairs at most window_s apart."""
+    prods, squares = np.zeros(3), np.zeros(3)
+    for seg in segs:
+        w = [whitened(r) for r in seg]
+        t = [r["stamp"] for r in seg]
+        for i in range(len(seg)):
+            for j in range(i + 1, len(seg)):
+                if t[j] - t[i] > window_s:
+                    break
+                prods += w[i] * w[j]
+                squares += 0.5 * (w[i] ** 2 + w[j] ** 2)
+    return (prods / np.maximum(squares, 1e-12)).tolist()
+
+
+def fused_d2(segs: list[list[dict]], rho: float, window_s: float, max_frames: int) -> list[tuple[float, float]]:
+    """(distance m, squared Mahalanobis distance of the fused error) of every frame's window fused with ``rho``."""
+    out = []
+    for seg in segs:
+        for j, r in enumerate(seg):
+            win = [q for q in seg[max(0, j - max_frames + 1) : j + 1] if r["stamp"] - q["stamp"] <= window_s]
+            info = sum(np.linalg.inv(np.asarray(q["evidence_cov"])) for q in win)
+            vec = sum(np.linalg.inv(np.asarray(q["evidence_cov"])) @ np.asarray(q["evidence_err"]) for q in win)
+            cov = np.linalg.inv(info) * (1.0 + rho * (len(win) - 1))
+            e = np.linalg.solve(info, vec)
+            out.append((r["distance_m"], float(e @ np.linalg.solve(cov, e))))
+    return out
+
+
+def main(
+    records: list[Path] = typer.Argument(..., exists=True, dir_okay=False, help="record files (module doc)"),
+    out: Path = typer.Option(Path("docs/tracking/evidence_correlation"), help="OUT.json, OUT.md, OUT.png"),
+) -> None:
+    cfg = TrackConfig()
+    sets = {}
+    for path in records:
+        segs = segments(load(path))
+        if not sum(len(s) for s in segs):
+            raise typer.BadParameter(f"{path}: no frame with evidence_err (record with odometry on)")
+        covered = {"single frame": float(np.mean([d2 <= CHI2_3_99 for _, d2 in fused_d2(segs, 0.0, 0.0, 1)]))}
+        by_band: dict[str, dict[str, float]] = {}
+        for rho in RHOS:
+            d2s = fused_d2(segs, rho, cfg.evidence_window_s, cfg.evidence_max_frames)
+            covered[f"rho {rho:g}"] = float(np.mean([d2 <= CHI2_3_99 for _, d2 in d2s]))
+            for lo, hi in BANDS:
+                band = [d2 <= CHI2_3_99 for dist, d2 in d2s if lo <= dist < hi]
+                name = f"{lo:g}-{hi:g} m" if hi < 1e9 else f"{lo:g}+ m"
+                by_band.setdefault(name, {})[f"{rho:g}"] = float(np.mean(band)) if band else float("nan")
+        sets[str(path)] = {
+            "frames": sum(len(s) for s in segs),
+            "tracks": len(segs),
+            "correlation_yaw_x_y": correlation(segs, cfg.evidence_window_s),
+            "share_within_chi2_99": covered,
+            "share_within_chi2_99_by_band": by_band,
+        }
+    # The model's one rho must cover the most correlated set and axis measured.
+    largest = max(max(o["correlation_yaw_x_y"]) for o in sets.values())
+    chosen = float(min(1.0, np.ceil(round(largest, 2) * 10) / 10))
+    command = "python benchmarks/evidence_correlation.py " + " ".join(str(p) for p in records)
+    body = {"command": command, "window_s": cfg.evidence_window_s, "max_frames": cfg.evidence_max_frames}
+    body |= {"sets": sets, "largest_correlation": largest, "chosen_rho": chosen}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(body, indent=1) + "\n")
+    lines = [
+        f"Made by `{command}`. Frames at most {cfg.evidence_window_s:g} s apart in one track; the share of fused",
+        f"errors inside their chi2(3) 99 % ellipsoid with rho {chosen:g} (up to {cfg.evidence_max_frames} frames).",
+        "",
+        "| set | frames | correlation yaw / x / y | inside 99 %: one frame | fused, rho 0 | fused, chosen rho |",
+        "| --- | ---: | --- | ---: | ---: | ---: |",
+    ]
+    for name, o in sets.items():
+        c, cov = o["correlation_yaw_x_y"], o["share_within_chi2_99"]
+        lines.append(
+            f"| {name} | {o['frames']} | {c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} | {cov['single frame']:.3f} | "
+            f"{cov['rho 0']:.3f} | {cov[f'rho {chosen:g}']:.3f} |"
+        )
+    lines += ["", f"Largest correlation measured: {largest:.2f}; the model's rho, rounded up: **{chosen:g}**."]
+    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    plot(sets, out.with_suffix(".png"))
+    print("\n".join(lines))
+
+
+def plot(sets: dict[str, dict], path: Path) -> None:
+    """Per set, the share of fused errors inside their 99 % ellipsoid against the rho assumed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, o in sets.items():
+        shares = {k: v for k, v in o["share_within_chi2_99"].items() if k.startswith("rho")}
+        ax.plot([float(k.split()[1]) for k in shares], list(shares.values()), "o-", label=Path(name).stem)
+    ax.axhline(0.99, color="0.6", ls=":", lw=0.8, label="nominal 0.99")
+    ax.set_xlabel("rho (correlation assumed between frames)")
+    ax.set_ylabel("fused errors inside chi2(3) 99 %")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    typer.run(main)
