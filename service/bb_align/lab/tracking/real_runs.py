@@ -24,10 +24,10 @@ import numpy as np
 
 from bb_align.engine.config import AlignConfig
 from bb_align.engine.follow import Follower
-from bb_align.engine.geometry import pose_error, se2
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.clouds import load_cloud
-from bb_align.lab.tracking.replay import stream_sample
+from bb_align.lab.tracking.replay import error_components, stream_sample
 
 RUNS = ("kitti08_run", "kitti01_run", "kitti00_run_far")
 FAR_PEER_FRAMES = (94, 95)
@@ -65,6 +65,8 @@ class Step:
     # This frame's own evidence as the track's stream holds it (replay.stream_sample): error and covariance.
     evidence_err: list[float] | None = None
     evidence_cov: list[list[float]] | None = None
+    err: list[float] | None = None  # the answer's (yaw rad, tx m, ty m) minus the reference's
+    covariance: list[list[float]] | None = None  # the answer's, of those parameters
 
     @property
     def wrong(self) -> bool:
@@ -121,7 +123,7 @@ def track_run(
         T_true = np.linalg.inv(poses[e]) @ poses[p]
         O = {"O_ego": poses[e], "O_peer": poses[p]} if odometry else {}
         if gnss:
-            O["T_prior"] = _lift(se2(*errors[i])) @ T_true
+            O["T_prior"] = se3_from_se2(se2(*errors[i])) @ T_true
         r = follower.step(frame(e, False), frame(p, True), STEP_S * i, **O)
         t_err, r_err = pose_error(r.T_ego_peer, T_true)
         dist = float(np.hypot(T_true[0, 3], T_true[1, 3]))
@@ -130,16 +132,11 @@ def track_run(
             Step(
                 run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err,
                 STEP_S * i, r.track_event, ev["evidence_err"], ev["evidence_cov"],
+                error_components(r.T_ego_peer, T_true),
+                None if r.covariance is None else np.asarray(r.covariance).tolist(),
             )
         )  # fmt: skip
     return steps
-
-
-def _lift(T2: np.ndarray) -> np.ndarray:
-    """A 3x3 ground-plane transform as a 4x4."""
-    T = np.eye(4)
-    T[:2, :2], T[:2, 3] = T2[:2, :2], T2[:2, 2]
-    return T
 
 
 def summary(steps: list[Step]) -> dict:

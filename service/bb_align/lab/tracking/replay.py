@@ -145,6 +145,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "box_measured": list(se2_params(follower.last_boxes.T_ego_peer)) if follower.last_boxes.ok else None,
                 "box_cov": np.asarray(follower.last_boxes.covariance).tolist() if follower.last_boxes.ok else None,
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
+                "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
                 "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 **stream_sample(follower, stamp, O_ego, O_peer, T_true),
                 "ran_acquisition": "acquire" in r.timings_ms,
