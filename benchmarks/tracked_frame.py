@@ -5,7 +5,9 @@
 
 Per landscape window (``landscape.half_width_m``, the yaw window kept): the tracked steps' total time p50 / p90
 (refinement, landscape, boxes, filter, stream), the landscape's own p50, and the steps answered. The engine runs
-on one thread per stage (as the service's workers do, one frame each). Writes OUT.json and OUT.md.
+on one thread per stage (as the service's workers do, one frame each); the ego frames' own work (the refinement's
+cloud, the landscape's fields) is done on their arrival, as the service does, and not counted. Writes OUT.json and
+OUT.md.
 """
 
 from __future__ import annotations
@@ -32,9 +34,11 @@ def timed_run(data: Path, run: str, cfg: AlignConfig, laps: int) -> dict:
     aligner.warm_up()
     follower, frames, plan = Follower(aligner), {}, schedule(run, laps)
     errors = gnss_errors(len(plan))
-    for k in {e for e, _ in plan} | {p for _, p in plan}:
-        for peer in (False, True):
-            frames[(k, peer)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"), features=peer)
+    for k in {e for e, _ in plan} | {p for _, p in plan}:  # the ego side on arrival, as the service does
+        frames[(k, False)] = aligner.ready_to_track(
+            aligner.prepare(load_cloud(folder / f"{k:06d}.bin"), features=False)
+        )
+        frames[(k, True)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"))
     total, land, answered = [], [], 0
     for i, (e, p) in enumerate(plan):
         T_true = np.linalg.inv(poses[e]) @ poses[p]

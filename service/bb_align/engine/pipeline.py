@@ -335,10 +335,7 @@ class Aligner:
         """The landscape around a refined pose, weighed against the refinement (``with_refinement``): (the landscape
         with the answer and covariance, the ego's fields, the peer points scored)."""
         lc = self.config.landscape
-        ego_cloud = ego.cloud(self.config.refine)
-        # Keyed by every setting the fields depend on: a frame may be judged by aligners of other configs.
-        key = ("landscape_fields", lc.sigma_m, lc.wide_sigma_m, lc.step_m)
-        fields = ego.cached(key, lambda: Fields.of(ego_cloud, lc))
+        ego_cloud, fields = ego.cloud(self.config.refine), self._fields(ego)
         pts = peer_sample[0][: lc.max_points]
         main = landscape(ego_cloud, fields, pts, T_refined, lc)
         if lc.refinement_d2 is not None and not main.at_edge:
@@ -350,6 +347,20 @@ class Aligner:
                     T_refined = again.T
             main.T, main.covariance = with_refinement(main, T_refined, lc.refinement_d2)
         return main, fields, pts
+
+    def _fields(self, ego: PreparedFrame) -> Fields:
+        """The ego image's likelihood fields for the landscape, built once per ego frame. Keyed by every setting
+        they depend on: a frame may be judged by aligners of other configs."""
+        lc = self.config.landscape
+        key = ("landscape_fields", lc.sigma_m, lc.wide_sigma_m, lc.step_m)
+        return ego.cached(key, lambda: Fields.of(ego.cloud(self.config.refine), lc))
+
+    def ready_to_track(self, ego: PreparedFrame) -> PreparedFrame:
+        """The ego-side work every tracked peer frame against ``ego`` uses, done once when the ego frame arrives:
+        the refinement's cloud and the landscape's fields (no MIM or descriptors: an acquisition builds them)."""
+        with _single_threaded_blas():
+            self._fields(ego)
+        return ego
 
     def judge(self, ego: PreparedFrame, peer: PreparedFrame, T_refined: np.ndarray) -> Landscape:
         """A refined T_ego_peer (3x3, e.g. ``measure``'s) judged on its pose landscape as an acquisition's answer

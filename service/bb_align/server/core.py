@@ -594,12 +594,12 @@ class AlignService:
         return self.settings.align.track.enabled
 
     def _prepare_entry(self, entry) -> PreparedFrame:
-        """An ego frame: with tracking, only what the refinement uses (MIM and descriptors are built if and when
-        an acquisition needs them); without, everything an alignment against it needs."""
+        """An ego frame: with tracking, only what a tracked frame uses (the refinement's cloud, the landscape's
+        fields; MIM and descriptors are built if and when an acquisition needs them); without, everything an
+        alignment against it needs."""
         prepared = self._prepare(entry.frame, "prepare_ego", entry.bev)
         if self.tracking:
-            prepared.cloud(self.settings.align.refine)
-            return prepared
+            return self.aligner.ready_to_track(prepared)
         return self.aligner.warm(prepared)
 
     def _prepare(self, frame: Frame, step: str, bev=None) -> PreparedFrame:

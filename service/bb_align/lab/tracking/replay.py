@@ -118,7 +118,7 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         ego, peer = group.ego, group.peers[0]
         ego_frame = aligner.prepare(*_cloud(ego, cfg), features=False)
         t0 = time.perf_counter()
-        ego_frame.cloud(cfg.align.refine)  # per ego frame, shared by every peer (the service builds it on arrival)
+        aligner.ready_to_track(ego_frame)  # per ego frame, shared by every peer (the service does it on arrival)
         ego_ms = (time.perf_counter() - t0) * 1e3
         peer_frame = aligner.prepare(*_cloud(peer, cfg), features=False)
         O_ego, O_peer = _odometry(group) if cfg.use_odometry else (None, None)
