@@ -45,18 +45,45 @@ def _stream(rho=0.0, window_s=1.0, max_frames=10):
 
 
 def test_equal_frames_fuse_to_their_mean_with_the_design_effect():
-    """Hand-worked: four frames 0.1 s apart, equal covariance C, offsets 0, 0.4, 0.8, 1.2 m along x from X0: the
-    fused offset is their mean, 0.6 m; its covariance C / 4 x (1 + rho x 3)."""
+    """Hand-worked: four frames 0.1 s apart, equal covariance C, offsets 0, 0.1, 0.2, 0.3 m along x from X0: the
+    fused offset is their mean, 0.15 m; its covariance C / 4 x (1 + rho x 3)."""
     C = np.diag([np.radians(0.3) ** 2, 0.5**2, 0.3**2])
     X0 = se2(0.2, 50.0, 3.0)
-    for rho in (0.0, 0.5, 1.0):
+    for rho in (0.0, 0.5, 0.9):
         ev = _stream(rho)
         for k in range(4):
-            ev.add(OffsetSample(0.1 * k, se2(0.0, 0.4 * k, 0.0) @ X0, C, NO_DRIFT))
+            ev.add(OffsetSample(0.1 * k, se2(0.0, 0.1 * k, 0.0) @ X0, C, NO_DRIFT))
         f = ev.fused(0.3)
         assert f.frames == 4
-        np.testing.assert_allclose(log_left(f.X, X0), [0.0, 0.6, 0.0], atol=1e-9)
+        np.testing.assert_allclose(log_left(f.X, X0), [0.0, 0.15, 0.0], atol=1e-9)
         np.testing.assert_allclose(f.covariance, C / 4 * (1 + 3 * rho), rtol=1e-9)
+
+
+def test_frames_that_share_their_errors_must_agree_more_closely():
+    """Hand-worked: two frames 0.95 m apart along x with 1-sigma 0.5 m: assumed independent they agree (their
+    difference has variance 0.25 + 0.25, d2 1.8); with rho 0.9 the difference's variance is a tenth of that (d2
+    18 > 16.27): the older frame is not evidence about the newer one's pose."""
+    C = np.diag([np.radians(0.3) ** 2, 0.5**2, 0.3**2])
+    X0 = se2(0.0, 60.0, 0.0)
+    for rho, frames in ((0.0, 2), (0.9, 1)):
+        ev = _stream(rho)
+        ev.add(OffsetSample(0.0, X0, C, NO_DRIFT))
+        ev.add(OffsetSample(0.1, se2(0.0, 0.95, 0.0) @ X0, C, NO_DRIFT))
+        assert ev.fused(0.1).frames == frames
+
+
+def test_an_odometry_that_drifts_does_not_drag_the_answer_behind():
+    """A peer whose odometry drifts 0.3 m a frame (it lies, or it is broken): each frame's own measurement of the
+    offset is right for its moment. With rho 0.9 the window keeps the newest two or three frames, so the answer
+    stays within a frame's drift of the newest; a window of ten would lag it by 1.35 m."""
+    C = np.diag([np.radians(0.3) ** 2, 0.4**2, 0.3**2])
+    X0 = se2(0.1, 75.0, -2.0)
+    ev = _stream(0.9)
+    for k in range(10):
+        ev.add(OffsetSample(0.1 * k, se2(0.0, 0.3 * k, 0.0) @ X0, C, NO_DRIFT))
+    f = ev.fused(0.9)
+    assert f.frames <= 3
+    assert abs(log_left(f.X, se2(0.0, 2.7, 0.0) @ X0)[1]) <= 0.3
 
 
 def test_a_frame_older_than_the_window_or_a_disagreement_is_not_evidence():

@@ -7,12 +7,15 @@ drift over ``dt``. So the last frames of a window are fused by information on le
 covariance is widened for what they share: successive frames see the same buildings through the same aliasing,
 so their errors are correlated. With a common correlation ``rho`` between any two frames' (whitened) errors, n
 frames are worth ``n / (1 + rho (n - 1))`` independent ones (the design effect of an equicorrelated sample); the
-information-weighted covariance is multiplied by ``1 + rho (n - 1)``. ``rho`` is measured on simulated sweeps
-(``benchmarks/evidence_correlation.py``), not assumed zero.
+information-weighted covariance is multiplied by ``1 + rho (n - 1)``. ``rho`` is measured on real and simulated
+runs (``benchmarks/evidence_correlation.py``), not assumed zero.
 
-A frame that disagrees with the fusion of the newer frames (beyond ``gate_chi2`` under its own covariance) ends
-the window there: what is older than a disagreement is not evidence about the present (a relocalisation, a lying
-peer's odometry). The window is the stream's evidence; the track's filter only predicts.
+A frame that disagrees with the fusion of the newer frames ends the window there: what is older than a
+disagreement is not evidence about the present (a relocalisation, a lying peer's odometry). The errors the frames
+share cancel in their difference, so under the same model two frames must agree within ``1 - rho`` of their
+covariances (plus the odometry's drift between them), judged at ``gate_chi2``: with rho 0.9 a peer whose odometry
+drifts 0.3 m a frame keeps two or three frames in its window, not ten. The window is the stream's evidence; the
+track's filter only predicts.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import log_left, se2
+
+_FLOOR = np.diag([1e-12, 1e-9, 1e-9])  # keeps the spread invertible when every error is shared (rho 1, no drift)
 
 
 @dataclass(frozen=True)
@@ -67,11 +72,15 @@ class StreamEvidence:
         info, vec, kept = np.zeros((3, 3)), np.zeros(3), 0
         for i, s in enumerate(reversed(self.samples)):
             d = log_left(s.X, ref)
-            cov = s.covariance + s.drift_per_s * max(0.0, stamp - s.stamp)
+            drift = s.drift_per_s * max(0.0, stamp - s.stamp)
+            cov = s.covariance + drift
             w = np.linalg.inv(cov)
-            if kept:  # against the newer frames' fusion, under both covariances
+            if kept:
+                # Against the newer frames' fusion: errors shared by all frames (rho) cancel in the difference, so
+                # frames must agree within (1 - rho) of their covariances (and the drift between them).
                 mean, fused_cov = np.linalg.solve(info, vec), np.linalg.inv(info)
-                if float((d - mean) @ np.linalg.solve(cov + fused_cov, d - mean)) > self.gate_chi2:
+                spread = (1.0 - self.correlation) * (s.covariance + fused_cov) + drift + _FLOOR
+                if float((d - mean) @ np.linalg.solve(spread, d - mean)) > self.gate_chi2:
                     for _ in range(len(self.samples) - i):
                         self.samples.popleft()
                     break

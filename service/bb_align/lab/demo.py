@@ -186,7 +186,10 @@ def summarize(rows: list[dict], n_sent: int) -> dict:
 def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_frame, odometry=None, faults=()):
     """Simulate and build every frame up front (so publishing keeps its pace): per frame, (name, Frame, scene time
     in s) with the ego first; the true and the reported (noisy) poses by (seq, name). A frame's stamp is its scene
-    time on the clock the publisher starts. ``odometry``: agent id -> PoseSensors (each car's odometry), or None."""
+    time on the clock the publisher starts. ``odometry``: agent id -> PoseSensors (each car's odometry), or None.
+    Each sweep is de-skewed with its car's motion, as a sender does (README: De-skew your sweeps)."""
+    from .evaluation.runner import deskew_boxes
+
     frames, truth, reported = [], {}, {}
     order = ["0"] + [a for a in scenario.agent_ids if a != "0"]
     for i in tqdm(range(n_frames), desc="simulating and encoding", unit="frame"):
@@ -201,12 +204,18 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
                 O = odometry[aid].step(agent.T_world_sensor)[0]
                 for fault in faults:
                     O = fault.apply(name, i, O)
+            # A sender with odometry de-skews its sweep, and its detector runs on the de-skewed cloud (README).
+            motion = {} if agent.twist is None else {"velocity": agent.twist[:2], "yaw_rate": agent.twist[2]}
+            boxes = agent.boxes
+            if motion and len(boxes):
+                boxes = deskew_boxes(np.asarray(boxes, float), motion["velocity"], motion["yaw_rate"], agent.period_s)
             msgs.append(
                 (
                     aid,
                     make_frame(
                         agent.points,
-                        agent.boxes,
+                        boxes,
+                        **motion,
                         vehicle_id=name,
                         stamp=0.0,
                         seq=i,
