@@ -50,19 +50,20 @@ def _d2(err, cov) -> float | None:
     return float(e @ np.linalg.solve(C, e))
 
 
-def single(path: Path) -> list[tuple[float, float]]:
-    """(distance, d2) from `bb-align eval --records` lines (error_params, covariance)."""
+def records(path: Path, err_key: str) -> list[tuple[float, float, bool]]:
+    """(distance, d2, success) of every answer with a covariance in JSON lines: `bb-align eval --records`
+    (``err_key`` error_params) or `bb-align track --records` (err)."""
     out = []
     for line in path.read_text().splitlines():
         r = json.loads(line)
         if r.get("covariance") is None or _far_off(r):
             continue
-        if (d2 := _d2(r["error_params"], r["covariance"])) is not None:
+        if (d2 := _d2(r[err_key], r["covariance"])) is not None:
             out.append((r["distance_m"], d2, bool(r["success"])))
     return out
 
 
-def real_pairs(path: Path) -> dict[str, list[tuple[float, float]]]:
+def real_pairs(path: Path) -> dict[str, list[tuple[float, float, bool]]]:
     """(distance, d2) per prior path from `bb-align real-pairs` records (along / across / yaw sigmas)."""
     out: dict[str, list] = {}
     for line in path.read_text().splitlines():
@@ -79,19 +80,7 @@ def real_pairs(path: Path) -> dict[str, list[tuple[float, float]]]:
     return out
 
 
-def tracked(path: Path) -> list[tuple[float, float]]:
-    """(distance, d2) of every tracked answer with a covariance (`bb-align track --records`: err, covariance)."""
-    out = []
-    for line in path.read_text().splitlines():
-        r = json.loads(line)
-        if r.get("covariance") is None or _far_off(r):
-            continue
-        if (d2 := _d2(r["err"], r["covariance"])) is not None:
-            out.append((r["distance_m"], d2, bool(r["success"])))
-    return out
-
-
-def runs(path: Path) -> dict[str, list[tuple[float, float]]]:
+def runs(path: Path) -> dict[str, list[tuple[float, float, bool]]]:
     """(distance, d2) per run row of benchmarks/track_real.py's OUT.json."""
     out: dict[str, list] = {}
     for key, steps in json.loads(path.read_text())["steps"].items():
@@ -145,12 +134,12 @@ def main(
     sets: dict[str, list] = {}
     for spec in single_sets:
         name, path = _named(spec)
-        sets[f"{name} (single pairs)"] = single(path)
+        sets[f"{name} (single pairs)"] = records(path, "error_params")
     if real is not None:
         sets |= real_pairs(real)
     for spec in tracked_sets:
         name, path = _named(spec)
-        sets[f"{name} (tracked)"] = tracked(path)
+        sets[f"{name} (tracked)"] = records(path, "err")
     if runs_json is not None:
         sets |= runs(runs_json)
     ok_lines, ok_body = table(sets, successful=True)
