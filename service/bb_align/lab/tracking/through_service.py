@@ -20,6 +20,7 @@ import numpy as np
 
 from bb_align.io.dataset import AgentFrame, find_scenarios, iter_scenario_frames, parse_lidar_pose
 
+from ..evaluation.runner import deskewed
 from .replay import scored_frame
 
 
@@ -30,9 +31,10 @@ def _frame_bytes(agent: AgentFrame, vehicle_id: str, stamp: float, seq: int, odo
     gnss = parse_lidar_pose(extra["gnss_pose"]) if "gnss_pose" in extra else None
     odo = parse_lidar_pose(extra["odometry_pose"]) if odometry and "odometry_pose" in extra else None
     scores = None if agent.detection_scores is None else np.clip(agent.detection_scores, 0.0, 1.0)
+    pts, boxes = deskewed(agent, agent.load_points(), agent.detections)  # as a sender with odometry does
     return encode_frame(
-        agent.load_points(),
-        agent.detections,
+        pts,
+        boxes,
         vehicle_id=vehicle_id,
         stamp=stamp,
         seq=seq,
