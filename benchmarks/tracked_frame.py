@@ -3,7 +3,9 @@
 
     python benchmarks/tracked_frame.py --data ../shared/data --out docs/tracking/tracked_frame
 
-Per landscape window (``landscape.half_width_m``, the yaw window kept): the tracked steps' total time p50 / p90
+Per landscape window cap (``landscape.half_width_m``; a tracked frame's window is ``track.landscape_sigmas`` of its
+refinement's own sigma within [``track.landscape_min_half_width_m``, the cap]; the yaw window kept): the tracked
+steps' total time p50 / p90
 (refinement, landscape, boxes, filter, stream), the landscape's own p50, and the steps answered. The engine runs
 on one thread per stage (as the service's workers do, one frame each); the ego frames' own work (the refinement's
 cloud, the landscape's fields) is done on their arrival, as the service does, and not counted. Writes OUT.json and
@@ -82,7 +84,7 @@ def main(
     lines = [
         f"Made by `{command}`.",
         "",
-        "| run | landscape half width m | tracked frames | answered | tracked frame p50 / p90 ms | landscape p50 ms |",
+        "| run | landscape cap m | tracked frames | answered | tracked frame p50 / p90 ms | landscape p50 ms |",
         "| --- | ---: | ---: | ---: | --- | ---: |",
     ]
     for r in rows:

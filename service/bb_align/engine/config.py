@@ -603,6 +603,15 @@ class TrackConfig(_Frozen):
         description="a tracked frame's own evidence is the pose landscape around its refinement (as an acquisition's "
         "answer is judged; its covariance covers its error at range, the refinement's curvature does not)",
     )
+    landscape_sigmas: float = Field(
+        4.0,
+        gt=0,
+        description="a tracked frame's landscape reaches this many of the refinement's own worst-direction sigmas "
+        "each way in x and y (the refinement's is the wider at range), at most landscape.half_width_m",
+    )
+    landscape_min_half_width_m: float = Field(
+        1.6, gt=0, description="... and at least this far, metres (a near frame's landscape costs half the full one)"
+    )
     evidence_window_s: float = Field(
         1.0,
         gt=0,

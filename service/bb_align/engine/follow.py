@@ -27,7 +27,7 @@ from .boxes import box_measurement
 from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
-from .geometry import ground_se2, pose_error, se3_from_se2
+from .geometry import ground_se2, pose_error, se3_from_se2, worst_sigma_m
 from .pipeline import Aligner
 from .result import AlignResult
 from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
@@ -124,11 +124,21 @@ class Follower:
         acquisition's answer is: the refinement's curvature is over-confident at range (docs/tracking.md). A
         landscape with no bounded peak (a corridor) leaves an unbounded covariance: no evidence of its own."""
         t = time.perf_counter()
-        land = self.aligner.judge(ego, peer, ev.T_ego_peer)
+        land = self.aligner.judge(ego, peer, ev.T_ego_peer, half_width_m=self._window(r))
         r.timings_ms["landscape"] = (time.perf_counter() - t) * 1e3
         if land.at_edge:
             r.notes.append("the pose landscape has no bounded peak within its window (a corridor)")
         return Evidence(land.T, left_covariance(land.covariance, land.T), ev.fitness)
+
+    def _window(self, r: AlignResult) -> float:
+        """The landscape's reach for a tracked frame: ``landscape_sigmas`` of the refinement's own worst-direction
+        1-sigma (which is wider than the landscape's at range), between ``landscape_min_half_width_m`` and the
+        acquisition's window. Near frames are pinned to decimetres: a narrow window costs half as much."""
+        full = self.aligner.config.landscape.half_width_m
+        if r.covariance is None:
+            return full
+        reach = self.cfg.landscape_sigmas * worst_sigma_m(np.asarray(r.covariance))
+        return float(np.clip(reach, min(self.cfg.landscape_min_half_width_m, full), full))
 
     def _boxes(self, ego: PreparedFrame, peer: PreparedFrame, T_pred: np.ndarray) -> Measurement:
         """The boxes both cars detected, paired under the prediction, as a measurement (track.boxes)."""

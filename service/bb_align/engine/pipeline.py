@@ -331,10 +331,10 @@ class Aligner:
                     r.notes.append(f"the rivals weigh up to {max(weights):.3f} of the answer")
         return None
 
-    def _landscape_about(self, ego: PreparedFrame, peer_sample, T_refined: np.ndarray):
+    def _landscape_about(self, ego: PreparedFrame, peer_sample, T_refined: np.ndarray, lc=None):
         """The landscape around a refined pose, weighed against the refinement (``with_refinement``): (the landscape
-        with the answer and covariance, the ego's fields, the peer points scored)."""
-        lc = self.config.landscape
+        with the answer and covariance, the ego's fields, the peer points scored). ``lc``: another window."""
+        lc = lc or self.config.landscape
         ego_cloud, fields = ego.cloud(self.config.refine), self._fields(ego)
         pts = peer_sample[0][: lc.max_points]
         main = landscape(ego_cloud, fields, pts, T_refined, lc)
@@ -362,13 +362,19 @@ class Aligner:
             self._fields(ego)
         return ego
 
-    def judge(self, ego: PreparedFrame, peer: PreparedFrame, T_refined: np.ndarray) -> Landscape:
+    def judge(
+        self, ego: PreparedFrame, peer: PreparedFrame, T_refined: np.ndarray, half_width_m: float | None = None
+    ) -> Landscape:
         """A refined T_ego_peer (3x3, e.g. ``measure``'s) judged on its pose landscape as an acquisition's answer
         is: the landscape's answer and covariance (of its parameters; unbounded, ``at_edge``, in a corridor). What a
-        tracker takes as a frame's own evidence: the refinement's curvature is over-confident at range."""
+        tracker takes as a frame's own evidence: the refinement's curvature is over-confident at range.
+        ``half_width_m``: the window's reach in x and y (default ``landscape.half_width_m``)."""
         sample = peer.cached(("refine_sample", self.config.seed), lambda: self.refiner.sample(peer.bev))
+        lc = self.config.landscape
+        if half_width_m is not None and half_width_m != lc.half_width_m:
+            lc = lc.model_copy(update={"half_width_m": float(half_width_m)})
         with _single_threaded_blas():
-            return self._landscape_about(ego, sample, ground_se2(np.asarray(T_refined, dtype=float)))[0]
+            return self._landscape_about(ego, sample, ground_se2(np.asarray(T_refined, dtype=float)), lc)[0]
 
     def _covariance(self, pair: _Pair) -> None:
         """The covariance of the current pose (T_box @ T_bv) from the refinement's normal equations."""
