@@ -5,11 +5,10 @@
 
 Per landscape window cap (``landscape.half_width_m``; a tracked frame's window is ``track.landscape_sigmas`` of its
 refinement's own sigma within [``track.landscape_min_half_width_m``, the cap]; the yaw window kept): the tracked
-steps' total time p50 / p90
-(refinement, landscape, boxes, filter, stream), the landscape's own p50, and the steps answered. The engine runs
-on one thread per stage (as the service's workers do, one frame each); the ego frames' own work (the refinement's
-cloud, the landscape's fields) is done on their arrival, as the service does, and not counted. Writes OUT.json and
-OUT.md.
+steps' total time p50 / p90 (refinement, landscape, boxes, filter, stream), the landscape's own p50, and the steps
+answered. The engine runs as a service worker does, one frame at a time (the landscape's grid is scored on two
+threads); the ego frames' own work (the refinement's cloud, the landscape's fields) is done on their arrival, as
+the service does, and not counted. Writes OUT.json and OUT.md.
 """
 
 from __future__ import annotations
