@@ -131,9 +131,12 @@ def track_run(
         steps.append(
             Step(
                 run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err,
-                STEP_S * i, r.track_event, ev["evidence_err"], ev["evidence_cov"],
-                error_components(r.T_ego_peer, T_true),
-                None if r.covariance is None else np.asarray(r.covariance).tolist(),
+                stamp=STEP_S * i,
+                event=r.track_event,
+                evidence_err=ev["evidence_err"],
+                evidence_cov=ev["evidence_cov"],
+                err=error_components(r.T_ego_peer, T_true),
+                covariance=None if r.covariance is None else np.asarray(r.covariance).tolist(),
             )
         )  # fmt: skip
     return steps
