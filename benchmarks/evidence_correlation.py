@@ -1,22 +1,23 @@
-"""How correlated are successive frames' own measurements? The stream's evidence (bb_align.engine.evidence) fuses
-the last frames of a track and widens the fused covariance by ``1 + rho (n - 1)``; this measures ``rho`` on
-recorded tracks (`bb-align track ROOT --records R.jsonl`, sweeps with odometry; or the real runs of
-benchmarks/track_real.py), with the truth (the reference) known.
+"""What do successive frames' errors share? The stream's evidence (bb_align.engine.evidence) fuses the last frames
+of a track and widens the fused covariance by ``1 + rho (n - 1)``; this measures ``rho`` on recorded tracks
+(`bb-align track ROOT --records R.jsonl`, sweeps with odometry; or the real runs of benchmarks/track_real.py), with
+the truth (the reference) known.
 
     bb-align sim out/sweep101 --sweep --scenarios 4 --frames 150 --seed 101
     bb-align track out/sweep101 --records out/sweep101.jsonl
     python benchmarks/track_real.py --data ../shared/data --out docs/tracking/real_runs
     python benchmarks/evidence_correlation.py out/sweep101.jsonl docs/tracking/real_runs.json \
-        --out docs/tracking/evidence_correlation
+        --check out/sweep7373.jsonl --out docs/tracking/evidence_correlation
 
 For every frame whose own evidence entered the stream (``evidence_err``, ``evidence_cov``: a measurement of the
 odometry offset, its error against the true offset): the error whitened by its covariance's Cholesky factor.
-Between two frames of one track at most ``window_s`` apart, the pooled correlation of the whitened errors, per
-axis (not centred: a bias the frames share counts), for each set and for each sequence of at least 20 frames.
-The model has one ``rho`` for every axis and place, so it is the largest correlation of a sequence, rounded up
-to a tenth. Then, for each ``rho`` of a grid, every frame's window
-fused as the stream fuses it, and the share of fused errors inside their chi2(3) 99 % ellipsoid (the plot).
-Writes OUT.json, OUT.md and OUT.png.
+Between two frames of one track at most ``window_s`` apart, per axis (yaw, x, y), the mean product of the whitened
+errors (not centred: a bias the frames share counts; not normalised: errors smaller than their covariances share
+less in those units, and the fusion only needs that product to be bounded), beside the mean square (1 for an
+exact covariance). The model has one ``rho`` for every axis and place: the largest product of a sequence of the
+sets it is chosen on, rounded up to a tenth; the ``--check`` sets (held out) must not exceed it. Then, for each
+``rho`` of a grid, every frame's window fused as the stream fuses it, and the share of fused errors inside their
+chi2(3) 99 % ellipsoid (the plot). Writes OUT.json, OUT.md and OUT.png.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from bb_align.engine.config import TrackConfig
 CHI2_3_99 = 11.345
 RHOS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 BANDS = ((0.0, 40.0), (40.0, 70.0), (70.0, 1e9))
+FAR_M = 70.0  # the band where the stream's evidence matters most, measured on its own too
 MIN_FRAMES = 20  # a sequence's correlation counts when it has at least this many frames with evidence
 
 
@@ -72,19 +74,20 @@ def whitened(r: dict) -> np.ndarray:
     return np.linalg.solve(L, np.asarray(r["evidence_err"]))
 
 
-def correlation(segs: list[list[dict]], window_s: float) -> list[float]:
-    """Per axis (yaw, x, y), the pooled correlation of whitened errors of frame pairs at most window_s apart."""
-    prods, squares = np.zeros(3), np.zeros(3)
+def moments(segs: list[list[dict]], window_s: float) -> tuple[list[float], list[float]]:
+    """Per axis (yaw, x, y): the mean product of the whitened errors of frame pairs at most window_s apart, and the
+    mean square of a frame's whitened error."""
+    prods, pairs, squares, frames = np.zeros(3), 0, np.zeros(3), 0
     for seg in segs:
         w = [whitened(r) for r in seg]
         t = [r["stamp"] for r in seg]
+        squares, frames = squares + sum(x**2 for x in w), frames + len(w)
         for i in range(len(seg)):
             for j in range(i + 1, len(seg)):
                 if t[j] - t[i] > window_s:
                     break
-                prods += w[i] * w[j]
-                squares += 0.5 * (w[i] ** 2 + w[j] ** 2)
-    return (prods / np.maximum(squares, 1e-12)).tolist()
+                prods, pairs = prods + w[i] * w[j], pairs + 1
+    return (prods / max(pairs, 1)).tolist(), (squares / max(frames, 1)).tolist()
 
 
 def fused_d2(segs: list[list[dict]], rho: float, window_s: float, max_frames: int) -> list[tuple[float, float]]:
@@ -102,17 +105,22 @@ def fused_d2(segs: list[list[dict]], rho: float, window_s: float, max_frames: in
 
 
 def main(
-    records: list[Path] = typer.Argument(..., exists=True, dir_okay=False, help="record files (module doc)"),
-    out: Path = typer.Option(Path("docs/tracking/evidence_correlation"), help="OUT.json, OUT.md, OUT.png"),
+    records: list[Path] = typer.Argument(..., exists=True, dir_okay=False, help="record files rho is chosen on"),
+    check: list[Path] = typer.Option([], exists=True, dir_okay=False, help="held-out record files it is checked on"),
+    out: Path = typer.Option(Path("out/evidence_correlation"), help="OUT.json, OUT.md, OUT.png"),
 ) -> None:
     cfg = TrackConfig()
     sets, per_sequence = {}, {}
-    for path in records:
+    for path in [*records, *check]:
+        role = "check" if path in check else "choose"
         rows = load(path)
         for name in dict.fromkeys(r["sequence"] for r in rows):
             seq = segments([r for r in rows if r["sequence"] == name])
-            if sum(len(s) for s in seq) >= MIN_FRAMES:
-                per_sequence[f"{path.name}: {name}"] = correlation(seq, cfg.evidence_window_s)
+            far = [[r for r in s if r["distance_m"] >= FAR_M] for s in seq]  # the far band alone, too
+            for label, part in ((name, seq), (f"{name} ({FAR_M:g}+ m)", far)):
+                if sum(len(s) for s in part) >= MIN_FRAMES:
+                    shared, square = moments(part, cfg.evidence_window_s)
+                    per_sequence[f"{path.name}: {label}"] = {"role": role, "shared": shared, "square": square}
         segs = segments(rows)
         if not sum(len(s) for s in segs):
             raise typer.BadParameter(f"{path}: no frame with evidence_err (record with odometry on)")
@@ -125,37 +133,58 @@ def main(
                 band = [d2 <= CHI2_3_99 for dist, d2 in d2s if lo <= dist < hi]
                 name = f"{lo:g}-{hi:g} m" if hi < 1e9 else f"{lo:g}+ m"
                 by_band.setdefault(name, {})[f"{rho:g}"] = float(np.mean(band)) if band else float("nan")
+        shared, square = moments(segs, cfg.evidence_window_s)
         sets[str(path)] = {
+            "role": role,
             "frames": sum(len(s) for s in segs),
             "tracks": len(segs),
-            "correlation_yaw_x_y": correlation(segs, cfg.evidence_window_s),
+            "shared_yaw_x_y": shared,
+            "square_yaw_x_y": square,
             "share_within_chi2_99": covered,
             "share_within_chi2_99_by_band": by_band,
         }
-    # The model's one rho must cover the most correlated sequence and axis measured.
-    largest = max(max(c) for c in per_sequence.values())
-    chosen = float(min(1.0, np.ceil(round(largest, 2) * 10) / 10))
+    # The model's one rho must cover the largest product of any sequence and axis it is chosen on.
+    largest = {r: max((max(c["shared"]) for c in per_sequence.values() if c["role"] == r), default=0.0)
+               for r in ("choose", "check")}  # fmt: skip
+    chosen = float(min(1.0, np.ceil(round(largest["choose"], 2) * 10) / 10))
     command = "python benchmarks/evidence_correlation.py " + " ".join(str(p) for p in records)
+    command += "".join(f" --check {p}" for p in check) + f" --out {out}"
     body = {"command": command, "window_s": cfg.evidence_window_s, "max_frames": cfg.evidence_max_frames}
-    body |= {"sets": sets, "per_sequence": per_sequence, "largest_correlation": largest, "chosen_rho": chosen}
+    body |= {"sets": sets, "per_sequence": per_sequence, "largest_shared": largest, "chosen_rho": chosen}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(body, indent=1) + "\n")
     lines = [
-        f"Made by `{command}`. Frames at most {cfg.evidence_window_s:g} s apart in one track; the share of fused",
-        f"errors inside their chi2(3) 99 % ellipsoid with rho {chosen:g} (up to {cfg.evidence_max_frames} frames).",
+        f"Made by `{command}`. Frames at most {cfg.evidence_window_s:g} s apart in one track: per axis (yaw / x / y)",
+        "the mean product of two frames' whitened errors (shared) and a frame's mean square (1: an exact covariance);",
+        f"the share of fused errors inside their chi2(3) 99 % ellipsoid with rho 0 and {chosen:g} (up to "
+        f"{cfg.evidence_max_frames} frames).",
         "",
-        "| set | frames | correlation yaw / x / y | inside 99 %: one frame | fused, rho 0 | fused, chosen rho |",
-        "| --- | ---: | --- | ---: | ---: | ---: |",
+        "| set | role | frames | shared yaw / x / y | square yaw / x / y | inside 99 %: one frame | fused, rho 0 | "
+        "fused, chosen rho |",
+        "| --- | --- | ---: | --- | --- | ---: | ---: | ---: |",
     ]
     for name, o in sets.items():
-        c, cov = o["correlation_yaw_x_y"], o["share_within_chi2_99"]
+        c, q, cov = o["shared_yaw_x_y"], o["square_yaw_x_y"], o["share_within_chi2_99"]
         lines.append(
-            f"| {name} | {o['frames']} | {c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} | {cov['single frame']:.3f} | "
-            f"{cov['rho 0']:.3f} | {cov[f'rho {chosen:g}']:.3f} |"
+            f"| {name} | {o['role']} | {o['frames']} | {c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} | "
+            f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} | {cov['single frame']:.3f} | {cov['rho 0']:.3f} | "
+            f"{cov[f'rho {chosen:g}']:.3f} |"
         )
-    lines += ["", "| sequence (at least 20 frames) | correlation yaw / x / y |", "| --- | --- |"]
-    lines += [f"| {name} | {c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} |" for name, c in per_sequence.items()]
-    lines += ["", f"Largest correlation of a sequence: {largest:.2f}; the model's rho, rounded up: **{chosen:g}**."]
+    lines += [
+        "",
+        "| sequence (at least 20 frames; alone beyond 70 m too) | role | shared yaw / x / y | square yaw / x / y |",
+        "| --- | --- | --- | --- |",
+    ]
+    for name, o in per_sequence.items():
+        c, q = o["shared"], o["square"]
+        lines.append(
+            f"| {name} | {o['role']} | {c[0]:.2f} / {c[1]:.2f} / {c[2]:.2f} | {q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f} |"
+        )
+    lines += [
+        "",
+        f"Largest shared product of a sequence: {largest['choose']:.2f} where rho is chosen, so **rho {chosen:g}**; "
+        f"{largest['check']:.2f} on the held-out sets ({'within' if largest['check'] <= chosen else 'BEYOND'} it).",
+    ]
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     plot(sets, out.with_suffix(".png"))
     print("\n".join(lines))

@@ -135,3 +135,36 @@ def test_fused_covariance_covers_errors_that_repeat_from_frame_to_frame(rho_true
             inside[rho] += float(d @ np.linalg.solve(f.covariance, d)) <= CHI2_3_95
     assert inside[rho_true] / trials == pytest.approx(0.95, abs=0.02)
     assert inside[0.0] / trials < 0.8
+
+
+def test_covariances_wider_than_the_errors_share_less_in_their_own_units():
+    """Frames whose stated covariance is twice their errors' sigma (as the landscape's are, docs/calibration.md) and
+    whose errors correlate 0.8: in the stated covariance's units two frames share 0.8 / 4 = 0.2, and fused with
+    rho 0.2 the error still lies inside its 95 % ellipsoid at least 95 % of the time (Monte Carlo); the agreement
+    gate is a separate share, here the stated covariances' whole."""
+    rng = np.random.default_rng(3)
+    C = np.diag([np.radians(0.6) ** 2, 1.0**2, 0.5**2])  # stated
+    L_true, X0, n, trials, corr = np.linalg.cholesky(C / 4.0), se2(0.0, 80.0, 1.0), 10, 1500, 0.8
+    inside = 0
+    for _ in range(trials):
+        common, ev = rng.normal(size=3), StreamEvidence(1.0, 10, corr / 4.0, gate_chi2=16.27, agreement=1.0)
+        for k in range(n):
+            e = L_true @ (np.sqrt(corr) * common + np.sqrt(1 - corr) * rng.normal(size=3))
+            ev.add(OffsetSample(0.1 * k, se2(*e) @ X0, C, NO_DRIFT))
+        f = ev.fused(0.1 * (n - 1))
+        assert f.frames == n
+        d = log_left(f.X, X0)
+        inside += float(d @ np.linalg.solve(f.covariance, d)) <= CHI2_3_95
+    assert inside / trials >= 0.95
+
+
+def test_the_agreement_share_is_its_own_setting():
+    """Hand-worked: two frames 0.95 m apart along x, 1-sigma 0.5 m, nothing shared (rho 0) but asked to agree
+    within a tenth of their covariances: d2 = 0.95^2 / (0.1 x 0.5) = 18 > 16.27, the older frame is dropped."""
+    C = np.diag([np.radians(0.3) ** 2, 0.5**2, 0.3**2])
+    X0 = se2(0.0, 60.0, 0.0)
+    for agreement, frames in ((1.0, 2), (0.1, 1)):
+        ev = StreamEvidence(1.0, 10, 0.0, gate_chi2=16.27, agreement=agreement)
+        ev.add(OffsetSample(0.0, X0, C, NO_DRIFT))
+        ev.add(OffsetSample(0.1, se2(0.0, 0.95, 0.0) @ X0, C, NO_DRIFT))
+        assert ev.fused(0.1).frames == frames

@@ -84,8 +84,9 @@ def test_adjoint_and_log_left_against_brute_force():
 
 @pytest.mark.parametrize("with_odometry", [True, False])
 def test_tracks_a_moving_pair_and_its_covariance_covers_the_error(with_odometry):
-    # The oracle's frames err independently: the stream is told so (evidence_correlation 0), and fuses them.
-    track = PeerTrack(TrackConfig(crosscheck_s=0, evidence_correlation=0.0))
+    # The oracle's frames err independently with exact covariances: the stream is told so (nothing shared, frames
+    # agree within their whole covariances), and fuses them.
+    track = PeerTrack(TrackConfig(crosscheck_s=0, evidence_correlation=0.0, evidence_agreement=1.0))
     oracle = Oracle(seed=1)
     measured = []
 
@@ -311,7 +312,10 @@ def _stream_runs(runs: int, rho_model: float, sigma_along_m: float) -> tuple[int
     frames, each with its own shared error (true correlation 0.5), the stream assuming ``rho_model``."""
     valid = wrong = first_valid = 0
     for seed in range(runs):
-        track = PeerTrack(TrackConfig(crosscheck_s=0, evidence_correlation=rho_model))
+        # The oracle's covariances are exact: what two frames share is their correlation, and they agree within
+        # the rest of their covariances.
+        cfg = TrackConfig(crosscheck_s=0, evidence_correlation=rho_model, evidence_agreement=1.0 - rho_model)
+        track = PeerTrack(cfg)
         oracle = CommonBiasOracle(seed, rho=0.5)
         oracle.cov = np.diag(np.square([np.radians(0.4), sigma_along_m, 0.3]))
         rows = _run(track, oracle, range(30), _odometry(drift_per_frame=0.0))

@@ -5,16 +5,19 @@ when they agree) is a measurement of the same nearly constant offset ``X = O_e T
 odometry frames. A frame measured ``dt`` seconds ago still measures today's offset, less sharply by the odometry's
 drift over ``dt``. So the last frames of a window are fused by information on left increments of X, and the fused
 covariance is widened for what they share: successive frames see the same buildings through the same aliasing,
-so their errors are correlated. With a common correlation ``rho`` between any two frames' (whitened) errors, n
-frames are worth ``n / (1 + rho (n - 1))`` independent ones (the design effect of an equicorrelated sample); the
-information-weighted covariance is multiplied by ``1 + rho (n - 1)``. ``rho`` is measured on real and simulated
-runs (``benchmarks/evidence_correlation.py``), not assumed zero.
+so their errors are correlated. With ``rho`` the mean product of two frames' errors in units of their own
+covariances (the whitened errors' cross moment: their correlation when the covariances are exact, less when the
+covariances are wider than the errors), n frames are worth at least ``n / (1 + rho (n - 1))`` independent ones
+(the design effect of an equicorrelated sample); the information-weighted covariance is multiplied by
+``1 + rho (n - 1)``. ``rho`` is measured on real and simulated runs (``benchmarks/evidence_correlation.py``), not
+assumed zero.
 
 A frame that disagrees with the fusion of the newer frames ends the window there: what is older than a
 disagreement is not evidence about the present (a relocalisation, a lying peer's odometry). The errors the frames
-share cancel in their difference, so under the same model two frames must agree within ``1 - rho`` of their
-covariances (plus the odometry's drift between them), judged at ``gate_chi2``: with rho 0.9 a peer whose odometry
-drifts 0.3 m a frame keeps two or three frames in its window, not ten. The window is the stream's evidence; the
+share cancel in their difference, so two frames must agree within a share ``agreement`` of their covariances
+(plus the odometry's drift between them; ``1 - rho`` when the covariances are exact), judged at ``gate_chi2``:
+with a share of 0.1 a peer whose odometry drifts 0.3 m a frame keeps two or three frames in its window, not ten.
+A window cut short only costs evidence, so the share is chosen tight. The window is the stream's evidence; the
 track's filter only predicts.
 """
 
@@ -51,8 +54,11 @@ class FusedOffset:
 class StreamEvidence:
     """The last frames' measurements of the offset, at most ``max_frames`` and ``window_s`` old (see the module)."""
 
-    def __init__(self, window_s: float, max_frames: int, correlation: float, gate_chi2: float):
+    def __init__(
+        self, window_s: float, max_frames: int, correlation: float, gate_chi2: float, agreement: float | None = None
+    ):
         self.window_s, self.correlation, self.gate_chi2 = window_s, correlation, gate_chi2
+        self.agreement = 1.0 - correlation if agreement is None else agreement
         self.samples: deque[OffsetSample] = deque(maxlen=max_frames)
 
     def clear(self) -> None:
@@ -76,10 +82,10 @@ class StreamEvidence:
             cov = s.covariance + drift
             w = np.linalg.inv(cov)
             if kept:
-                # Against the newer frames' fusion: errors shared by all frames (rho) cancel in the difference, so
-                # frames must agree within (1 - rho) of their covariances (and the drift between them).
+                # Against the newer frames' fusion: errors shared by all frames cancel in the difference, so frames
+                # must agree within a share of their covariances (and the drift between them).
                 mean, fused_cov = np.linalg.solve(info, vec), np.linalg.inv(info)
-                spread = (1.0 - self.correlation) * (s.covariance + fused_cov) + drift + _FLOOR
+                spread = self.agreement * (s.covariance + fused_cov) + drift + _FLOOR
                 if float((d - mean) @ np.linalg.solve(spread, d - mean)) > self.gate_chi2:
                     for _ in range(len(self.samples) - i):
                         self.samples.popleft()

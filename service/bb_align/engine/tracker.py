@@ -117,7 +117,9 @@ class PeerTrack:
         self.answer = answer or AnswerRule()
         c = self.cfg
         # With odometry, the answer is the stream's evidence: the recent frames' own measurements fused.
-        self.stream = StreamEvidence(c.evidence_window_s, c.evidence_max_frames, c.evidence_correlation, c.gate_chi2)
+        self.stream = StreamEvidence(
+            c.evidence_window_s, c.evidence_max_frames, c.evidence_correlation, c.gate_chi2, c.evidence_agreement
+        )
         self.state = TrackState.acquiring
         self.X: np.ndarray | None = None  # 3x3: T_egoodom_peerodom, or T_ego_peer without odometry
         self.P: np.ndarray | None = None  # state covariance: 3x3 (odometry) or 6x6 (pose and velocity)
