@@ -647,6 +647,25 @@ class TrackConfig(_Frozen):
     )
 
 
+class StreamConfig(_Frozen):
+    """Acquisition over a second of stream (bb_align.engine.stream_acquire): several frames of each car with their
+    odometry, a pose must explain every frame."""
+
+    search_frames: int = Field(
+        3, ge=1, le=20, description="the full search runs on this many of the frames (the last, then spread)"
+    )
+    max_hypotheses: int = Field(
+        6, ge=1, le=50, description="at most this many of the poses the searches verified are explained by every frame"
+    )
+    min_bounded_share: float = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="a hypothesis is an answer only when at least this share of the frames bound it (their pose "
+        "landscape has a peak)",
+    )
+
+
 class AlignConfig(_Frozen):
     bev: BevConfig = BevConfig()
     mim: MimConfig = MimConfig()
@@ -659,6 +678,7 @@ class AlignConfig(_Frozen):
     success: SuccessRule = SuccessRule()
     acquire: AcquireConfig = AcquireConfig()
     covariance: CovarianceConfig = CovarianceConfig()
+    stream: StreamConfig = StreamConfig()
     free_space: FreeSpaceConfig = FreeSpaceConfig()
     landscape: LandscapeConfig = LandscapeConfig()
     track: TrackConfig = TrackConfig()

@@ -204,6 +204,16 @@ class Aligner:
                 pair, reason = self._within_prior(ego, peer, self._window(T_prior))
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
 
+    def align_stream(self, frames: list) -> AlignResult:
+        """T_ego_peer at the last of ``frames`` (``engine.stream_acquire.StreamFrame``: both cars' prepared frames,
+        odometry poses and stamps, e.g. a second of a 10 Hz stream), from every frame together: a pose must
+        explain every frame, an alias that does not persist loses its weight, the covariance is what the frames
+        pin down together (engine.stream_acquire). No prior: a first answer where one frame alone cannot give
+        one."""
+        from .stream_acquire import StreamAcquirer  # it builds on this class's steps
+
+        return StreamAcquirer(self)(frames)
+
     def _solve(
         self,
         ego: PreparedFrame,
