@@ -76,6 +76,7 @@ def test_a_config_key_typo_names_the_nearest_valid_key(tmp_path, cloud):
         ("0.8 -0.6 0\n0.6 0.8 0\n0 0.1 0.995\n", "a 3x3 rotation alone is not a prior"),
         ("2 0 0 1\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "top-left 3x3 block is not a rotation"),
         ("a b c\n", "not a plain-text matrix"),
+        ("1 0 0\n0 1 0\n0 0 nan\n", "holds NaN or inf"),
     ],
 )
 def test_a_bad_prior_says_what_shape_is_expected(tmp_path, cloud, text, says):

@@ -215,10 +215,12 @@ def _load_prior(path: Path):
         raise typer.BadParameter(
             f"{path}: not a plain-text matrix ({e}); expected {shapes}", param_hint="--prior"
         ) from None
-    if T.shape not in {(4, 4), (3, 3)} or not np.all(np.isfinite(T)):
+    if T.shape not in {(4, 4), (3, 3)}:
         raise typer.BadParameter(
             f"{path}: got a {'x'.join(map(str, T.shape))} matrix; expected {shapes}", param_hint="--prior"
         )
+    if not np.all(np.isfinite(T)):
+        raise typer.BadParameter(f"{path}: the matrix holds NaN or inf; expected {shapes}", param_hint="--prior")
     n = T.shape[0] - 1
     R = T[:n, :n]
     if not np.allclose(T[n], np.eye(n + 1)[n], atol=1e-6):
