@@ -36,12 +36,12 @@ def test_recover_eval_and_track_share_one_deskew_option_and_default():
 
 @pytest.fixture(scope="module")
 def distorted(tmp_path_factory):
-    """Two scenarios of two cars 8-22 m apart, sweeps rendered with self-motion distortion."""
+    """A scenario of two cars 8-22 m apart, sweeps rendered with self-motion distortion (without de-skew, recover's
+    pose of this pair moved by 0.02 m and 0.03 deg: enough for the comparison below, at 1e-6, to tell)."""
     root = tmp_path_factory.mktemp("same") / "root"
-    for i in range(2):
-        write_scenario(root, seed=5, index=i, n_scenarios=2, config=SimConfig(min_distance_m=8.0, max_distance_m=22.0))
+    write_scenario(root, seed=5, index=0, n_scenarios=2, config=SimConfig(min_distance_m=8.0, max_distance_m=22.0))
     groups = list(iter_frames(root))
-    assert len(groups) == 2 and all("sweep_twist" in a.extra for g in groups for a in (g.ego, *g.peers))
+    assert len(groups) == 1 and all("sweep_twist" in a.extra for g in groups for a in (g.ego, *g.peers))
     return root, groups
 
 
@@ -51,7 +51,7 @@ def test_recover_and_eval_give_the_same_poses_on_the_same_data(distorted, tmp_pa
 
     root, groups = distorted
     records = evaluate_dataset(root, EvalConfig(), workers=1, progress=False)
-    assert len(records) == 2 and all(r.deskewed for r in records)
+    assert len(records) == 1 and all(r.deskewed for r in records)
     out = CliRunner().invoke(app, ["recover", str(root), str(tmp_path / "out"), "--quiet"])
     assert out.exit_code == 0, out.output
     rows = {
