@@ -27,27 +27,34 @@ run: $(STAMP)
 clean:
 	rm -rf $(VENV) build *.egg-info service/*.egg-info
 
+# Benchmarks write their results under out/ (the checkout stays as it was: `git status` clean); RECORD=1 writes them
+# into docs/ instead, the recorded output the docs cite (e.g. `make bench-real RECORD=1`).
+RECORD ?=
+RESULTS := $(if $(filter 1 yes true,$(RECORD)),docs,out)
+RECORD_FLAG := $(if $(filter 1 yes true,$(RECORD)),--record,)
+
 # Accuracy benchmark: 200 seeded simulated pairs (0-100 m, heterogeneous LiDARs, self-motion distortion),
-# summary JSON, per-pair records and figures into docs/accuracy/ (see docs/accuracy.md).
+# summary JSON, per-pair records and figures into $(RESULTS)/accuracy/ (see docs/accuracy.md).
 BENCH_ACC_DIR ?= out/bench_accuracy
 bench-accuracy: $(STAMP)
 	rm -rf $(BENCH_ACC_DIR)
 	$(VENV)/bin/bb-align sim $(BENCH_ACC_DIR) --scenarios 200 --seed 2024 --workers 2
-	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --json docs/accuracy/summary.json \
-		--records docs/accuracy/pairs.jsonl --plots docs/accuracy
+	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --json $(RESULTS)/accuracy/summary.json \
+		--records $(RESULTS)/accuracy/pairs.jsonl --plots $(RESULTS)/accuracy
 	$(VENV)/bin/bb-align eval $(BENCH_ACC_DIR) --workers 2 --pose-noise 2,2 --prior \
-		--json docs/accuracy_prior/summary.json --records docs/accuracy_prior/pairs.jsonl
+		--json $(RESULTS)/accuracy_prior/summary.json --records $(RESULTS)/accuracy_prior/pairs.jsonl
 
 # Real-pair benchmark: every pair of real scans in ../shared/data (KITTI, Apollo-SouthBay, DAIR-V2X-C), without
-# and with a seeded 2 m / 2 deg prior, scored against each pair's reference; tables and plot into docs/real_pairs/.
+# and with a seeded 2 m / 2 deg prior, scored against each pair's reference; tables and plot into
+# $(RESULTS)/real_pairs/.
 SHARED_DATA ?= ../shared/data
 bench-real: $(STAMP)
-	$(VENV)/bin/bb-align real-pairs $(SHARED_DATA) --out docs/real_pairs
+	$(VENV)/bin/bb-align real-pairs $(SHARED_DATA) --out $(RESULTS)/real_pairs
 
 # Simulated far pairs beside the real KITTI 00 ones: the street family (a car following another 73-81 m ahead on a
 # straight residential street), the turn family (the peer turned into a crossing street 40-70 m; HDL-64 on all
 # away) and the accuracy benchmark's pairs >= 70 m (run bench-accuracy first); table, JSON and plot into
-# docs/real_pairs/ (docs/real_pairs.md). The two families are rendered de-skewed, as KITTI odometry's scans are.
+# $(RESULTS)/real_pairs/ (docs/real_pairs.md). The two families are rendered de-skewed, as KITTI odometry's scans are.
 bench-sim-real: $(STAMP)
 	rm -rf out/sim_street out/sim_turn
 	$(VENV)/bin/bb-align sim out/sim_street --family street --scenarios 20 --seed 7 --fleet hdl64 \
@@ -55,21 +62,24 @@ bench-sim-real: $(STAMP)
 	$(VENV)/bin/bb-align sim out/sim_turn --family turn --scenarios 20 --seed 7 --fleet hdl64 --no-distortion \
 		--workers 2
 	$(PY) benchmarks/sim_vs_real.py --data $(SHARED_DATA) --sim "mixed, >= 70 m=$(BENCH_ACC_DIR)@70" \
-		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn"
+		--sim "street family=out/sim_street" --sim "turn family=out/sim_turn" $(RECORD_FLAG)
 
 # Simulated street places, each rendered as the real KITTI 00 run is (10 follower sweeps against 2 sweeps of the car
-# 73-81 m ahead), and the real place's standing among them (docs/sim/places.*; about 10 minutes on 2 cores).
+# 73-81 m ahead), and the real place's standing among them ($(RESULTS)/sim/places.*; about 10 minutes on 2 cores).
 bench-sim-places: $(STAMP)
-	$(PY) benchmarks/sim_places.py --data $(SHARED_DATA) --places 40
+	$(PY) benchmarks/sim_places.py --data $(SHARED_DATA) --places 40 $(RECORD_FLAG)
 
 # The engine's departures from the paper, measured (docs/engine.md; real rows need ../shared/data).
 bench-engine: $(STAMP)
 	$(PY) benchmarks/engine_ablation.py --data $(SHARED_DATA)
 
-# Floods against a bb-align serve child process: several keyless sessions, then large queries (docs/security.md).
+# Floods against a bb-align serve child process: several keyless sessions, then large queries (docs/security.md;
+# results into $(RESULTS)/).
 bench-flood: $(STAMP)
+	mkdir -p $(RESULTS)
 	$(PY) benchmarks/stream_flood.py --seconds 10 --blocks 3 --flooders 2 --sizes small,big --pin \
-		--json docs/security_stream_flood_pinned.json --plot docs/security_stream_flood_pinned.png
+		--json $(RESULTS)/security_stream_flood_pinned.json --plot $(RESULTS)/security_stream_flood_pinned.png
 	$(PY) benchmarks/stream_flood.py --seconds 10 --blocks 3 --flooders 2 --sizes small,big \
-		--json docs/security_stream_flood_unpinned.json --plot docs/security_stream_flood_unpinned.png
-	$(PY) benchmarks/query_flood.py --seconds 25 --senders 2 --mb 4 --kind envelope --pin > docs/security_query_flood.json
+		--json $(RESULTS)/security_stream_flood_unpinned.json --plot $(RESULTS)/security_stream_flood_unpinned.png
+	$(PY) benchmarks/query_flood.py --seconds 25 --senders 2 --mb 4 --kind envelope --pin \
+		> $(RESULTS)/security_query_flood.json

@@ -44,6 +44,7 @@ from bb_align import Aligner
 from bb_align.engine.acquisition.model import SearchMemo
 from bb_align.engine.geometry import ground_se2, pose_error, se2
 from bb_align.engine.refine import overlap_fitness
+from bb_align.lab.recording import RECORD_HELP, output_path
 
 BANDS = (20.0, 40.0)  # peer keypoint range bands: 0-20, 20-40, 40+ m
 CLASSES = ("low", "wall", "tall")
@@ -422,10 +423,14 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True, help="the shared data folder (holds kitti00_run_far)")
     ap.add_argument("--sim", action="append", default=[], help="NAME=FOLDER of a simulated run (repeatable)")
     ap.add_argument("--pairs", type=int, default=6, help="pairs per set")
-    ap.add_argument("--out", type=Path, default=Path("docs/sim/alias_anatomy"))
+    ap.add_argument(
+        "--out", type=Path, default=None, help="default: out/sim/alias_anatomy (docs/sim/alias_anatomy with --record)"
+    )
+    ap.add_argument("--record", action="store_true", help=RECORD_HELP)
     ap.add_argument("--baselines", action="store_true", help="descriptor agreement against the baseline instead")
     ap.add_argument("--fov", action="store_true", help="the upper field of view's part in the agreement instead")
     args = ap.parse_args()
+    args.out = args.out or output_path("docs/sim/alias_anatomy", args.record)
     if args.fov:
         fov(args.data, args.out.with_name("descriptor_fov"))
         return

@@ -26,6 +26,8 @@ import numpy as np
 import typer
 from scipy import stats
 
+from bb_align.lab.recording import RECORD_HELP, output_path
+
 KS = (1, 2, 3)
 NOMINAL = [float(stats.chi2.cdf(k * k, 3)) for k in KS]
 BANDS = ((0.0, 40.0), (40.0, 70.0), (70.0, 1e9))
@@ -125,12 +127,16 @@ def _named(spec: str) -> tuple[str, Path]:
 
 
 def main(
-    out: Path = typer.Option(Path("docs/calibration"), help="OUT.md, OUT.json and OUT.png"),
+    out: Path | None = typer.Option(
+        None, help="OUT.md, OUT.json and OUT.png (default: out/calibration; docs/calibration with --record)"
+    ),
+    record: bool = typer.Option(False, "--record", help=RECORD_HELP),
     single_sets: list[str] = typer.Option([], "--single", help="NAME=eval records (JSON lines)"),
     real: Path | None = typer.Option(None, help="bb-align real-pairs records.jsonl"),
     tracked_sets: list[str] = typer.Option([], "--tracked", help="NAME=bb-align track --records file"),
     runs_json: Path | None = typer.Option(None, "--runs", help="benchmarks/track_real.py OUT.json"),
 ) -> None:
+    out = out or output_path("docs/calibration", record)
     sets: dict[str, list] = {}
     for spec in single_sets:
         name, path = _named(spec)

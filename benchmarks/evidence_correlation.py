@@ -29,6 +29,7 @@ import numpy as np
 import typer
 
 from bb_align.engine.config import TrackConfig
+from bb_align.lab.recording import RECORD_HELP, output_path
 
 CHI2_3_99 = 11.345
 RHOS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
@@ -107,8 +108,13 @@ def fused_d2(segs: list[list[dict]], rho: float, window_s: float, max_frames: in
 def main(
     records: list[Path] = typer.Argument(..., exists=True, dir_okay=False, help="record files rho is chosen on"),
     check: list[Path] = typer.Option([], exists=True, dir_okay=False, help="held-out record files it is checked on"),
-    out: Path = typer.Option(Path("out/evidence_correlation"), help="OUT.json, OUT.md, OUT.png"),
+    out: Path | None = typer.Option(
+        None,
+        help="OUT.json, OUT.md, OUT.png (default under out/; under docs/ with --record)",
+    ),
+    record: bool = typer.Option(False, "--record", help=RECORD_HELP),
 ) -> None:
+    out = out or output_path("docs/tracking/evidence_correlation", record)
     cfg = TrackConfig()
     sets, per_sequence = {}, {}
     for path in [*records, *check]:

@@ -26,6 +26,7 @@ from bb_align import AlignConfig, Aligner
 from bb_align.engine.bev import make_bev
 from bb_align.io.clouds import load_cloud
 from bb_align.lab.realpairs import kitti00_far, score, seeded_prior
+from bb_align.lab.recording import RECORD_HELP, output_path
 
 MODES = ("none", "wall", "tall", "random")
 RADIUS_M = 0.6  # points this close to a removed pixel's centre go with it (a 0.4 m pixel and its neighbours' edges)
@@ -119,9 +120,16 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data"))
-    ap.add_argument("--out", type=Path, default=Path("docs/real_pairs/ablation"))
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="default: out/real_pairs/ablation (docs/real_pairs/ablation with --record)",
+    )
+    ap.add_argument("--record", action="store_true", help=RECORD_HELP)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
+    args.out = args.out or output_path("docs/real_pairs/ablation", args.record)
     pairs = kitti00_far(args.data)
     jobs = [(mode, pair) for mode in MODES for pair in pairs]
     from tqdm import tqdm

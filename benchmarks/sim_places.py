@@ -29,6 +29,7 @@ import numpy as np
 
 from bb_align import AlignConfig, Aligner
 from bb_align.lab.realpairs import RealPair, kitti00_far, score, seeded_prior
+from bb_align.lab.recording import RECORD_HELP, output_path
 from bb_align.lab.sim.scenario import Scenario, SimConfig
 
 EGO_SWEEPS, PEER_SWEEPS = 10, 2  # the real run: follower frames 0-9, the car ahead's frames 94 and 95
@@ -177,8 +178,10 @@ def main() -> None:
     ap.add_argument("--places", type=int, default=40)
     ap.add_argument("--seed", type=int, default=11, help="places are scenarios seed * 100003 + k")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path("docs/sim/places"))
+    ap.add_argument("--out", type=Path, default=None, help="default: out/sim/places (docs/sim/places with --record)")
+    ap.add_argument("--record", action="store_true", help=RECORD_HELP)
     args = ap.parse_args()
+    args.out = args.out or output_path("docs/sim/places", args.record)
     from tqdm import tqdm
 
     jobs = [("real", args.data)] + [("sim", args.seed * 100003 + k) for k in range(args.places)]

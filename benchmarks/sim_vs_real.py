@@ -30,6 +30,7 @@ from bb_align.engine.geometry import ground_se2, pose_error, se2
 from bb_align.engine.landscape import Fields, score_grid
 from bb_align.engine.refine import overlap_fitness
 from bb_align.lab.realpairs import RealPair, kitti00_far, score, seeded_prior, simulated_pairs
+from bb_align.lab.recording import RECORD_HELP, output_path
 from bb_align.lab.sim.realism import lit_by_band
 
 REAL = "real: KITTI 00, 73-80 m"
@@ -147,13 +148,15 @@ def main() -> None:
     ap.add_argument(
         "--sim", action="append", default=[], help="LABEL=DIR[@MIN_M], a simulated set, its pairs >= MIN_M (40) apart"
     )
-    ap.add_argument("--out", type=Path, default=Path("docs/real_pairs"))
+    ap.add_argument("--out", type=Path, default=None, help="default: out/real_pairs (docs/real_pairs with --record)")
+    ap.add_argument("--record", action="store_true", help=RECORD_HELP)
     ap.add_argument(
         "--keep",
         action="store_true",
         help="keep the sets already in OUT/sim_vs_real.json that this run does not measure (in their order)",
     )
     args = ap.parse_args()
+    args.out = args.out or output_path("docs/real_pairs", args.record)
     aligner = Aligner(AlignConfig())
     kept = json.loads((args.out / "sim_vs_real.json").read_text()) if args.keep else {}
     sets: dict[str, list[dict]] = {REAL: []}

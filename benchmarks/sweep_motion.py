@@ -26,6 +26,7 @@ from tqdm import tqdm
 from bb_align import AlignConfig, Aligner
 from bb_align.engine.geometry import se2_params
 from bb_align.lab.realpairs import RealPair, score, seeded_prior
+from bb_align.lab.recording import RECORD_HELP, output_path
 from bb_align.lab.sim.raycast import sensor_twist
 from bb_align.lab.sim.scenario import Scenario, SimConfig
 from bb_align.lab.sim.writer import scenario_distance, scenario_seed
@@ -192,8 +193,12 @@ def one_pair(index: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--pair", type=int, default=None, help="only this scenario, rendered one change at a time")
-    ap.add_argument("--out", type=Path, default=Path("docs/sweep_motion"))
+    ap.add_argument(
+        "--out", type=Path, default=None, help="default: out/sweep_motion (docs/sweep_motion with --record)"
+    )
+    ap.add_argument("--record", action="store_true", help=RECORD_HELP)
     args = ap.parse_args()
+    args.out = args.out or output_path("docs/sweep_motion", args.record)
     if args.pair is not None:
         one_pair(args.pair)
         return

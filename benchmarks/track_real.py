@@ -16,6 +16,7 @@ from pathlib import Path
 import typer
 from tqdm import tqdm
 
+from bb_align.lab.recording import RECORD_HELP, output_path
 from bb_align.lab.tracking.real_runs import RUNS, records, summary, track_run
 
 
@@ -63,9 +64,14 @@ def plot(all_steps: dict[str, list], path: Path) -> None:
 
 def main(
     data: Path = typer.Option(Path("../shared/data"), exists=True, file_okay=False),
-    out: Path = typer.Option(Path("docs/tracking/real_runs"), help="OUT.json, OUT.md and OUT.png"),
+    out: Path | None = typer.Option(
+        None,
+        help="OUT.json, OUT.md and OUT.png (default: out/tracking/real_runs; docs/tracking/real_runs with --record)",
+    ),
+    record: bool = typer.Option(False, "--record", help=RECORD_HELP),
     laps: int = typer.Option(3, min=1, max=10, help="passes over frames 0-9 (forward, back, ...)"),
 ) -> None:
+    out = out or output_path("docs/tracking/real_runs", record)
     all_steps: dict[str, list] = {}
     jobs = [
         (run, odo, gnss) for run in RUNS if (data / run).is_dir() for odo in (True, False) for gnss in (True, False)

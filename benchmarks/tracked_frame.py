@@ -26,6 +26,7 @@ from bb_align.engine.follow import Follower
 from bb_align.engine.geometry import se2, se3_from_se2
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.clouds import load_cloud
+from bb_align.lab.recording import RECORD_HELP, output_path
 from bb_align.lab.tracking.real_runs import STEP_S, gnss_errors, run_poses, schedule
 
 
@@ -58,11 +59,16 @@ def timed_run(data: Path, run: str, cfg: AlignConfig, laps: int) -> dict:
 
 def main(
     data: Path = typer.Option(Path("../shared/data"), exists=True, file_okay=False),
-    out: Path = typer.Option(Path("docs/tracking/tracked_frame"), help="OUT.json and OUT.md"),
+    out: Path | None = typer.Option(
+        None,
+        help="OUT.json and OUT.md (default: out/tracking/tracked_frame; docs/tracking/tracked_frame with --record)",
+    ),
+    record: bool = typer.Option(False, "--record", help=RECORD_HELP),
     runs: list[str] = typer.Option(["kitti00_run_far", "kitti08_run"], "--run"),
     widths: list[float] = typer.Option([3.2, 2.4, 1.6], "--width", help="landscape.half_width_m values"),
     laps: int = typer.Option(3, min=1, max=10),
 ) -> None:
+    out = out or output_path("docs/tracking/tracked_frame", record)
     rows = []
     for run in runs:
         for w in tqdm(widths, desc=run, unit="window"):

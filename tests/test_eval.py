@@ -217,7 +217,7 @@ def test_deskew_boxes_moves_a_box_as_its_centre_was_fired():
     """Hand-worked: a car driving straight at 10 m/s sees a box on its left (azimuth +90 deg) a quarter sweep
     before mid-sweep (t = -0.025 s, clockwise), so the box is reported 0.25 m ahead of where it is at mid-sweep;
     turning at 1 rad/s the box also turns by -0.025 rad with the frame. Centre and heading follow deskew_sweep."""
-    from bb_align.lab.evaluation.runner import deskew_boxes
+    from bb_align.io.sweeps import deskew_boxes
     from bb_align_client.deskew import deskew_sweep
 
     box = np.array([[0.0, 10.0, -1.0, 4.5, 1.9, 1.6, 0.3]])
@@ -298,7 +298,7 @@ def test_a_malformed_sweep_twist_is_refused_by_name(twist):
     from pathlib import Path
 
     from bb_align.io.dataset import AgentFrame
-    from bb_align.lab.evaluation.runner import _sweep_twist
+    from bb_align.io.sweeps import sweep_twist as _sweep_twist
 
     frame = AgentFrame("sc", "1", "000000", Path("x.pcd"), np.eye(4), {}, extra={"sweep_twist": twist})
     with pytest.raises(ValueError, match="sc/1/000000: sweep_twist"):

@@ -135,8 +135,8 @@ def test_plot_labels_each_image_and_draws_a_metre_scale():
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("1 0 0\n0 1 0\n", "expected a finite 4x4 or 3x3 matrix"),
-        ("2 0 0 1\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "not a rigid transform"),
+        ("1 0 0\n0 1 0\n", "got a 2x3 matrix; expected a 4x4 rigid transform"),
+        ("2 0 0 1\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "is not a rotation"),
         ("a b c\n", "not a plain-text matrix"),
     ],
 )
@@ -268,7 +268,7 @@ def test_config_check_blames_check_with_the_field_and_its_limit(tmp_path):
     runner = CliRunner()
     for name, says in (
         ("bad.json", "bev.range_m: Input should be greater than 0 (got -5)"),
-        ("typo.yaml", "bev.rang_m: Extra inputs are not permitted"),
+        ("typo.yaml", "bev.rang_m: no such setting (did you mean bev.range_m?)"),
         ("broken.yaml", "not valid YAML"),
     ):
         out = runner.invoke(app, ["config", "--check", str(tmp_path / name)])

@@ -15,13 +15,15 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"bb_align": ROOT / "service" / "bb_align", "bb_align_client": ROOT / "client" / "bb_align_client"}
-# What the protocol and the client may take from the engine: the BV image encoder, its config, box rows, SE(2/3).
+# What the protocol and the client may take from the engine: the BV image encoder, its config, box rows, SE(2/3),
+# the sweep de-skew.
 ENGINE_PUBLIC = {
     "bb_align.engine",
     "bb_align.engine.bev",
     "bb_align.engine.config",
     "bb_align.engine.geometry",
     "bb_align.engine.boxes",
+    "bb_align.engine.deskew",  # a sender's sweep de-skew (bb_align_client.deskew re-exports it)
 }
 
 # area -> (areas it may import, extra modules it may import)

@@ -7,8 +7,11 @@ but the alignment failed (the reason is printed; with --json it is in the object
 from __future__ import annotations
 
 import json
+import os
+import sys
 from importlib import import_module
 from pathlib import Path
+from typing import NoReturn
 
 import click
 import typer
@@ -62,8 +65,30 @@ class _Group(TyperGroup):
         try:
             return super().invoke(ctx)
         except (InputFileError, MissingExtraError) as e:
-            typer.secho(f"bb-align: {e}", err=True, fg="red")
-            raise typer.Exit(2) from None
+            _refuse(str(e))
+        except typer.BadParameter as e:  # typer's click (it vendors one in recent versions)
+            if any(c.__name__ == "MissingParameter" for c in type(e).__mro__):
+                raise  # a missing argument or option: usage, as for a wrong command or option name
+            _refuse(f"{_hint(e) or ctx.invoked_subcommand}: {e.message}")  # a bad value: one line, no usage
+        except BrokenPipeError:  # the reader went away (`| head -1`): stop quietly
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            raise typer.Exit(0) from None
+
+
+def _refuse(message: str) -> NoReturn:
+    """``bb-align: WHAT: problem`` on stderr, one line, exit code 2."""
+    typer.secho(f"bb-align: {' '.join(message.split())}", err=True, fg="red")
+    raise typer.Exit(2) from None
+
+
+def _hint(e: typer.BadParameter) -> str | None:
+    """What the bad value was given for: '--prior', 'ego_cloud' (click's hint without its quotes)."""
+    if e.param_hint is not None:
+        hints = [e.param_hint] if isinstance(e.param_hint, str) else list(e.param_hint)
+        return " / ".join(hints)
+    if e.param is not None:
+        return " / ".join(e.param.opts) or e.param.name
+    return None
 
 
 # Plain help and errors (rich_markup_mode=None): flags read as flags (`--json`, not `--json <bool>`) and a usage
@@ -114,7 +139,7 @@ def align(
     """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes). Exits 3 when the
     alignment fails (success=false; the reason is printed)."""
     from bb_align.engine.pipeline import Aligner
-    from bb_align.io.clouds import load_boxes, load_cloud
+    from bb_align.io.clouds import load_boxes
 
     if plot is not None:  # fail now, not after the alignment
         from bb_align.io.plot import pyplot
@@ -125,8 +150,9 @@ def align(
     if bev_over:
         cfg = cfg.model_copy(update={"bev": cfg.bev.model_copy(update=bev_over)})
     aligner = Aligner(cfg)
-    ego = aligner.prepare(load_cloud(ego_cloud), load_boxes(ego_boxes) if ego_boxes else None, keep_maps=True)
-    peer = aligner.prepare(load_cloud(peer_cloud), load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
+    pts_ego, pts_peer = _points(ego_cloud), _points(peer_cloud)
+    ego = aligner.prepare(pts_ego, load_boxes(ego_boxes) if ego_boxes else None, keep_maps=True)
+    peer = aligner.prepare(pts_peer, load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
     T_prior = _load_prior(prior) if prior is not None else None
     result = aligner.align(ego, peer, T_prior=T_prior)
     if plot is not None:
@@ -167,23 +193,46 @@ def align(
 ALIGN_FAILED = 3  # exit code of `bb-align align` when the alignment failed
 
 
+def _points(path: Path):
+    """A cloud with at least one point: an empty file or one without a finite x, y, z is bad input (exit 2), not a
+    failed alignment (exit 3)."""
+    from bb_align.io.clouds import load_cloud
+
+    pts = load_cloud(path)
+    if len(pts) == 0:
+        raise InputFileError(f"{path}: no point with a finite x, y, z (an empty cloud)")
+    return pts
+
+
 def _load_prior(path: Path):
     """A prior T_ego_peer from a plain-text 4x4 (or 3x3 ground-plane) matrix, checked to be a rigid transform."""
     import numpy as np
 
+    shapes = "a 4x4 rigid transform [R t; 0 0 0 1] or a 3x3 ground-plane one [cos -sin tx; sin cos ty; 0 0 1]"
     try:
         T = np.loadtxt(path, ndmin=2)
     except ValueError as e:
-        raise typer.BadParameter(f"{path}: not a plain-text matrix ({e})", param_hint="--prior") from None
-    if T.shape not in {(4, 4), (3, 3)} or not np.all(np.isfinite(T)):
         raise typer.BadParameter(
-            f"{path}: expected a finite 4x4 or 3x3 matrix, got shape {T.shape}", param_hint="--prior"
+            f"{path}: not a plain-text matrix ({e}); expected {shapes}", param_hint="--prior"
+        ) from None
+    if T.shape not in {(4, 4), (3, 3)}:
+        raise typer.BadParameter(
+            f"{path}: got a {'x'.join(map(str, T.shape))} matrix; expected {shapes}", param_hint="--prior"
         )
+    if not np.all(np.isfinite(T)):
+        raise typer.BadParameter(f"{path}: the matrix holds NaN or inf; expected {shapes}", param_hint="--prior")
     n = T.shape[0] - 1
     R = T[:n, :n]
-    if not np.allclose(R @ R.T, np.eye(n), atol=1e-3) or not np.allclose(T[n], np.eye(n + 1)[n], atol=1e-6):
+    if not np.allclose(T[n], np.eye(n + 1)[n], atol=1e-6):
         raise typer.BadParameter(
-            f"{path}: the matrix is not a rigid transform (rotation and [0 .. 0 1])", param_hint="--prior"
+            f"{path}: the last row is {T[n].tolist()}, not {np.eye(n + 1)[n].tolist()}: expected {shapes}"
+            + (" (a 3x3 rotation alone is not a prior: give the 4x4 with its translation)" if n == 2 else ""),
+            param_hint="--prior",
+        )
+    if not np.allclose(R @ R.T, np.eye(n), atol=1e-3) or np.linalg.det(R) < 0:
+        raise typer.BadParameter(
+            f"{path}: the top-left {n}x{n} block is not a rotation (R R^T = I, det +1): expected {shapes}",
+            param_hint="--prior",
         )
     return T
 

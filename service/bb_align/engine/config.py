@@ -12,10 +12,13 @@ Zenoh, limits) live in ``bb_align.server.settings`` and embed an :class:`AlignCo
 
 from __future__ import annotations
 
+import difflib
 import json
+import typing
+from collections.abc import Mapping
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 
 class _Frozen(BaseModel):
@@ -837,3 +840,54 @@ def with_overrides(cfg: AlignConfig, overrides: list[str] | tuple[str, ...]) -> 
             raise ValueError(f"override {o!r}: expected section.key=JSON with a section of AlignConfig")
         data[section][name] = json.loads(value)
     return AlignConfig.model_validate(data)
+
+
+def _field_names_at(model: type[BaseModel], loc: tuple) -> list[str]:
+    """The field names of the (sub)model that holds the last element of ``loc`` ([] if the path leaves models)."""
+    for part in loc[:-1]:
+        field = model.model_fields.get(str(part))
+        if field is None:
+            return []
+        kinds = [field.annotation, *typing.get_args(field.annotation)]
+        model = next((k for k in kinds if isinstance(k, type) and issubclass(k, BaseModel)), None)
+        if model is None:
+            return []
+    return list(model.model_fields)
+
+
+def nearest_setting(model: type[BaseModel], loc: tuple) -> tuple | None:
+    """The valid setting nearest in spelling to the unknown one at ``loc`` (same section), e.g. ('bev', 'range_m')
+    for ('bev', 'range_mm'); None when nothing is close."""
+    close = difflib.get_close_matches(str(loc[-1]), _field_names_at(model, loc), n=1, cutoff=0.6)
+    return (*loc[:-1], close[0]) if close else None
+
+
+def describe_errors(
+    error: ValidationError, model: type[BaseModel], env_prefix: str = "", environ: Mapping[str, str] | None = None
+) -> str:
+    """A pydantic error in one line: each wrong setting with what it must be, an unknown one with the nearest valid
+    name ("did you mean"). With ``env_prefix``, a setting that came from ``environ`` is named as its variable
+    (``BBALIGN_ALIGN__BEV__RANGE_MM``: nested sections joined by ``__``), its nearest valid one too."""
+    env = {k.upper() for k in (environ or {})}
+    parts = []
+    for err in error.errors():
+        loc = tuple(err["loc"])
+        if not loc and err["type"] == "value_error":  # a retired setting (RETIRED): the message names it
+            parts.append(err["msg"].removeprefix("Value error, "))
+            continue
+        from_env = bool(env_prefix) and _env_name(env_prefix, loc) in env
+
+        def name(path: tuple, from_env: bool = from_env) -> str:
+            return _env_name(env_prefix, path) if from_env else ".".join(str(p) for p in path) or "(top level)"
+
+        if err["type"] == "extra_forbidden" and loc:
+            near = nearest_setting(model, loc)
+            parts.append(f"{name(loc)}: no such setting" + (f" (did you mean {name(near)}?)" if near else ""))
+            continue
+        got = "" if err["type"] in ("missing", "json_invalid") else f" (got {err.get('input')!r})"
+        parts.append(f"{name(loc)}: {err['msg']}{got}")
+    return "; ".join(parts)
+
+
+def _env_name(prefix: str, loc: tuple) -> str:
+    return prefix + "__".join(str(p) for p in loc).upper()

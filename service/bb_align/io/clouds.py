@@ -74,10 +74,14 @@ def _read_npy(path: Path) -> np.ndarray:
 def _read_pcd(path: Path) -> np.ndarray:
     from pypcd4 import PointCloud
 
+    from .pcd import check_pcd_header
+
+    check_pcd_header(path)  # every number in the header bounded by the file's size, before pypcd4 allocates
     try:
         pc = PointCloud.from_path(path)
-    except Exception as e:  # pypcd4 raises many kinds on a malformed header or body
-        raise InputFileError(f"{path}: not a readable PCD file ({type(e).__name__}: {e})") from None
+    except Exception as e:  # pypcd4 raises many kinds on a malformed header or body (pydantic's on many lines)
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise InputFileError(f"{path}: not a readable PCD file ({type(e).__name__}: {first})") from None
     fields = [f for f in ("x", "y", "z", "intensity") if f in pc.fields]
     missing = [f for f in ("x", "y", "z") if f not in fields]
     if missing:

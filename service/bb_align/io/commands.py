@@ -8,6 +8,8 @@ from pathlib import Path
 
 import typer
 
+from .defaults import DESKEW_DEFAULT, DESKEW_HELP
+
 
 def parse_pose_noise(text: str) -> tuple[float, float]:
     try:
@@ -58,6 +60,7 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
             None, exists=True, dir_okay=False, help="an AlignConfig as JSON or YAML (`bb-align config --dump`)"
         ),
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+        deskew: bool = typer.Option(DESKEW_DEFAULT, "--deskew/--no-deskew", help=DESKEW_HELP),
     ) -> None:
         """Recover each non-ego agent's pose relative to the ego, frame by frame, and write a copy of the
         dataset to OUT with the recovered lidar_pose (failures keep the reported one) plus
@@ -68,12 +71,25 @@ def register(app: typer.Typer, simulated_detections: Callable[[int], object] | N
         the recovered transform (x, y, yaw recovered; z, roll, pitch kept)."""
         _recover(
             root, out, prior, track, detections, simulate_detections, pose_noise, seed, copy, limit, config, quiet,
-            simulated_detections,
+            simulated_detections, deskew,
         )  # fmt: skip
 
 
 def _recover(
-    root, out, prior, track, detections, simulate_detections, pose_noise, seed, copy, limit, config, quiet, simulated
+    root,
+    out,
+    prior,
+    track,
+    detections,
+    simulate_detections,
+    pose_noise,
+    seed,
+    copy,
+    limit,
+    config,
+    quiet,
+    simulated,
+    deskew,
 ) -> None:
     """The ``recover`` command's work (its options as named there; ``simulated``: register's factory)."""
     from .config_file import load_align_config
@@ -94,6 +110,7 @@ def _recover(
         pose_noise_deg=sigma_deg,
         seed=seed,
         link=not copy,
+        deskew=deskew,
     )
     dair = is_dair_root(root)
     typer.echo(f"detections: {'labels' if dair and isinstance(source, YamlDetections) else source.name}")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from bb_align.engine.config import AlignConfig
+from bb_align.engine.config import AlignConfig, describe_errors
 
 
 def load_align_config(path: str | Path | None) -> AlignConfig:
@@ -26,20 +26,6 @@ def load_align_config(path: str | Path | None) -> AlignConfig:
             return AlignConfig.model_validate(data)
         return AlignConfig.model_validate_json(path.read_text())
     except ValidationError as e:
-        raise ValueError(f"{path}: {_one_line(e)}") from None
+        raise ValueError(f"{path}: {describe_errors(e, AlignConfig)}") from None
     except ValueError as e:  # not JSON / YAML at all
         raise ValueError(f"{path}: {str(e).splitlines()[0]}") from None
-
-
-def _one_line(error: ValidationError) -> str:
-    """Each wrong field with what it must be, e.g. 'bev.range_m: Input should be greater than 0 (got -5)'."""
-    parts = []
-    for err in error.errors():
-        field = ".".join(str(p) for p in err["loc"])
-        if not field and err["type"] == "value_error":  # a retired setting (engine.config.RETIRED): names itself
-            parts.append(err["msg"].removeprefix("Value error, "))
-            continue
-        quiet = err["type"] in ("missing", "extra_forbidden", "json_invalid")
-        got = "" if quiet else f" (got {err.get('input')!r})"
-        parts.append(f"{field or '(top level)'}: {err['msg']}{got}")
-    return "; ".join(parts)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -199,6 +200,18 @@ def _offset(value, where: str) -> tuple[float, float] | None:
     return dx, dy
 
 
+def inside(base: Path, relative, where: str) -> Path:
+    """``base / relative`` for a path read from the dataset, refused (ValueError naming ``where``) when it is
+    absolute or leaves ``base``, by ``..`` or through a symbolic link: the dataset names files inside itself."""
+    if not isinstance(relative, str) or not relative or Path(relative).is_absolute():
+        raise ValueError(f"{where}: {relative!r} is not a path relative to {base} (outside the dataset root)")
+    base = Path(os.path.normpath(base))
+    path = Path(os.path.normpath(base / relative))
+    if not path.is_relative_to(base) or not path.resolve().is_relative_to(base.resolve()):
+        raise ValueError(f"{where}: {relative!r} leads outside the dataset root {base}")
+    return path
+
+
 def read_pairs(root: str | Path) -> tuple[list[DairPair], list[str]]:
     """The cooperative frames whose files are all present, and a note for each entry left out (missing files,
     a vehicle frame listed twice). ``root``: the cooperative folder or its parent."""
@@ -219,14 +232,14 @@ def read_pairs(root: str | Path) -> tuple[list[DairPair], list[str]]:
             raise ValueError(f"{where}: missing {', '.join(missing)}")
         veh = Path(e["vehicle_pointcloud_path"]).stem
         inf = Path(e["infrastructure_pointcloud_path"]).stem
-        calib = base / (e.get("calib_lidar_i2v_path") or f"cooperative/calib/lidar_i2v/{veh}.json")
+        calib = e.get("calib_lidar_i2v_path") or f"cooperative/calib/lidar_i2v/{veh}.json"
         pair = DairPair(
             i,
             veh,
             inf,
-            base / e["vehicle_pointcloud_path"],
-            base / e["infrastructure_pointcloud_path"],
-            calib,
+            inside(base, e["vehicle_pointcloud_path"], f"{where}.vehicle_pointcloud_path"),
+            inside(base, e["infrastructure_pointcloud_path"], f"{where}.infrastructure_pointcloud_path"),
+            inside(base, calib, f"{where}.calib_lidar_i2v_path"),
             base / EGO / "label" / "lidar" / f"{veh}.json",
             base / PEER / "label" / "virtuallidar" / f"{inf}.json",
             _offset(e.get("system_error_offset"), where),

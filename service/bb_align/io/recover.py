@@ -46,7 +46,9 @@ from bb_align.engine.pipeline import Aligner
 from bb_align.engine.result import AlignResult
 
 from .dataset import AgentFrame, FrameGroup, iter_frames, parse_lidar_pose, world_to_x_pose, x_to_world
+from .defaults import DESKEW_DEFAULT, DESKEW_HELP
 from .detections import DetectionDir, boxes_from_array
+from .sweeps import deskewed
 
 JSONL_NAME = "recovered_poses.jsonl"
 SUMMARY_NAME = "recover_summary.json"
@@ -98,6 +100,7 @@ class RecoverConfig(BaseModel):
     frame_period_s: float = Field(
         0.1, gt=0, description="with track: the time of frame k when a yaml has no timestamp_s"
     )
+    deskew: bool = Field(DESKEW_DEFAULT, description=DESKEW_HELP)
 
 
 # ---- detections ----------------------------------------------------------------------------------------------
@@ -355,7 +358,30 @@ def _check_paths(root: Path, out: Path) -> tuple[Path, Path]:
         raise ValueError(f"OUT {out} must not be ROOT or inside it (ROOT is never modified)")
     if root.is_relative_to(out):
         raise ValueError(f"OUT {out} must not contain ROOT {root}")
+    _no_link_out_of(root)
     return root, out
+
+
+def _no_link_out_of(root: Path) -> None:
+    """Refuse (ValueError) a symbolic link under ROOT that leads outside it: nothing outside ROOT is read, or
+    copied into OUT, through one. Links that stay inside ROOT are fine."""
+    for dirpath, dirs, files in os.walk(root):  # does not descend into linked folders; they are checked here
+        for name in (*dirs, *files):
+            path = Path(dirpath) / name
+            if path.is_symlink() and not path.resolve().is_relative_to(root):
+                raise ValueError(
+                    f"{path}: a symbolic link out of the dataset root (to {path.resolve()}); recover reads only "
+                    "inside ROOT (give the linked folder's real path as ROOT, or copy it in)"
+                )
+
+
+def _out_path(out: Path, root: Path, src: Path) -> Path:
+    """Where ``src`` (a file of ROOT) goes in OUT; refused (ValueError) if that is not inside OUT."""
+    src = Path(os.path.normpath(src))
+    dest = out / src.relative_to(root) if src.is_relative_to(root) else src
+    if not dest.is_relative_to(out) or not dest.resolve().is_relative_to(out):
+        raise ValueError(f"{src}: would be written to {dest}, outside OUT {out}")
+    return dest
 
 
 def _flat(d: dict, prefix: str = "") -> dict:
@@ -409,7 +435,7 @@ def _mirror(root: Path, out: Path, skip: set[Path], link: bool) -> int:
             src = Path(dirpath) / f
             if src in skip:
                 continue
-            dest = out / src.relative_to(root)
+            dest = _out_path(out, root, src)
             if dest.is_file() and dest.stat().st_size == src.stat().st_size:
                 continue
             _atomic_copy(src, dest, link)
@@ -513,13 +539,15 @@ def _recover_group(
     def raw_yaml(agent: AgentFrame) -> dict:
         return yaml.safe_load((scen_dir / agent.agent / f"{g.timestamp}.yaml").read_text())
 
-    def boxes(agent: AgentFrame, pts: np.ndarray):
+    def sent(agent: AgentFrame):
+        """The agent's cloud and boxes as its car sends them (de-skewed with ``cfg.deskew``, as eval and track)."""
+        pts = agent.load_points()
         b = detections(agent, pts)
-        return None if b is None else as_boxes(b)
+        b = None if b is None else as_boxes(b)
+        return deskewed(agent, pts, b) if cfg.deskew else (pts, b)
 
     ego = g.ego
-    ego_pts = ego.load_points()
-    ego_boxes = boxes(ego, ego_pts)
+    ego_pts, ego_boxes = sent(ego)
     ego_pose = raw_yaml(ego)["lidar_pose"]
     metas, peers = {}, []
     for p in g.peers:
@@ -530,8 +558,8 @@ def _recover_group(
             )
             meta["lidar_pose"] = noisy_pose_value(meta["lidar_pose"], rng, cfg.pose_noise_t_m, cfg.pose_noise_deg)
         metas[p.agent] = meta
-        pts = p.load_points()
-        peers.append(PeerInput(p.agent, pts, boxes(p, pts), meta["lidar_pose"]))
+        pts, p_boxes = sent(p)
+        peers.append(PeerInput(p.agent, pts, p_boxes, meta["lidar_pose"]))
     t = ego.extra.get("timestamp_s")
     stamp = float(t) if t is not None else int(g.timestamp) * cfg.frame_period_s if g.timestamp.isdigit() else 0.0
     recs = recover_peers(
@@ -540,7 +568,7 @@ def _recover_group(
     rows = []
     for r in recs:
         meta = {**metas[r.agent], "lidar_pose": r.pose_value}
-        dest = out / (scen_dir / r.agent / f"{g.timestamp}.yaml").relative_to(root)
+        dest = _out_path(out, root, scen_dir / r.agent / f"{g.timestamp}.yaml")
         _atomic_text(dest, yaml.safe_dump(meta, sort_keys=False, default_flow_style=None))
         rows.append(_row(g.scenario, g.timestamp, ego.agent, None if ego_boxes is None else len(ego_boxes), r))
     return rows
@@ -617,7 +645,7 @@ def _recover_dair_pair(g: FrameGroup, pair, base: Path, root: Path, out: Path, a
         use_prior=cfg.use_prior,
     )
     template = json.loads(pair.lidar_i2v.read_text())
-    dest = out / pair.lidar_i2v.relative_to(root)
+    dest = _out_path(out, root, pair.lidar_i2v)
     _atomic_text(dest, calib_text(np.asarray(rec.pose_value, dtype=float), template))
     row = _row("", pair.vehicle_id, ego.agent, None if ego_boxes is None else len(ego_boxes), rec)
     row["infrastructure_frame"] = pair.infra_id

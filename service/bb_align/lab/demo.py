@@ -188,7 +188,7 @@ def _encode_scene(scenario, names: dict, n_frames: int, bev: dict, rng, make_fra
     in s) with the ego first; the true and the reported (noisy) poses by (seq, name). A frame's stamp is its scene
     time on the clock the publisher starts. ``odometry``: agent id -> PoseSensors (each car's odometry), or None.
     Each sweep is de-skewed with its car's motion, as a sender does (README: De-skew your sweeps)."""
-    from .evaluation.runner import deskew_boxes
+    from bb_align.io.sweeps import deskew_boxes
 
     frames, truth, reported = [], {}, {}
     order = ["0"] + [a for a in scenario.agent_ids if a != "0"]

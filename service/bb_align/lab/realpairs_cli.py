@@ -14,7 +14,12 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Argument(
             Path("../shared/data"), file_okay=False, help="folder of real scans and their reference poses"
         ),
-        out: Path = typer.Option(Path("docs/real_pairs"), file_okay=False, help="where the tables and plot go"),
+        out: Path | None = typer.Option(
+            None, file_okay=False, help="where the tables and plot go (default: out/real_pairs; --record: docs/)"
+        ),
+        record: bool = typer.Option(
+            False, "--record", help="write into docs/real_pairs (the recorded output the docs cite)"
+        ),
         group: list[str] = typer.Option(
             [], "--group", help="only these groups: far, near, no_overlap (repeatable; default: all)"
         ),
@@ -27,6 +32,9 @@ def register(app: typer.Typer) -> None:
         the summary and a plot to OUT (docs/real_pairs.md explains the scoring)."""
         from bb_align.io.config_file import load_align_config
         from bb_align.lab import realpairs
+        from bb_align.lab.recording import output_path
+
+        out = out or output_path("docs/real_pairs", record)
 
         if not data.is_dir():
             raise typer.BadParameter(f"{data} is not a folder of real scans", param_hint="DATA")

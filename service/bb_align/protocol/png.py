@@ -14,13 +14,19 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 _MAX_CHUNK = 2**31 - 1  # the PNG specification's largest chunk length
+# The ancillary chunks a greyscale BV image may carry: fixed-size, never compressed, each at most once (the PNG
+# specification's rule). Text (tEXt, zTXt, iTXt), ICC profiles (iCCP) and any other ancillary chunk are refused at
+# once: zTXt and iCCP hold zlib streams a decoder inflates (hundreds of them kept libpng busy for 40 s).
+ANCILLARY_ALLOWED = frozenset({b"gAMA", b"sRGB", b"pHYs", b"tIME", b"cHRM", b"sBIT", b"bKGD"})
+_MAX_ANCILLARY_BYTES = 64  # the largest allowed one (cHRM) is 32 bytes
 
 
 def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> None:
     """The whole PNG structure, before any decoder sees it (raises WireError 422 naming ``field``).
 
     Signature; every chunk inside the file with a correct CRC; IHDR first: 8-bit greyscale, not interlaced,
-    square, at most ``limits.max_image_px`` and exactly ``size_px`` a side; consecutive IDAT chunks whose total
+    square, at most ``limits.max_image_px`` and exactly ``size_px`` a side; ancillary chunks only from
+    ``ANCILLARY_ALLOWED``, each once and small (nothing else to inflate); consecutive IDAT chunks whose total
     is neither absurdly small (decoded/compressed over ``limits.max_png_ratio``) nor larger than an uncompressed
     image needs; no unknown critical chunk; IEND last, nothing after it. Then the image data is inflated with an
     output bound of the size the header implies (a decompression bomb stops there) and must fill it exactly,
@@ -28,6 +34,7 @@ def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> 
     if len(data) < 8 + 25 + 12 or data[:8] != _PNG_SIGNATURE:
         raise invalid(field, "not a PNG file (bad signature or truncated)")
     pos, chunks, idat, idat_total, idat_closed, ended = 8, 0, [], 0, False, False
+    ancillary: set[bytes] = set()
     width = height = 0
     while pos < len(data):
         if pos + 12 > len(data):
@@ -63,12 +70,27 @@ def check_png(data: bytes, size_px: int, limits: Limits, field: str = "png") -> 
             break
         elif ctype == b"IHDR" or not ctype[:1].islower():
             raise invalid(field, f"unexpected critical PNG chunk {ctype!r} (a greyscale PNG has IHDR, IDAT, IEND)")
+        else:
+            _check_ancillary(ctype, length, ancillary, field)
         if idat and ctype != b"IDAT":
             idat_closed = True
         pos = end
     if not ended or pos != len(data):
         raise invalid(field, "PNG must end with its IEND chunk" if not ended else "bytes after the PNG's IEND")
     _check_image_data(idat, idat_total, width, height, limits, field)
+
+
+def _check_ancillary(ctype: bytes, length: int, seen: set[bytes], field: str) -> None:
+    """An ancillary chunk: one of ``ANCILLARY_ALLOWED``, at most once, at most ``_MAX_ANCILLARY_BYTES``."""
+    what = ctype.decode("latin-1") if ctype.isalpha() else repr(ctype)
+    if ctype not in ANCILLARY_ALLOWED:
+        allowed = ", ".join(sorted(c.decode() for c in ANCILLARY_ALLOWED))
+        raise invalid(field, f"PNG ancillary chunk {what} is not accepted (allowed: {allowed}; no text or ICC chunks)")
+    if ctype in seen:
+        raise invalid(field, f"PNG ancillary chunk {what} appears more than once")
+    if length > _MAX_ANCILLARY_BYTES:
+        raise invalid(field, f"PNG {what} chunk of {length} bytes (at most {_MAX_ANCILLARY_BYTES})")
+    seen.add(ctype)
 
 
 def _check_ihdr(body: bytes, size_px: int, limits: Limits, field: str) -> tuple[int, int]:

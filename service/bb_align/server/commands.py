@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -41,6 +42,8 @@ def serve(
     stop taking messages, finish or answer what was accepted, close Zenoh, exit 0."""
     from pydantic import ValidationError
 
+    from bb_align.engine.config import describe_errors
+
     from .settings import Settings
 
     zenoh = {k: v for k, v in (("listen", zenoh_listen), ("connect", zenoh_connect), ("mode", zenoh_mode)) if v}
@@ -55,14 +58,37 @@ def serve(
         given["limits"] = {"replay": True}
     try:
         settings = Settings(**given, **({"zenoh": zenoh} if zenoh else {}))
-    except ValidationError as e:
-        raise typer.BadParameter(str(e)) from None
-    problem = settings.startup_problem() or busy_port(settings)
+        problem = _unknown_variable(os.environ)
+    except ValidationError as e:  # one line, an environment variable named as such ("did you mean" for a typo)
+        problem = describe_errors(e, Settings, ENV_PREFIX, os.environ)
+    if problem is None:
+        problem = settings.startup_problem() or busy_port(settings)
     if problem is not None:
         typer.secho(f"bb-align serve: {problem}", err=True, fg="red")
         raise typer.Exit(2)
     typer.echo(banner(settings))
     run_server(settings, log_level)
+
+
+ENV_PREFIX = "BBALIGN_"
+
+
+def _unknown_variable(environ) -> str | None:
+    """A BBALIGN_* variable that names no setting (pydantic-settings ignores those at the top level), with the
+    nearest valid name; None when all are known. Nested ones (``__``) are checked by the settings' validation."""
+    from bb_align.engine.config import nearest_setting
+
+    from .settings import Settings
+
+    for var in sorted(environ):
+        if not var.upper().startswith(ENV_PREFIX):
+            continue
+        top = var[len(ENV_PREFIX) :].split("__")[0].lower()
+        if top not in Settings.model_fields:
+            near = nearest_setting(Settings, (top,))
+            hint = f" (did you mean {ENV_PREFIX}{near[0].upper()}?)" if near else ""
+            return f"{var}: no such setting{hint}"
+    return None
 
 
 def _listen_addresses(settings) -> list[tuple[str, int, str]]:

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import typer
 
+from bb_align.io.defaults import DESKEW_DEFAULT, DESKEW_HELP
+
 
 def _git_commit() -> str | None:
     try:
@@ -230,12 +232,7 @@ def register(app: typer.Typer) -> None:
             help="simulate every agent's detections from its ground-truth labels (detector model); without it, "
             "agents with no detections have none and stage 2 is skipped",
         ),
-        deskew: bool = typer.Option(
-            True,
-            "--deskew/--no-deskew",
-            help="de-skew each cloud whose yaml carries its sweep's motion ('sweep_twist': the simulator's sweeps "
-            "rendered with self-motion distortion), as a sender with odometry does before it encodes",
-        ),
+        deskew: bool = typer.Option(DESKEW_DEFAULT, "--deskew/--no-deskew", help=DESKEW_HELP),
         system_error_offset: bool = typer.Option(
             False,
             "--system-error-offset",

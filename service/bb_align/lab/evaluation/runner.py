@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from bb_align.engine.boxes import transform_boxes
 from bb_align.engine.config import AlignConfig
+from bb_align.engine.deskew import deskew_sweep
 from bb_align.engine.geometry import (
     ground_se2,
     pose_error,
@@ -33,8 +34,9 @@ from bb_align.engine.matching import match_descriptors
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.verdict import STAGE2_FAILURES
 from bb_align.io.dataset import AgentFrame, FrameGroup, iter_frames
+from bb_align.io.defaults import DESKEW_DEFAULT, DESKEW_HELP
 from bb_align.io.detections import DetectionDir, load_detection_file
-from bb_align_client.deskew import deskew_sweep, firing_times
+from bb_align.io.sweeps import deskew_boxes, sweep_twist
 
 from ..sim.detections import DetectionModel, detect, frame_rng, points_per_vehicle, vehicles_in_sensor
 from .ap import match_frame, nms_bev
@@ -64,11 +66,7 @@ class EvalConfig(BaseModel):
     pose_noise_t_m: float = Field(2.0, ge=0, description="sigma_t of the peer pose noise for the AP test")
     pose_noise_deg: float = Field(2.0, ge=0, description="sigma_theta of the peer pose noise for the AP test")
     use_prior: bool = Field(False, description="give the engine the noisy pose as a GNSS-grade prior (T_prior)")
-    deskew: bool = Field(
-        True,
-        description="de-skew each cloud whose yaml carries its sweep's motion ('sweep_twist', the simulator's "
-        "distorted sweeps) as a sender with odometry does (bb_align_client.deskew_sweep); its boxes move with it",
-    )
+    deskew: bool = Field(DESKEW_DEFAULT, description=DESKEW_HELP)
     common_min_points: int = Field(10, ge=1, description="a car is 'seen' by an agent with this many points")
     nms_iou: float = Field(0.15, gt=0, le=1, description="late-fusion NMS threshold (OpenCOOD's)")
     system_error_offset: bool = Field(
@@ -151,55 +149,11 @@ class _Agent:
     deskewed: bool
 
 
-def _sweep_twist(agent: AgentFrame) -> tuple[tuple[float, float], float, float] | None:
-    """((vx, vy) m/s, yaw rate rad/s, period s) from the yaml's ``sweep_twist``, or None (a de-skewed cloud)."""
-    tw = agent.extra.get("sweep_twist")
-    if tw is None:
-        return None
-    try:
-        return (float(tw["vx_mps"]), float(tw["vy_mps"])), float(tw["yaw_rate_rps"]), float(tw["period_s"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(
-            f"{agent.scenario}/{agent.agent}/{agent.timestamp}: sweep_twist must map vx_mps, vy_mps, yaw_rate_rps and "
-            f"period_s to numbers, got {tw!r}"
-        ) from exc
-
-
-def deskew_boxes(boxes: np.ndarray, velocity, yaw_rate: float, period_s: float) -> np.ndarray:
-    """(K, 7) boxes drawn on a sweep that was not de-skewed, moved as ``deskew_sweep`` moves the points at their
-    centres: the centre and a point 1 m ahead of it along the heading are de-skewed, the heading follows them."""
-    boxes = np.array(boxes, dtype=np.float64, copy=True).reshape(-1, 7)
-    if not len(boxes):
-        return boxes
-    ahead = boxes[:, :3].copy()
-    ahead[:, 0] += np.cos(boxes[:, 6])
-    ahead[:, 1] += np.sin(boxes[:, 6])
-    # the nose takes the centre's firing time: both points are moved by one rigid motion
-    times = firing_times(boxes[:, :3], period_s)
-    centre = deskew_sweep(boxes[:, :3], velocity, yaw_rate, times_s=times, period_s=period_s)
-    nose = deskew_sweep(ahead, velocity, yaw_rate, times_s=times, period_s=period_s)
-    boxes[:, :2] = centre[:, :2]
-    boxes[:, 6] = np.arctan2(nose[:, 1] - centre[:, 1], nose[:, 0] - centre[:, 0])
-    return boxes
-
-
-def deskewed(agent: AgentFrame, pts: np.ndarray, boxes: np.ndarray | None):
-    """A simulated sweep and the boxes detected on it, de-skewed with the sweep's motion (the yaml's
-    ``sweep_twist``) as a sender with odometry does; unchanged when the yaml has none (a de-skewed cloud)."""
-    twist = _sweep_twist(agent)
-    if twist is None:
-        return pts, boxes
-    pts = deskew_sweep(pts, *twist[:2], period_s=twist[2]).astype(pts.dtype)
-    if boxes is not None and len(boxes):
-        boxes = deskew_boxes(np.asarray(boxes, dtype=float), *twist[:2], twist[2])
-    return pts, boxes
-
-
 def _load_agent(agent: AgentFrame, aligner: Aligner, cfg: EvalConfig, scenario: str, ts: str) -> _Agent:
     pts = agent.load_points()
     ids, gt = vehicles_in_sensor(agent)
     seen = points_per_vehicle(agent, pts, gt, ids)
-    twist = _sweep_twist(agent) if cfg.deskew else None
+    twist = sweep_twist(agent) if cfg.deskew else None
     if twist is not None:
         pts = deskew_sweep(pts, *twist[:2], period_s=twist[2]).astype(pts.dtype)
         # the simulator labels a car its sweep hit where the distorted sweep shows it, the others at mid-sweep

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from bb_align.io.defaults import DESKEW_DEFAULT, DESKEW_HELP
+
 
 def register(app: typer.Typer) -> None:
     @app.command("track")
@@ -17,9 +19,7 @@ def register(app: typer.Typer) -> None:
         records_out: Path | None = typer.Option(None, "--records", help="write every frame's record (JSON lines)"),
         odometry: bool = typer.Option(True, "--odometry/--no-odometry", help="fuse the yaml's odometry_pose"),
         gnss: bool = typer.Option(True, "--gnss/--no-gnss", help="the yaml's gnss_pose as the acquisitions' prior"),
-        deskew: bool = typer.Option(
-            True, "--deskew/--no-deskew", help="de-skew the sweeps with the yaml's sweep_twist, as a sender does"
-        ),
+        deskew: bool = typer.Option(DESKEW_DEFAULT, "--deskew/--no-deskew", help=DESKEW_HELP),
         limit: int | None = typer.Option(None, "--limit", min=1, help="replay at most this many sequences"),
         max_frames: int | None = typer.Option(None, "--frames", min=1, help="only the first frames of each"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes (one sequence each)"),

@@ -22,7 +22,8 @@ from bb_align.engine.follow import Follower
 from bb_align.engine.geometry import ground_se2, log_left, pose_error, se2_params, wrap_angle
 from bb_align.engine.pipeline import Aligner
 from bb_align.io.dataset import FrameGroup, iter_scenario_frames, parse_lidar_pose
-from bb_align.lab.evaluation.runner import deskewed
+from bb_align.io.defaults import DESKEW_DEFAULT, DESKEW_HELP
+from bb_align.io.sweeps import deskewed
 
 
 class ReplayConfig(BaseModel):
@@ -33,11 +34,7 @@ class ReplayConfig(BaseModel):
     use_gnss: bool = Field(
         True, description="the yaml's gnss_pose (reported poses) as the acquisitions' prior, as the service does"
     )
-    deskew: bool = Field(
-        True,
-        description="de-skew each sweep whose yaml carries its motion ('sweep_twist', the simulator's distorted "
-        "sweeps) as a sender with odometry does (README: De-skew your sweeps); False: as recorded",
-    )
+    deskew: bool = Field(DESKEW_DEFAULT, description=DESKEW_HELP)
     frame_period_s: float = Field(0.1, gt=0, description="stamp of frame k when a yaml has no timestamp_s")
     max_frames: int | None = Field(None, ge=1, description="replay only the first frames of each sequence")
 

@@ -19,19 +19,24 @@ from pathlib import Path
 import numpy as np
 
 from bb_align.io.dataset import AgentFrame, find_scenarios, iter_scenario_frames, parse_lidar_pose
+from bb_align.io.defaults import DESKEW_DEFAULT
+from bb_align.io.sweeps import deskewed
 
-from ..evaluation.runner import deskewed
 from .replay import scored_frame
 
 
-def _frame_bytes(agent: AgentFrame, vehicle_id: str, stamp: float, seq: int, odometry: bool, bev: dict) -> bytes:
+def _frame_bytes(
+    agent: AgentFrame, vehicle_id: str, stamp: float, seq: int, odometry: bool, bev: dict, deskew: bool = DESKEW_DEFAULT
+) -> bytes:
     from bb_align_client import encode_frame
 
     extra = agent.extra
     gnss = parse_lidar_pose(extra["gnss_pose"]) if "gnss_pose" in extra else None
     odo = parse_lidar_pose(extra["odometry_pose"]) if odometry and "odometry_pose" in extra else None
     scores = None if agent.detection_scores is None else np.clip(agent.detection_scores, 0.0, 1.0)
-    pts, boxes = deskewed(agent, agent.load_points(), agent.detections)  # as a sender with odometry does
+    pts, boxes = agent.load_points(), agent.detections
+    if deskew:  # as a sender with odometry does
+        pts, boxes = deskewed(agent, pts, boxes)
     return encode_frame(
         pts,
         boxes,
@@ -55,6 +60,7 @@ def replay_sequence_through_service(
     odometry: bool = True,
     max_frames: int | None = None,
     bev: dict | None = None,
+    deskew: bool = DESKEW_DEFAULT,
     frame_period_s: float = 0.1,
     stamp_offset_s: float = 100.0,
 ) -> list[dict]:
@@ -69,8 +75,8 @@ def replay_sequence_through_service(
         # The yaml's times start near 0 (a mid-sweep time may be slightly negative); wire stamps are >= 0.
         stamp = stamp_offset_s + float(peer.extra.get("timestamp_s", k * frame_period_s))
         body = pack_align_request(
-            _frame_bytes(peer, peer_id, stamp, k, odometry, bev or {}),
-            _frame_bytes(ego, ego_id, stamp, k, odometry, bev or {}),
+            _frame_bytes(peer, peer_id, stamp, k, odometry, bev or {}, deskew),
+            _frame_bytes(ego, ego_id, stamp, k, odometry, bev or {}, deskew),
         )
         t0 = time.perf_counter()
         resp = http.post("/v1/align", content=body, headers={"content-type": MSGPACK})
