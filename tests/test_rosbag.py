@@ -184,7 +184,12 @@ def real_run(shared_data, tmp_path_factory):
     bag = write_bag(frames, tmp / "kitti08")
     runner = CliRunner()
     out = {}
-    for name, src, extra in (("bag", bag, ["--bag-out", str(tmp / "results")]), ("layout", tmp / "layout", [])):
+    runs = (
+        ("bag", bag, ["--bag-out", str(tmp / "results")]),
+        ("layout", tmp / "layout", []),
+        ("service", bag, ["--through-service"]),
+    )
+    for name, src, extra in runs:
         res = runner.invoke(app, ["track", str(src), "--records", str(tmp / f"{name}.jsonl"), "--workers", "1", *extra])
         assert res.exit_code == 0, res.output
         out[name] = [json.loads(line) for line in (tmp / f"{name}.jsonl").read_text().splitlines()]
@@ -203,6 +208,22 @@ def test_a_bag_and_the_yaml_layout_of_the_same_run_give_the_same_answers(real_ru
         np.testing.assert_allclose(a["T_ego_peer"], b["T_ego_peer"], atol=1e-6)
         np.testing.assert_allclose(a["covariance"], b["covariance"], rtol=1e-4, atol=1e-12)
     assert sum(r["success"] for r in bag) >= STEPS - 1, [r["reason"] for r in bag]
+
+
+def test_a_bag_through_a_real_service_gives_the_same_answers(real_run):
+    """`bb-align track BAG --through-service`: the frames go to a `bb-align serve` child as cars send them (BV
+    images as PNG, odometry and GNSS poses on the wire); its answers are the in-process ones on the ground plane
+    (the service's answer also carries the height, roll and pitch the reported poses give; the engine's leaves
+    them 0)."""
+    _, records, _ = real_run
+    assert len(records["service"]) == STEPS
+    for a, b in zip(records["service"], records["bag"]):
+        assert (a["stamp"], a["success"], a["reason"], a["source"], a["state"]) == (
+            b["stamp"], b["success"], b["reason"], b["source"], b["state"],
+        )  # fmt: skip
+        ground = [se2_params(np.array(r["T_ego_peer"])) for r in (a, b)]
+        np.testing.assert_allclose(*ground, atol=1e-6)
+        np.testing.assert_allclose(a["covariance"], b["covariance"], rtol=1e-4, atol=1e-12)
 
 
 def test_the_results_bag_reads_back_with_the_answers_within_their_promise(real_run):

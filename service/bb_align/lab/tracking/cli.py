@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from itertools import islice
 from pathlib import Path
 
 import typer
@@ -36,6 +37,12 @@ def register(app: typer.Typer) -> None:
             "ego_gnss, peer_gnss, ego_reference, peer_reference (empty TOPIC: not used), or max_skew_s=SECONDS "
             "(docs/rosbag.md)",
         ),
+        through_service: bool = typer.Option(
+            False,
+            "--through-service",
+            help="send the frames to a real `bb-align serve` started for the run (loopback, REST, the same config) "
+            "as the cars would, instead of the engine in this process",
+        ),
         bag_out: Path | None = typer.Option(
             None,
             "--bag-out",
@@ -47,7 +54,7 @@ def register(app: typer.Typer) -> None:
         the prediction and fuse) and measure it against the truth: accuracy by distance, wrong answers, whether
         the 3-sigma bound holds the true error, lock losses, time per tracked and per acquired frame."""
         from bb_align.io.config_file import load_align_config
-        from bb_align.io.dataset import find_scenarios
+        from bb_align.io.dataset import find_scenarios, iter_scenario_frames
         from bb_align.io.rosbag import is_bag, read_bag
 
         from ..sim.writer import run_pool
@@ -77,15 +84,22 @@ def register(app: typer.Typer) -> None:
                 f"{root}: {len(run)} frames (peer sweeps paired with an ego sweep; {run.skipped} without one)",
                 err=True,
             )
-            per_sequence = [replay_groups(run.name, run.groups(), cfg, progress=True)]
+            if through_service:  # a bag's stamps are a clock's: already positive wire stamps
+                per_sequence = _through_service([(run.name, run.groups(), 0.0)], cfg)
+            else:
+                per_sequence = [replay_groups(run.name, run.groups(), cfg, progress=True)]
             frame_ids = [run.frame_ids]
         elif root.is_dir():
             scenarios = find_scenarios(root)[:limit]
             if not scenarios:
                 _fail(f"{root}: no sequence folders under it")
-            per_sequence = run_pool(
-                _replay_star, [(name, path, cfg) for name, path in scenarios], workers, "replaying", "sequence"
-            )
+            if through_service:
+                sequences = [(name, islice(iter_scenario_frames(name, path), max_frames), 100.0)
+                             for name, path in scenarios]  # fmt: skip
+                per_sequence = _through_service(sequences, cfg)
+            else:
+                jobs = [(name, path, cfg) for name, path in scenarios]
+                per_sequence = run_pool(_replay_star, jobs, workers, "replaying", "sequence")
             frame_ids = [{"ego": "ego", "peer": "peer"}] * len(per_sequence)
         else:
             _fail(f"{root}: neither a folder of sequences nor a ROS 2 bag (rosbag2 folder, .mcap or .db3)")
@@ -161,3 +175,43 @@ def _write_bags(out: Path, per_sequence: list[list[dict]], frame_ids: list[dict]
             confidence=answer.confidence,
         )
         typer.echo(f"wrote {path}", err=True)
+
+
+def _through_service(sequences: list, cfg) -> list[list[dict]]:
+    """Each (name, frame groups, stamp offset) sent frame by frame to a `bb-align serve` child process started for
+    the run (loopback, REST only, no authentication, stamps not checked against this clock, cfg.align), one peer
+    id per sequence; the service is stopped after."""
+    import tempfile
+
+    import httpx
+    from tqdm import tqdm
+
+    from bb_align.server.settings import Settings
+
+    from ..harness import free_port, start_service
+    from .through_service import replay_groups_through_service
+
+    settings = Settings(
+        profile="demo",  # loopback only, no credentials: the service lives for this run
+        host="127.0.0.1",
+        port=free_port(),
+        zenoh={"enabled": False},
+        align=cfg.align,
+        limits={"check_stamp_clock": False, "rest_rate_hz": 1000.0, "rest_burst": 1000.0},
+    )
+    out = []
+    with tempfile.TemporaryDirectory(prefix="bbalign-track-") as tmp:
+        svc = start_service(settings, None, Path(tmp))
+        try:
+            with httpx.Client(base_url=svc.rest, timeout=300) as http:
+                for i, (name, groups, offset) in enumerate(sequences):
+                    out.append(
+                        replay_groups_through_service(
+                            http, name, tqdm(groups, desc=name, unit="frame", leave=False), f"seq{i}",
+                            odometry=cfg.use_odometry, gnss=cfg.use_gnss, stamp_offset_s=offset,
+                            bev=cfg.align.bev.model_dump(), bev_images=cfg.bev_images,
+                        )
+                    )  # fmt: skip
+        finally:
+            svc.stop()
+    return out
