@@ -144,6 +144,41 @@ def test_sweeps_pair_by_header_time_and_an_unpaired_peer_sweep_is_skipped(tmp_pa
         read_bag(tmp_path / "drive", BagTopics(max_skew_s=0.01))
 
 
+def test_the_lidar_mount_moves_the_poses_onto_the_lidar(tmp_path):
+    bag = write_bag(_tiny_frames(1), tmp_path / "drive")
+    T_base_lidar = np.eye(4)
+    T_base_lidar[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    T_base_lidar[:3, 3] = 1.2, 0.0, 1.8
+    g = next(read_bag(bag, BagTopics(peer_base_to_lidar=T_base_lidar.tolist())).groups())
+    np.testing.assert_allclose(g.peers[0].extra["odometry_pose"], T_base_lidar, atol=1e-12)  # the base is at I
+    np.testing.assert_allclose(g.ego.extra["odometry_pose"], np.eye(4), atol=1e-12)
+    with pytest.raises(ValueError, match="rotation"):
+        BagTopics(ego_base_to_lidar=np.diag([2.0, 1.0, 1.0, 1.0]).tolist())  # a scale is no mount
+
+
+def test_a_bag_without_reference_poses_is_answered_not_scored(tmp_path):
+    """Clouds too sparse to align: every frame refused (with its reason), nothing on /tf, every verdict written."""
+    from rosbags.rosbag2 import Reader
+
+    bag = write_bag(_tiny_frames(3), tmp_path / "drive")
+    args = [
+        "track",
+        str(bag),
+        "--topic",
+        "ego_reference=",
+        "--topic",
+        "peer_reference=",
+        "--bag-out",
+        str(tmp_path / "a"),
+    ]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "3 frames, 0 successful (no reference poses: not scored); refused too_few_points: 3" in res.stdout
+    with Reader(tmp_path / "a") as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    assert counts["/tf"] == counts["/bb_align/peer_pose"] == 0 and counts["/bb_align/verdict"] == 3
+
+
 def _one_line_exit_2(result, *words):
     assert result.exit_code == 2, result.output
     lines = result.stderr.strip().splitlines()
