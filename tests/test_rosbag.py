@@ -8,6 +8,7 @@ the answers' poses, each successful one within the answer's promise of the run's
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -177,6 +178,77 @@ def test_a_bag_without_reference_poses_is_answered_not_scored(tmp_path):
     with Reader(tmp_path / "a") as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
     assert counts["/tf"] == counts["/bb_align/peer_pose"] == 0 and counts["/bb_align/verdict"] == 3
+
+
+def test_a_fix_is_metres_east_and_north_of_the_origin():
+    """The ECEF route of bb_align.io.navsat against the ellipsoid's radii of curvature (an independent formula):
+    100 m north and 100 m east of a point at 48 deg N, to 2 mm (the tangent plane's curvature, under 1 mm here)."""
+    from bb_align.io.navsat import WGS84_A, WGS84_E2, enu
+
+    lat0, lon0, alt0 = 48.1, 11.5, 500.0
+    s2 = np.sin(np.radians(lat0)) ** 2
+    M = WGS84_A * (1 - WGS84_E2) / (1 - WGS84_E2 * s2) ** 1.5  # meridian radius
+    N = WGS84_A / np.sqrt(1 - WGS84_E2 * s2)  # prime vertical radius
+    north = enu((lat0 + np.degrees(100 / (M + alt0)), lon0, alt0), (lat0, lon0, alt0))
+    east = enu((lat0, lon0 + np.degrees(100 / ((N + alt0) * np.cos(np.radians(lat0)))), alt0), (lat0, lon0, alt0))
+    np.testing.assert_allclose(north, [0, 100, 0], atol=2e-3)
+    np.testing.assert_allclose(east, [100, 0, 0], atol=2e-3)
+
+
+def _navsat_bag(out, with_heading: bool = True):
+    """Two cars' clouds, NavSatFix and Imu headings: the ego at the origin fix heading 30 deg (from east,
+    counter-clockwise), the peer 100 m east and 50 m north of it heading 45 deg, both at one stamp."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.LATEST)
+    T = ts.types
+    lat0, lon0 = 48.1, 11.5
+    s2 = np.sin(np.radians(lat0)) ** 2
+    M = 6378137.0 * (1 - 6.69437999014e-3) / (1 - 6.69437999014e-3 * s2) ** 1.5 + 500.0  # at 500 m altitude
+    N = 6378137.0 / np.sqrt(1 - 6.69437999014e-3 * s2) + 500.0
+    fixes = {
+        "ego": (lat0, lon0),
+        "peer": (lat0 + np.degrees(50 / M), lon0 + np.degrees(100 / (N * np.cos(np.radians(lat0))))),
+    }
+    stamp = T["builtin_interfaces/msg/Time"](sec=10, nanosec=0)
+    header = T["std_msgs/msg/Header"](stamp=stamp, frame_id="gps")
+    rec = np.zeros(1500, np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")]))
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for car, yaw in (("ego", 30.0), ("peer", 45.0)):
+            cloud = replace(_cloud_msg(T, rec, [("x", 0, 7), ("y", 4, 7), ("z", 8, 7)], False), header=header)
+            status = T["sensor_msgs/msg/NavSatStatus"](status=0, service=1)
+            lat, lon = fixes[car]
+            cov = np.zeros(9)
+            fix = T["sensor_msgs/msg/NavSatFix"](
+                header=header, status=status, latitude=lat, longitude=lon, altitude=500.0,
+                position_covariance=cov, position_covariance_type=0,
+            )  # fmt: skip
+            qx, qy, qz, qw = Rotation.from_euler("z", yaw, degrees=True).as_quat()
+            q = T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
+            v = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+            imu = T["sensor_msgs/msg/Imu"](header=header, orientation=q, orientation_covariance=cov,
+                                           angular_velocity=v, angular_velocity_covariance=cov,
+                                           linear_acceleration=v, linear_acceleration_covariance=cov)  # fmt: skip
+            msgs = [(f"/{car}/points", cloud), (f"/{car}/fix", fix)] + (
+                [(f"/{car}/heading", imu)] if with_heading else []
+            )
+            for topic, msg in msgs:
+                conn = w.add_connection(topic, msg.__msgtype__, typestore=ts)
+                w.write(conn, 10 * 10**9, ts.serialize_cdr(msg, msg.__msgtype__))
+    return out
+
+
+def test_a_navsat_fix_and_a_heading_make_the_gnss_pose(tmp_path):
+    topics = BagTopics(ego_gnss="/ego/fix", peer_gnss="/peer/fix")
+    g = next(read_bag(_navsat_bag(tmp_path / "fix"), topics).groups())
+    T_e, T_p = g.ego.extra["gnss_pose"], g.peers[0].extra["gnss_pose"]
+    np.testing.assert_allclose(T_e[:3, 3], 0, atol=1e-9)
+    np.testing.assert_allclose(T_p[:3, 3], [100, 50, 0], atol=2e-3)
+    T_rel = np.linalg.inv(T_e) @ T_p  # the acquisitions' prior: the peer 15 deg left of the ego's heading
+    assert np.degrees(se2_params(T_rel)[0]) == pytest.approx(15.0, abs=1e-9)
+    with pytest.raises(ValueError, match="needs the car's heading too"):
+        read_bag(_navsat_bag(tmp_path / "no_heading", with_heading=False), topics)
 
 
 def _one_line_exit_2(result, *words):

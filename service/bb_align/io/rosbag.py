@@ -35,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from .dataset import AgentFrame, FrameGroup
 from .errors import InputFileError
+from .navsat import enu
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 POSE_TYPES = (
@@ -42,6 +43,9 @@ POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
 )
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+HEADING_TYPES = ("sensor_msgs/msg/Imu", "geometry_msgs/msg/QuaternionStamped")
+KINDS = ("points", "odometry", "gnss", "heading", "reference")
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # sensor_msgs/PointField datatypes -> numpy
@@ -59,8 +63,16 @@ class BagTopics(BaseModel):
     peer_points: str = Field("/peer/points", description="the peer's sensor_msgs/PointCloud2")
     ego_odometry: str | None = Field("/ego/odom", description="the ego's nav_msgs/Odometry (None: not used)")
     peer_odometry: str | None = Field("/peer/odom", description="the peer's nav_msgs/Odometry")
-    ego_gnss: str | None = Field("/ego/gnss_pose", description="the ego's GNSS pose (PoseStamped, ...WithCovariance..)")
-    peer_gnss: str | None = Field("/peer/gnss_pose", description="the peer's GNSS pose")
+    ego_gnss: str | None = Field(
+        "/ego/gnss_pose",
+        description="the ego's GNSS pose (PoseStamped, PoseWithCovarianceStamped, Odometry) or fix "
+        "(NavSatFix, with a heading topic)",
+    )
+    peer_gnss: str | None = Field("/peer/gnss_pose", description="the peer's GNSS pose or fix")
+    ego_heading: str | None = Field(
+        "/ego/heading", description="with a NavSatFix: the ego's orientation in east-north-up (Imu, QuaternionStamped)"
+    )
+    peer_heading: str | None = Field("/peer/heading", description="with a NavSatFix: the peer's orientation")
     ego_reference: str | None = Field("/ego/reference", description="the ego's true pose, to score answers only")
     peer_reference: str | None = Field("/peer/reference", description="the peer's true pose")
     ego_base_to_lidar: list[list[float]] | None = Field(None, description="4x4 T_base_lidar of the ego's LiDAR")
@@ -137,11 +149,20 @@ def cloud_points(msg) -> np.ndarray:
 def pose_matrix(msg) -> np.ndarray:
     """Odometry, PoseStamped or PoseWithCovarianceStamped -> 4x4 (the pose's frame in the header's frame)."""
     p = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-    q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w], dtype=float)
     t = np.array([p.position.x, p.position.y, p.position.z], dtype=float)
+    if not np.all(np.isfinite(t)):
+        raise ValueError("pose position is not finite")
+    T = _rotation(p.orientation)
+    T[:3, 3] = t
+    return T
+
+
+def _rotation(quaternion) -> np.ndarray:
+    """A geometry_msgs/Quaternion -> 4x4 with that rotation."""
+    q = np.array([quaternion.x, quaternion.y, quaternion.z, quaternion.w], dtype=float)
     norm = np.linalg.norm(q)
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t)) and abs(norm - 1.0) < 1e-3):
-        raise ValueError(f"pose is not finite with a unit quaternion (|q| = {norm:.4g})")
+    if not (np.all(np.isfinite(q)) and abs(norm - 1.0) < 1e-3):
+        raise ValueError(f"orientation is not a finite unit quaternion (|q| = {norm:.4g})")
     x, y, z, w = q / norm
     T = np.eye(4)
     T[:3, :3] = [
@@ -149,7 +170,6 @@ def pose_matrix(msg) -> np.ndarray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ]
-    T[:3, 3] = t
     return T
 
 
@@ -169,7 +189,7 @@ def _check_topics(path: Path, reader, topics: BagTopics) -> dict[tuple[str, str]
     listing = ", ".join(f"{t} ({c.msgtype})" for t, c in sorted(have.items())) or "no topics"
     wanted: dict[tuple[str, str], object] = {}
     for car in CARS:
-        for kind in ("points", "odometry", "gnss", "reference"):
+        for kind in KINDS:
             name = topics.topic(car, kind)
             if name is None:
                 continue
@@ -177,9 +197,12 @@ def _check_topics(path: Path, reader, topics: BagTopics) -> dict[tuple[str, str]
                 if topics.required(car, kind):
                     raise InputFileError(f"{path}: no topic {name} ({car} {kind}); the bag has {listing}")
                 continue
-            allowed = (POINTCLOUD2,) if kind == "points" else POSE_TYPES
-            if kind == "odometry":
-                allowed = ("nav_msgs/msg/Odometry",)
+            allowed = {
+                "points": (POINTCLOUD2,),
+                "odometry": ("nav_msgs/msg/Odometry",),
+                "gnss": (*POSE_TYPES, NAVSATFIX),
+                "heading": HEADING_TYPES,
+            }.get(kind, POSE_TYPES)
             if have[name].msgtype not in allowed:
                 raise InputFileError(f"{path}: topic {name} is {have[name].msgtype}, not {' or '.join(allowed)}")
             wanted[(car, kind)] = have[name]
@@ -252,7 +275,21 @@ class BagRun:
                     del have[k]
 
 
-def _messages(path: Path, topics: BagTopics, kinds=("points", "odometry", "gnss", "reference"), keep_points=True):
+def _value(key: tuple[str, str], msg, keep_points: bool):
+    """What a message gives: the points (or, not kept, the cloud's frame id), a 4x4 pose, a heading's rotation as
+    a 4x4, or a fix as (lat, lon, alt) (None: no fix)."""
+    if key[1] == "points":
+        return cloud_points(msg) if keep_points else (msg.header.frame_id or key[0])
+    if msg.__msgtype__ == NAVSATFIX:
+        fix = np.array([msg.latitude, msg.longitude, msg.altitude], dtype=float)
+        return fix if msg.status.status >= 0 and np.all(np.isfinite(fix)) else None
+    if msg.__msgtype__ in HEADING_TYPES:
+        q = msg.orientation if hasattr(msg, "orientation") else msg.quaternion
+        return _rotation(q)
+    return pose_matrix(msg)
+
+
+def _messages(path: Path, topics: BagTopics, kinds=KINDS, keep_points=True):
     """(car, kind), ordinal on its topic, header stamp, value (the points or the 4x4 pose) of every wanted
     message in the bag's order. InputFileError for an unreadable bag, a missing or mistyped topic, a bad message."""
     from rosbags.rosbag2 import Reader
@@ -273,10 +310,7 @@ def _messages(path: Path, topics: BagTopics, kinds=("points", "odometry", "gnss"
             key = by_conn[id(conn)]
             try:
                 msg = typestore.deserialize_cdr(raw, conn.msgtype)
-                if key[1] != "points":
-                    value = pose_matrix(msg)
-                else:
-                    value = cloud_points(msg) if keep_points else (msg.header.frame_id or key[0])
+                value = _value(key, msg, keep_points)
             except Exception as e:
                 raise InputFileError(f"{path}: topic {conn.topic}: message {counts[key]}: {e}") from None
             yield key, counts[key], _stamp(msg), value
@@ -292,7 +326,8 @@ def _index(path: Path, topics: BagTopics) -> tuple[dict[tuple[str, str], _Topic]
     for key, ordinal, t, value in _messages(path, topics, keep_points=False):
         if key[1] == "points":
             frame_ids.setdefault(key[0], value)
-        raw.setdefault(key, []).append((t, ordinal, value))
+        if value is not None:  # a fix without a fix
+            raw.setdefault(key, []).append((t, ordinal, value))
     for car in CARS:
         if (car, "points") not in raw:
             raise InputFileError(f"{path}: topic {topics.topic(car, 'points')} holds no messages")
@@ -302,7 +337,33 @@ def _index(path: Path, topics: BagTopics) -> tuple[dict[tuple[str, str], _Topic]
         index[key] = _Topic([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows])
     if frame_ids["ego"] == frame_ids["peer"]:  # both clouds in e.g. 'velodyne': name the cars apart
         frame_ids = {car: f"{car}/{fid}" for car, fid in frame_ids.items()}
+    _fixes_as_poses(path, topics, index)
     return index, frame_ids
+
+
+def _fixes_as_poses(path: Path, topics: BagTopics, index: dict[tuple[str, str], _Topic]) -> None:
+    """NavSatFix topics -> GNSS poses in one east-north-up frame (origin: the first fix, the ego's when it has
+    one), oriented by the car's heading nearest each fix (within max_skew_s; a fix without one is dropped)."""
+    fixes = [(car, index[(car, "gnss")]) for car in CARS if (car, "gnss") in index]
+    fixes = [(car, topic) for car, topic in fixes if topic.values and np.asarray(topic.values[0]).shape == (3,)]
+    if not fixes:
+        return
+    origin = fixes[0][1].values[0]
+    for car, topic in fixes:
+        heading = index.get((car, "heading"))
+        if heading is None:
+            raise InputFileError(
+                f"{path}: topic {topics.topic(car, 'gnss')} is a NavSatFix: it needs the car's heading too "
+                f"(--topic {car}_heading=TOPIC, sensor_msgs/Imu or geometry_msgs/QuaternionStamped)"
+            )
+        rows = []
+        for t, ordinal, fix in zip(topic.stamps, topic.order, topic.values):
+            j = _nearest(heading.stamps, t, topics.max_skew_s)
+            if j is not None:
+                T = heading.values[j].copy()
+                T[:3, 3] = enu(fix, origin)
+                rows.append((t, ordinal, T))
+        index[(car, "gnss")] = _Topic([r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows])
 
 
 def read_bag(path: str | Path, topics: BagTopics | None = None, max_frames: int | None = None) -> BagRun:

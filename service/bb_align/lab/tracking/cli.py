@@ -34,8 +34,8 @@ def register(app: typer.Typer) -> None:
             "--topic",
             metavar="KEY=TOPIC",
             help="a bag's topic for KEY (repeatable): ego_points, peer_points, ego_odometry, peer_odometry, "
-            "ego_gnss, peer_gnss, ego_reference, peer_reference (empty TOPIC: not used), or max_skew_s=SECONDS "
-            "(docs/rosbag.md)",
+            "ego_gnss, peer_gnss, ego_heading, peer_heading, ego_reference, peer_reference (empty TOPIC: not "
+            "used), or max_skew_s=SECONDS (docs/rosbag.md)",
         ),
         through_service: bool = typer.Option(
             False,
