@@ -7,7 +7,9 @@ Per car (topics named by :class:`BagTopics`; the defaults are ``/ego/...`` and `
   types, either byte order, padded rows), in the cloud's own frame (x forward, y left, z up);
 - ``nav_msgs/Odometry`` (optional): the car's odometry, ``odometry_pose``;
 - a GNSS pose (optional): ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped`` or ``Odometry`` in a shared
-  map frame, ``gnss_pose`` (the acquisitions' prior);
+  map frame, or a ``sensor_msgs/NavSatFix`` with a heading (``sensor_msgs/Imu`` or ``QuaternionStamped``, in
+  east-north-up), placed in metres east, north and up of the bag's first fix: ``gnss_pose`` (the acquisitions'
+  prior);
 - a reference pose (optional, same types): the truth, when the recording has one (an RTK/INS solution), used
   only to score the answers.
 

@@ -50,9 +50,10 @@ def register(app: typer.Typer) -> None:
             "bag each under it): /tf, the pose with covariance, the verdicts, the BV images (docs/rosbag.md)",
         ),
     ) -> None:
-        """Replay every sequence under ROOT frame by frame through the engine's tracker (acquire, then refine from
-        the prediction and fuse) and measure it against the truth: accuracy by distance, wrong answers, whether
-        the 3-sigma bound holds the true error, lock losses, time per tracked and per acquired frame."""
+        """Replay every sequence under ROOT, or a ROS 2 bag of two cars (docs/rosbag.md), frame by frame through the
+        engine's tracker (acquire, then refine from the prediction and fuse) and measure it against the truth:
+        accuracy by distance, wrong answers, whether the 3-sigma bound holds the true error, lock losses, time per
+        tracked and per acquired frame (a bag without reference poses: answered and refused frames)."""
         from bb_align.io.config_file import load_align_config
         from bb_align.io.dataset import find_scenarios, iter_scenario_frames
         from bb_align.io.rosbag import is_bag, read_bag
