@@ -108,16 +108,20 @@ class AgentFrame:
     scenario: str
     agent: str
     timestamp: str
-    pcd_path: Path
-    T_world_sensor: np.ndarray
+    pcd_path: Path  # (a bag's frames: the bag, their points held in ``points``)
+    T_world_sensor: np.ndarray | None  # the reference pose (None: a recording without one, e.g. a bag)
     vehicles: dict[str, np.ndarray]  # id -> world box [x, y, z, l, w, h, yaw]
     detections: np.ndarray | None = None  # (K, 7) sensor frame, or None when the yaml has none
     detection_scores: np.ndarray | None = None
     extra: dict = field(default_factory=dict)  # other yaml keys (e.g. the simulator's sensor name)
+    points: np.ndarray | None = field(default=None, repr=False)  # in memory (a bag's sweep), else read from pcd_path
 
     def load_points(self) -> np.ndarray:
         """(N, 3+) float32 points in the sensor frame."""
         from .clouds import load_cloud
+
+        if self.points is not None:
+            return self.points
 
         return load_cloud(self.pcd_path)
 

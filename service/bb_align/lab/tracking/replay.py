@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable, Sized
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +39,7 @@ class ReplayConfig(BaseModel):
     deskew: bool = Field(DESKEW_DEFAULT, description=DESKEW_HELP)
     frame_period_s: float = Field(0.1, gt=0, description="stamp of frame k when a yaml has no timestamp_s")
     max_frames: int | None = Field(None, ge=1, description="replay only the first frames of each sequence")
+    bev_images: bool = Field(False, description="keep each frame's two BV images (PNG) in its record (--bag-out)")
 
 
 def _stamp(group: FrameGroup, k: int, cfg: ReplayConfig) -> float:
@@ -72,16 +75,16 @@ def error_components(T_est: np.ndarray, T_true: np.ndarray) -> list[float]:
     return [float(wrap_angle(e[0] - t[0])), e[1] - t[1], e[2] - t[2]]
 
 
-def scored_frame(name: str, k: int, stamp: float, r, T_est: np.ndarray, T_true: np.ndarray) -> dict:
+def scored_frame(name: str, k: int, stamp: float, r, T_est: np.ndarray, T_true: np.ndarray | None) -> dict:
     """The fields every tracked frame's record shares, as `bb-align track` scores them: the answer ``r`` (an engine
     AlignResult or a wire Result: source, track state and event, success, reason) and its pose ``T_est`` against
-    the truth."""
-    t_err, r_err = pose_error(T_est, T_true)
+    the truth (``None``: a recording without one, e.g. a bag; the errors are then None)."""
+    t_err, r_err = (None, None) if T_true is None else pose_error(T_est, T_true)
     return {
         "sequence": name,
         "frame": k,
         "stamp": stamp,
-        "distance_m": float(np.linalg.norm(T_true[:2, 3])),
+        "distance_m": float(np.linalg.norm((T_est if T_true is None else T_true)[:2, 3])),
         "source": r.source,
         "state": r.track_state,
         "event": r.track_event,
@@ -89,7 +92,8 @@ def scored_frame(name: str, k: int, stamp: float, r, T_est: np.ndarray, T_true: 
         "reason": r.reason,
         "t_err_m": t_err,
         "r_err_deg": r_err,
-        "err": error_components(T_est, T_true),  # (yaw rad, tx m, ty m), estimate - truth
+        "err": None if T_true is None else error_components(T_est, T_true),  # (yaw rad, tx m, ty m), est - truth
+        "T_ego_peer": np.asarray(T_est, dtype=float).tolist(),  # the answer's pose (4x4)
     }
 
 
@@ -98,7 +102,7 @@ def stream_sample(follower: Follower, stamp: float, O_ego, O_peer, T_true: np.nd
     its error against the true offset (left increment, yaw rad / m / m) and covariance; what
     benchmarks/evidence_correlation.py measures the frames' correlation on."""
     samples = follower.track.stream.samples
-    if O_ego is None or not samples or samples[-1].stamp != stamp:
+    if O_ego is None or T_true is None or not samples or samples[-1].stamp != stamp:
         return {"evidence_err": None, "evidence_cov": None}
     s = samples[-1]
     X_true = ground_se2(O_ego) @ ground_se2(T_true) @ np.linalg.inv(ground_se2(O_peer))
@@ -106,12 +110,30 @@ def stream_sample(follower: Follower, stamp: float, O_ego, O_peer, T_true: np.nd
 
 
 def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bool = False) -> list[dict]:
-    """Every frame of one sequence through a fresh follower; one record per frame."""
+    """Every frame of one sequence folder through a fresh follower; one record per frame."""
+    return replay_groups(name, list(iter_scenario_frames(name, path)), cfg, progress)
+
+
+def bev_png(frame) -> bytes:
+    """A prepared frame's BV image as PNG bytes (row 0 is +x, the car's front; column 0 is +y, its left)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", frame.bev.image)
+    if not ok:
+        raise RuntimeError("PNG encoding of a BV image failed")
+    return buf.tobytes()
+
+
+def replay_groups(name: str, groups: Iterable[FrameGroup], cfg: ReplayConfig, progress: bool = False) -> list[dict]:
+    """Every frame of one sequence (its frame groups in time order, from a folder or a bag) through a fresh
+    follower; one record per frame. ``cfg.bev_images``: each record also carries ``bev_png`` (ego, peer)."""
     aligner = Aligner(cfg.align)
     follower = Follower(aligner)
-    groups = list(iter_scenario_frames(name, path))[: cfg.max_frames]
+    total = len(groups) if isinstance(groups, Sized) else None
+    groups = islice(groups, cfg.max_frames)
     records = []
-    for k, group in enumerate(tqdm(groups, desc=name, unit="frame", disable=not progress, leave=False)):
+    bar = tqdm(groups, desc=name, unit="frame", total=total, disable=not progress, leave=False)
+    for k, group in enumerate(bar):
         ego, peer = group.ego, group.peers[0]
         ego_frame = aligner.prepare(*_cloud(ego, cfg), features=False)
         t0 = time.perf_counter()
@@ -122,9 +144,12 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
         stamp = _stamp(group, k, cfg)
         T_prior = _reported(group) if cfg.use_gnss else None
         r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior)
-        T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor
+        known = ego.T_world_sensor is not None and peer.T_world_sensor is not None
+        T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor if known else None
         row = scored_frame(name, k, stamp, r, r.T_ego_peer, T_true)
         err = row["err"]
+        if cfg.bev_images:
+            row["bev_png"] = (bev_png(ego_frame), bev_png(peer_frame))
         # The engine run's own pose (the refinement's measurement, or the acquisition) before the track fused it.
         measured, measured_cov = follower.last_measured or (None, None)
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(r.covariance), 0.0)).tolist()
@@ -135,15 +160,17 @@ def replay_sequence(name: str, path: str | Path, cfg: ReplayConfig, progress: bo
                 "confidence": float(r.confidence),
                 "measured": None if measured is None else list(se2_params(measured)),
                 "odometry": None if O_ego is None else [list(se2_params(O_ego)), list(se2_params(O_peer))],
-                "truth": list(se2_params(T_true)),
-                "measured_err": None if measured is None else error_components(measured, T_true),
+                "truth": None if T_true is None else list(se2_params(T_true)),
+                "measured_err": None if measured is None or T_true is None else error_components(measured, T_true),
                 "measured_cov": None if measured_cov is None else np.asarray(measured_cov).tolist(),
                 # The boxes' own measurement of this frame (fused with the refinement's when they agree).
                 "box_measured": list(se2_params(follower.last_boxes.T_ego_peer)) if follower.last_boxes.ok else None,
                 "box_cov": np.asarray(follower.last_boxes.covariance).tolist() if follower.last_boxes.ok else None,
                 "sigma": sigma,  # 1-sigma of (yaw rad, tx m, ty m) from the answer's covariance
                 "covariance": None if r.covariance is None else np.asarray(r.covariance).tolist(),
-                "within_3sigma": None if sigma is None else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
+                "within_3sigma": None
+                if sigma is None or err is None
+                else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 **stream_sample(follower, stamp, O_ego, O_peer, T_true),
                 "ran_acquisition": "acquire" in r.timings_ms,
                 "ms": float(r.timings_ms.get("track_total", math.nan)),

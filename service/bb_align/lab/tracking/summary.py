@@ -118,3 +118,30 @@ def format_summary(s: dict) -> str:
         f"per ego frame {ms(s['ego_frame_ms_p50'])} ms p50 (its refinement cloud, shared by every peer)"
     )
     return "\n".join(lines)
+
+
+def answers_summary(records: list[dict]) -> dict:
+    """A run without the truth (a bag with no reference topics): how many frames were answered, and why the others
+    were refused."""
+    refused: dict[str, int] = {}
+    for r in records:
+        if not r["success"]:
+            refused[r["reason"] or "none"] = refused.get(r["reason"] or "none", 0) + 1
+    first = next((r["stamp"] - records[0]["stamp"] for r in records if r["success"]), None)
+    return {
+        "frames": len(records),
+        "successful": sum(r["success"] for r in records),
+        "refused": dict(sorted(refused.items())),
+        "first_answer_after_s": first,
+        "acquisitions": sum(r["ran_acquisition"] for r in records),
+        "lock_losses": sum(1 for r in records if (r["event"] or "").startswith("lost")),
+    }
+
+
+def format_answers(s: dict) -> str:
+    refused = ", ".join(f"{k}: {v}" for k, v in s["refused"].items()) or "none"
+    first = "never" if s["first_answer_after_s"] is None else f"after {s['first_answer_after_s']:.1f} s"
+    return (
+        f"{s['frames']} frames, {s['successful']} successful (no reference poses: not scored); refused {refused}; "
+        f"first answer {first}; {s['acquisitions']} acquisitions, {s['lock_losses']} lock losses"
+    )
