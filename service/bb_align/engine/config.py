@@ -665,7 +665,7 @@ class StreamConfig(_Frozen):
         gt=0,
         le=1,
         description="a hypothesis is an answer only when at least this share of the frames bound it (their pose "
-        "landscape has a peak)",
+        "landscape has a peak) and agree on it (as the stream's evidence keeps frames)",
     )
 
 

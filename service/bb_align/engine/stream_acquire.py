@@ -9,8 +9,9 @@ a pose must explain every frame, and an alias that does not persist loses its we
    verified and the free space did not rule out (the best and its rivals) taken to X with that frame's odometry;
 2. **each hypothesis explained by every frame**: the frame's refinement from ``inv(O_e) X O_p`` judged on its pose
    landscape (what a tracked frame's own evidence is: ``Aligner.measure`` and ``Aligner.judge``) and on the two
-   LiDARs' free space; its score is the sum of the frames' landscape peaks (a frame whose refinement failed adds
-   nothing), and a hypothesis the free space rules out on average is dropped;
+   LiDARs' free space; the frames that bound it and agree on it (as the stream's evidence keeps frames) must be at
+   least ``min_bounded_share`` of them, its score is the sum of their landscape peaks, and a hypothesis the free
+   space rules out on their average is dropped;
 3. **the winner and its rivals**: the best-scoring hypothesis wins; each other one (distinct after refinement, within
    the free space's rival bound) weighs ``exp(effective_points x (its score - the winner's) / (1 + rho (n - 1)))``:
    frames that share their errors are not independent evidence (the fusion's own design effect, ``rho`` =
@@ -146,12 +147,14 @@ class StreamAcquirer:
             A, Ad_T, q = adjoint(f.O_ego), adjoint(land.T), self._drift_rate()
             drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
             stream.add(OffsetSample(f.stamp, f.O_ego @ land.T @ np.linalg.inv(f.O_peer), A @ cov @ A.T, drift))
-        if len(hyps) < max(1, int(np.ceil(sc.min_bounded_share * len(frames)))):
-            return e  # too few frames bound it: no answer from this hypothesis
         fused = stream.fused(frames[-1].stamp)
-        if fused is None:
-            return e
+        if fused is None or fused.frames < max(1, int(np.ceil(sc.min_bounded_share * len(frames)))):
+            return e  # too few frames bound it and agree on it: no answer from this hypothesis
         e.fused = (fused.X, fused.covariance, fused.frames)
+        # Its score is what the frames that agree on it found: the newest ``fused.frames`` of those bounding it.
+        agreeing = {id(f) for f, _ in hyps[-fused.frames :]}
+        e.scores = [sc_k for f, sc_k in zip(frames, e.scores) if id(f) in agreeing]
+        hyps = hyps[-fused.frames :]
         if self.cfg.free_space.enabled:
             for f, h in hyps:
                 conflicts(f.ego, f.peer, [h], self.cfg)
