@@ -48,6 +48,7 @@ class IcpSettings:
     schedule_m: tuple[float, ...] = (5.0, 2.0, 1.0, 0.5)  # max correspondence distance per stage (module doc)
     iterations: int = 30  # per stage
     threads: int = 1
+    method: str = "PLANE_ICP"  # small_gicp's registration type: PLANE_ICP (the yardstick) or GICP
 
 
 @dataclass
@@ -91,7 +92,7 @@ def icp(ego_points: np.ndarray, peer_points: np.ndarray, T_init: np.ndarray, set
             source,
             target_tree,
             init_T_target_source=T,
-            registration_type="PLANE_ICP",
+            registration_type=settings.method,
             max_correspondence_distance=max_dist,
             num_threads=settings.threads,
             max_iterations=settings.iterations,
@@ -255,7 +256,7 @@ def markdown(rows: list[Row], summary: dict, settings: IcpSettings, command: str
         "# ICP from the same prior on the full clouds, beside bb-align",
         "",
         f"Made by `{command}` (benchmarks/icp_from_prior.py; times on a shared, loaded 2-core machine). ICP: "
-        f"small_gicp PLANE_ICP, both full clouds voxel-downsampled to {settings.voxel_m:g} m, normals from "
+        f"small_gicp {settings.method}, both full clouds voxel-downsampled to {settings.voxel_m:g} m, normals from "
         f"{settings.neighbours} neighbours, max correspondence distance "
         f"{' -> '.join(f'{d:g}' for d in settings.schedule_m)} m ({settings.iterations} iterations per stage, "
         f"{settings.threads} thread), started from the seeded 2 m / 2 deg prior of `bb-align real-pairs` lifted "
@@ -311,6 +312,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--schedule", default=",".join(f"{d:g}" for d in IcpSettings.schedule_m),
                     help="max correspondence distances, m, comma-separated")  # fmt: skip
     ap.add_argument("--threads", type=int, default=IcpSettings.threads)
+    ap.add_argument("--method", choices=("PLANE_ICP", "GICP"), default=IcpSettings.method,
+                    help="small_gicp's registration (default PLANE_ICP: point-to-plane)")  # fmt: skip
     args = ap.parse_args(argv)
     if not args.data.is_dir():
         ap.error(f"--data: {args.data} is not a folder of real scans")
@@ -322,7 +325,7 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--schedule, --voxel: positive metres; --threads: at least 1")
     if args.bb_records is not None and not args.bb_records.is_file():
         ap.error(f"--bb-records: {args.bb_records} is not a file")
-    settings = IcpSettings(voxel_m=args.voxel, schedule_m=schedule, threads=args.threads)
+    settings = IcpSettings(voxel_m=args.voxel, schedule_m=schedule, threads=args.threads, method=args.method)
     rows = run(args.data, settings, args.bb_records, set(args.group) if args.group else None)
     if not rows:
         ap.error(f"--data: no real pairs found under {args.data}")
@@ -331,6 +334,8 @@ def main(argv: list[str] | None = None) -> None:
     for flag, value, default in (("--voxel", args.voxel, IcpSettings.voxel_m), ("--threads", args.threads, 1)):
         if value != default:
             command += f" {flag} {value:g}"
+    if args.method != IcpSettings.method:
+        command += f" --method {args.method}"
     if schedule != IcpSettings.schedule_m:
         command += f" --schedule {args.schedule}"
     command += "".join(f" --group {g}" for g in args.group or [])
