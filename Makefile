@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test run bench-accuracy bench-real bench-sim-real bench-sim-places bench-engine bench-flood clean
+.PHONY: venv test run bench-accuracy bench-real bench-icp bench-sim-real bench-sim-places bench-engine bench-flood clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -50,6 +50,16 @@ bench-accuracy: $(STAMP)
 SHARED_DATA ?= ../shared/data
 bench-real: $(STAMP)
 	$(VENV)/bin/bb-align real-pairs $(SHARED_DATA) --out $(RESULTS)/real_pairs
+
+# The real pairs' yardstick: point-to-plane ICP (small_gicp, the `bench` extra) on the full clouds from the same
+# seeded prior, beside bb-align aligned in the same run; into docs/real_pairs/icp_from_prior.* (docs/real_pairs.md).
+# A target of its own: it takes a few minutes on 2 cores, more than bench-real itself.
+$(VENV)/.installed-bench: $(STAMP)
+	$(PY) -m pip install -q -e '.[bench]'
+	touch $@
+
+bench-icp: $(VENV)/.installed-bench
+	$(PY) benchmarks/icp_from_prior.py --data $(SHARED_DATA) --record
 
 # Simulated far pairs beside the real KITTI 00 ones: the street family (a car following another 73-81 m ahead on a
 # straight residential street), the turn family (the peer turned into a crossing street 40-70 m; HDL-64 on all
