@@ -59,7 +59,7 @@ $(VENV)/.installed-bench: $(STAMP)
 	touch $@
 
 bench-icp: $(VENV)/.installed-bench
-	$(PY) benchmarks/icp_from_prior.py --data $(SHARED_DATA) --record
+	$(PY) benchmarks/icp_from_prior.py --data $(SHARED_DATA) $(RECORD_FLAG)
 
 # Simulated far pairs beside the real KITTI 00 ones: the street family (a car following another 73-81 m ahead on a
 # straight residential street), the turn family (the peer turned into a crossing street 40-70 m; HDL-64 on all
