@@ -1,0 +1,81 @@
+"""A first answer from a second of stream (Aligner.align_stream) on real KITTI sweeps against their reference poses
+(skipped with a reason without ../shared). `benchmarks/stream_acquire.py` runs every far step and simulated sweeps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bb_align.engine.geometry import pose_error
+from bb_align.engine.pipeline import Aligner
+from bb_align.engine.stream_acquire import StreamFrame
+from bb_align.io.clouds import load_cloud
+from bb_align.lab.tracking.real_runs import STEP_S, run_poses, schedule
+
+
+@pytest.fixture(scope="module")
+def aligner():
+    return Aligner()
+
+
+def _frames(folder, aligner, pairs, cache):
+    poses = run_poses(folder)
+
+    def frame(k):
+        if (folder, k) not in cache:
+            cache[(folder, k)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"))
+        return cache[(folder, k)]
+
+    return [StreamFrame(frame(e), frame(p), poses[e], poses[p], STEP_S * i) for i, (e, p) in enumerate(pairs)], poses
+
+
+def test_the_far_car_is_found_from_a_second_of_stream_where_its_frame_alone_is_not(shared_data, aligner):
+    """The real street, 73-80 m, no prior: step 22 of the far run (ego frame 2, the car ahead in frame 94). Alone its
+    pair's best pose lays the two cars' near fields over each other (about the whole distance off) and is refused;
+    the second of stream before it (ten steps, each car's odometry) finds the car within 1 m & 1 deg."""
+    plan = schedule("kitti00_run_far", 3)[13:23]
+    frames, poses = _frames(shared_data / "kitti00_run_far", aligner, plan, {})
+    e, p = plan[-1]
+    T_true = np.linalg.inv(poses[e]) @ poses[p]
+    alone = aligner.align(frames[-1].ego, frames[-1].peer)
+    assert not alone.success
+    r = aligner.align_stream(frames)
+    t_err, r_err = pose_error(r.T_ego_peer, T_true)
+    assert r.success, (r.reason, r.notes)
+    assert t_err < 1.0 and r_err < 1.0
+    assert r.confidence >= aligner.config.answer.confidence
+
+
+def test_frames_given_out_of_order_give_the_same_answer(shared_data, aligner):
+    """The stream is its frames in time order, however they are handed over; a near pair (0-9 m) is answered."""
+    plan = [(k, 9 - k) for k in range(4)]
+    frames, poses = _frames(shared_data / "kitti08_run", aligner, plan, {})
+    T_true = np.linalg.inv(poses[3]) @ poses[6]
+    a, b = aligner.align_stream(frames), aligner.align_stream(frames[::-1])
+    assert a.success and b.success
+    np.testing.assert_allclose(a.T_ego_peer, b.T_ego_peer, atol=1e-9)
+    t_err, r_err = pose_error(a.T_ego_peer, T_true)
+    assert t_err < 0.3 and r_err < 0.3
+
+
+def test_two_cities_apart_are_refused(shared_data, aligner):
+    """No overlap: the ego on a KITTI 08 street, the peer on KITTI 00, five frames each with their own odometry."""
+    cache: dict = {}
+    ego_dir, peer_dir = shared_data / "kitti08_run", shared_data / "kitti00_run_far"
+    ego_poses, peer_poses = run_poses(ego_dir), run_poses(peer_dir)
+    frames = [
+        StreamFrame(
+            _frames(ego_dir, aligner, [(k, k)], cache)[0][0].ego,
+            _frames(peer_dir, aligner, [(k, k)], cache)[0][0].peer,
+            ego_poses[k],
+            peer_poses[k],
+            STEP_S * k,
+        )
+        for k in range(5)
+    ]
+    assert not aligner.align_stream(frames).success
+
+
+def test_no_frames_is_refused_by_name(aligner):
+    with pytest.raises(ValueError, match="frames"):
+        aligner.align_stream([])
