@@ -79,3 +79,41 @@ def test_two_cities_apart_are_refused(shared_data, aligner):
 def test_no_frames_is_refused_by_name(aligner):
     with pytest.raises(ValueError, match="frames"):
         aligner.align_stream([])
+
+
+def _write_car(root, name, folder, frames, poses, odometry=True):
+    """One car's frames in the sequence layout (<stamp>.yaml beside <stamp>.pcd): its poses as lidar_pose (the
+    reference) and as odometry_pose (KITTI's poses are both)."""
+    from bb_align.io.dataset import world_to_x_pose, write_agent_frame
+
+    for k, f in enumerate(frames):
+        extra = {"timestamp_s": STEP_S * k}
+        if odometry:
+            extra["odometry_pose"] = world_to_x_pose(poses[f])
+        pts = load_cloud(folder / f"{f:06d}.bin")[:, :4]
+        write_agent_frame(root, "seq", name, f"{k:06d}", pts, poses[f], {}, extra=extra)
+    return root / "seq" / name
+
+
+def test_align_over_two_folders_answers_at_their_last_frame(shared_data, tmp_path):
+    """`bb-align align EGO_DIR PEER_DIR`: the ego's KITTI 08 frames 0-3 and the peer's 9-6, both cars' odometry in
+    their yaml files; the answer at the last pair (3 <- 6) within 0.3 m / 0.3 deg of the reference. A folder without
+    odometry is refused in one line (exit 2)."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from bb_align.cli import app
+
+    folder = shared_data / "kitti08_run"
+    poses = run_poses(folder)
+    ego = _write_car(tmp_path, "0", folder, [0, 1, 2, 3], poses)
+    peer = _write_car(tmp_path, "1", folder, [9, 8, 7, 6], poses)
+    out = CliRunner().invoke(app, ["align", str(ego), str(peer), "--json"])
+    assert out.exit_code == 0, out.output
+    body = json.loads(out.output)
+    assert body["success"] and body["frames"] == 4
+    assert body["error_vs_lidar_pose"]["t_m"] < 0.3 and body["error_vs_lidar_pose"]["r_deg"] < 0.3
+    bare = _write_car(tmp_path / "bare", "1", folder, [9, 8], poses, odometry=False)
+    out = CliRunner().invoke(app, ["align", str(ego), str(bare)])
+    assert out.exit_code == 2 and "odometry_pose" in out.output and len(out.output.strip().splitlines()) == 1

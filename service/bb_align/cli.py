@@ -110,9 +110,12 @@ def main() -> None:
 @app.command()
 def align(
     ego_cloud: Path = typer.Argument(
-        ..., exists=True, dir_okay=False, help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd"
+        ...,
+        exists=True,
+        help="ego cloud: .bin (4/5 float32 cols), .npy, .pcd; or a folder of the ego's frames with odometry (the "
+        "sequence layout of `bb-align track`): the last --frames of both folders are aligned together",
     ),
-    peer_cloud: Path = typer.Argument(..., exists=True, dir_okay=False, help="peer cloud, same formats"),
+    peer_cloud: Path = typer.Argument(..., exists=True, help="peer cloud, same formats; or the peer's folder"),
     ego_boxes: Path | None = typer.Option(
         None, exists=True, dir_okay=False, help="ego boxes: JSON or CSV x,y,z,l,w,h,yaw"
     ),
@@ -135,11 +138,23 @@ def align(
         help="a prior T_ego_peer: a 4x4 (or 3x3 ground-plane) matrix as plain text, e.g. composed from both cars' "
         "reported poses; the answer must lie within config prior.max_translation_m / max_yaw_deg of it",
     ),
+    frames: int | None = typer.Option(
+        None, min=1, max=50, help="two folders: align their last this many frame pairs (default config stream.frames)"
+    ),
 ) -> None:
-    """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes). Exits 3 when the
-    alignment fails (success=false; the reason is printed)."""
+    """Recover T_ego_peer from two LiDAR clouds (and optionally their detected boxes), or at the last of two cars'
+    recent frames from their folders (a second of stream, each car's odometry: Aligner.align_stream). Exits 3 when
+    the alignment fails (success=false; the reason is printed)."""
     from bb_align.engine.pipeline import Aligner
     from bb_align.io.clouds import load_boxes
+
+    if ego_cloud.is_dir() != peer_cloud.is_dir():
+        raise typer.BadParameter("give two clouds or two folders of frames", param_hint="PEER_CLOUD")
+    stream = ego_cloud.is_dir()
+    if stream and (ego_boxes or peer_boxes or plot or prior):
+        raise typer.BadParameter(
+            "two folders take their boxes from their yaml files; no plot or prior", param_hint="--prior"
+        )
 
     if plot is not None:  # fail now, not after the alignment
         from bb_align.io.plot import pyplot
@@ -150,6 +165,8 @@ def align(
     if bev_over:
         cfg = cfg.model_copy(update={"bev": cfg.bev.model_copy(update=bev_over)})
     aligner = Aligner(cfg)
+    if stream:
+        return _align_stream(aligner, ego_cloud, peer_cloud, frames or cfg.stream.frames, json_out)
     pts_ego, pts_peer = _points(ego_cloud), _points(peer_cloud)
     ego = aligner.prepare(pts_ego, load_boxes(ego_boxes) if ego_boxes else None, keep_maps=True)
     peer = aligner.prepare(pts_peer, load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
@@ -164,14 +181,51 @@ def align(
     if json_out:
         typer.echo(json.dumps({**result.to_dict(), "prior_used": T_prior is not None}))
         raise typer.Exit(0 if result.success else ALIGN_FAILED)
+    _print_result(result, ego.timings_ms)
+    if T_prior is not None:
+        typer.echo(f"prior: {prior} (used)")
+    if plot is not None:
+        typer.echo(f"plot: {plot}")
+    if not result.success:
+        raise typer.Exit(ALIGN_FAILED)
+
+
+def _align_stream(aligner, ego_dir: Path, peer_dir: Path, frames: int, json_out: bool) -> None:
+    """`align` over two folders: the last ``frames`` pairs together (bb_align.io.streams)."""
+    import numpy as np
+
+    from bb_align.engine.geometry import pose_error
+    from bb_align.io.streams import stream_frames
+
+    try:
+        pairs, ego, peer = stream_frames(aligner, ego_dir, peer_dir, frames)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="EGO_CLOUD / PEER_CLOUD") from None
+    result = aligner.align_stream(pairs)
+    truth = None
+    if ego.T_world_sensor is not None and peer.T_world_sensor is not None:
+        truth = pose_error(result.T_ego_peer, np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor)
+    if json_out:
+        body = {**result.to_dict(), "frames": len(pairs), "frame": peer.timestamp}
+        if truth is not None:
+            body["error_vs_lidar_pose"] = {"t_m": truth[0], "r_deg": truth[1]}
+        typer.echo(json.dumps(body))
+        raise typer.Exit(0 if result.success else ALIGN_FAILED)
+    typer.echo(f"{len(pairs)} frame pairs of {ego_dir} and {peer_dir}, the last {peer.timestamp}")
+    _print_result(result, {})
+    if truth is not None:
+        typer.echo(f"against the yaml's lidar_pose: {truth[0]:.2f} m / {truth[1]:.2f} deg")
+    if not result.success:
+        raise typer.Exit(ALIGN_FAILED)
+
+
+def _print_result(result, prepare_ms: dict) -> None:
     status = "success" if result.success else f"FAILED ({result.reason})"
     typer.echo(
         f"{status}: yaw {result.yaw_deg:.3f} deg, tx {result.tx:.3f} m, ty {result.ty:.3f} m, "
         f"inliers_bv {result.inliers_bv}/{result.matches_bv}, inliers_box {result.inliers_box}, "
         f"confidence {result.confidence:.2f}"
     )
-    if T_prior is not None:
-        typer.echo(f"prior: {prior} (used)")
     if result.covariance is not None:
         import numpy as np
 
@@ -183,11 +237,7 @@ def align(
     for note in result.notes:
         typer.echo(f"note: {note}")
     typer.echo("T_ego_peer =\n" + "\n".join("  " + " ".join(f"{v: .6f}" for v in row) for row in result.T_ego_peer))
-    typer.echo("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in {**ego.timings_ms, **result.timings_ms}.items()))
-    if plot is not None:
-        typer.echo(f"plot: {plot}")
-    if not result.success:
-        raise typer.Exit(ALIGN_FAILED)
+    typer.echo("timings (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in {**prepare_ms, **result.timings_ms}.items()))
 
 
 ALIGN_FAILED = 3  # exit code of `bb-align align` when the alignment failed

@@ -654,6 +654,18 @@ class StreamConfig(_Frozen):
     """Acquisition over a second of stream (bb_align.engine.stream_acquire): several frames of each car with their
     odometry, a pose must explain every frame."""
 
+    first_answer: bool = Field(
+        True,
+        description="a tracker with no track whose frame alone gives no answer tries its recent frames together "
+        "(with odometry)",
+    )
+    frames: int = Field(10, ge=2, le=50, description="... its last this many frames")
+    window_s: float = Field(1.0, gt=0, le=10, description="... within this many seconds")
+    min_frames: int = Field(5, ge=2, le=50, description="... at least this many of them")
+    every_s: float = Field(
+        1.0, ge=0, description="... at most this often (seconds): it costs about a second on one core at range"
+    )
+
     search_frames: int = Field(
         3, ge=1, le=20, description="the full search runs on this many of the frames (the last, then spread)"
     )

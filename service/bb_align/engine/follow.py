@@ -20,6 +20,7 @@ A service that cannot let a peer's frames wait for a periodic cross-check (~0.3 
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 
@@ -30,6 +31,7 @@ from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2, worst_sigma_m
 from .pipeline import Aligner
 from .result import AlignResult
+from .stream_acquire import StreamFrame
 from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
 from .verdict import CAP_STAGE1_FAILED, FailureReason
 
@@ -60,6 +62,10 @@ class Follower:
         # for diagnostics and calibration (bb_align.lab.tracking).
         self.last_measured: tuple[np.ndarray, np.ndarray | None] | None = None
         self.last_boxes = Measurement(False)  # the last tracked frame's box measurement (left increments)
+        # The last second of frames with odometry: a first acquisition that one frame cannot give is tried on them
+        # together (Aligner.align_stream), at most every stream.every_s.
+        self.recent: deque[StreamFrame] = deque(maxlen=aligner.config.stream.frames)
+        self.last_stream_try: float | None = None
 
     def step(
         self,
@@ -107,9 +113,13 @@ class Follower:
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
             runs.append(self.crosscheck(ego, peer, T_prior=T_prior, tz=tz, roll=roll, pitch=pitch))
+            if not runs[-1].success and T_pred is None and self._stream_due(stamp):
+                # No track and this frame alone gives none: the last second of frames together may.
+                runs.append(self._from_stream(runs[-1], T_prior, stamp))
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])
 
+        self._remember(StreamFrame(ego, peer, O_ego, O_peer, stamp) if with_odometry else None)
         t0 = time.perf_counter()
         answer = self.track.step(
             stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer), crosscheck=crosscheck
@@ -118,6 +128,41 @@ class Follower:
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
+
+    def _remember(self, frame: StreamFrame | None) -> None:
+        """Keep the frame for a stream acquisition; a frame without odometry, older than the stream's window or after
+        an odometry step no car drives (a relocalisation) starts the memory afresh."""
+        if frame is None:
+            self.recent.clear()
+            return
+        frame = StreamFrame(frame.ego, frame.peer, ground_pose(frame.O_ego), ground_pose(frame.O_peer), frame.stamp)
+        if self.recent:
+            last, c = self.recent[-1], self.cfg
+            dt = frame.stamp - last.stamp
+            steps = [pose_error(a, b) for a, b in ((frame.O_ego, last.O_ego), (frame.O_peer, last.O_peer))]
+            jump = any(t > c.max_odometry_speed_m_s * dt or r > c.max_odometry_yaw_rate_deg_s * dt for t, r in steps)
+            if dt <= 0 or jump:
+                self.recent.clear()
+        self.recent.append(frame)
+        window = self.aligner.config.stream.window_s
+        while self.recent and frame.stamp - self.recent[0].stamp > window:
+            self.recent.popleft()
+
+    def _stream_due(self, stamp: float) -> bool:
+        sc = self.aligner.config.stream
+        if not sc.first_answer or len(self.recent) < sc.min_frames:
+            return False
+        return self.last_stream_try is None or stamp - self.last_stream_try >= sc.every_s
+
+    def _from_stream(self, alone: AlignResult, T_prior: np.ndarray | None, stamp: float) -> AlignResult:
+        """The acquisition from the last second of frames (``Aligner.align_stream``), checked against the reported
+        pose as an acquisition that searched every pose is (``_check_prior``)."""
+        self.last_stream_try = stamp
+        r = self.aligner.align_stream(list(self.recent))
+        r.notes.insert(0, f"this frame alone: {alone.reason}; then the last {len(self.recent)} frames together")
+        if T_prior is not None:
+            self._check_prior(r, T_prior)
+        return r if r.success else alone
 
     def _judged(self, ego: PreparedFrame, peer: PreparedFrame, ev: Evidence, r: AlignResult) -> Evidence:
         """This frame's own evidence judged on the pose landscape around its refinement (``Aligner.judge``), as an
