@@ -326,13 +326,18 @@ def test_a_second_serve_on_a_busy_port_says_which_port_and_option_and_exits_2(mo
             assert "Traceback" not in out.stderr
 
 
-def test_keys_issue_refuses_to_replace_a_credential_without_force(tmp_path):
+def test_keys_issue_keeps_a_credential_without_force_and_prints_its_settings(tmp_path):
+    """Issue 46: the secure path's `eval "$(bb-align keys issue DIR ego)"` could not run twice (exit 2, nothing
+    set). Now an existing credential is kept, untouched, and its settings printed; --force makes a new key."""
     runner = CliRunner()
     assert runner.invoke(app, ["keys", "init", str(tmp_path)]).exit_code == 0
-    assert runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"]).exit_code == 0
+    first_run = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
+    assert first_run.exit_code == 0
     first = (tmp_path / "car1.cred").read_bytes()
     again = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
-    assert again.exit_code == 2 and "--force" in again.stderr and "car1.cred" in again.stderr
+    assert again.exit_code == 0 and "# kept" in again.stdout and "--force" in again.stdout
+    exports = [line for line in first_run.stdout.splitlines() if line.startswith("export ")]
+    assert len(exports) == 3 and exports == [ln for ln in again.stdout.splitlines() if ln.startswith("export ")]
     assert (tmp_path / "car1.cred").read_bytes() == first  # untouched
     forced = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1", "--force"])
     assert forced.exit_code == 0 and (tmp_path / "car1.cred").read_bytes() != first
