@@ -242,7 +242,8 @@ def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch,
     keys_dir = services["keys"]["volumes"][0].split(":")[1]
     script = services["keys"]["command"][0].replace("$$", "$").replace(keys_dir, str(tmp_path))
     subprocess.run(["sh", "-c", script.replace("bb-align", f"{sys.executable} -m bb_align")], check=True)
-    assert {p.name for p in tmp_path.iterdir()} == {"ca.pub", "ca.key", "ego.cred", "car1.cred", "car2.cred"}
+    made = {"ca.pub", "ca.key", "ego.cred", "car1.cred", "car2.cred", "issued"}  # issued/: the public register
+    assert {p.name for p in tmp_path.iterdir()} == made
     _clear_env(monkeypatch)
     for k, v in services["bb-align"]["environment"].items():
         monkeypatch.setenv(k, str(v).replace(keys_dir, str(tmp_path)))

@@ -50,15 +50,11 @@ def serve(
     from .settings import Settings
 
     zenoh = {k: v for k, v in (("listen", zenoh_listen), ("connect", zenoh_connect), ("mode", zenoh_mode)) if v}
-    if no_zenoh:
-        zenoh["enabled"] = False
+    zenoh |= {"enabled": False} if no_zenoh else {}
     given = {
         k: v for k, v in (("ego_id", ego_id), ("host", host), ("port", port), ("workers", workers)) if v is not None
     }
-    if demo:
-        given["profile"] = "demo"
-    if insecure:
-        given["insecure"] = True
+    given |= ({"profile": "demo"} if demo else {}) | ({"insecure": True} if insecure else {})
     if replay:  # merged with BBALIGN_LIMITS__* from the environment (pydantic-settings merges nested values)
         given["limits"] = {"replay": True}
     try:
