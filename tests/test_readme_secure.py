@@ -120,3 +120,35 @@ def test_the_readme_secure_path_runs_twice_and_the_signed_recipe_prints_true(tmp
             os.killpg(service.pid, signal.SIGKILL)
             service.wait(10)
         log.close()
+
+
+def test_a_peer_is_told_when_the_ego_frames_it_needs_were_refused(tmp_path):
+    """What the README's old recipe did: the ego published unsigned frames on a secure service; they were refused
+    at the Zenoh door (in the service's log only) and car1 got `no_ego_frame` with nothing to say why. Now the
+    result's notes name the refusal of the ego's frames."""
+    from typer.testing import CliRunner
+
+    from bb_align.cli import app as cli
+    from bb_align_client import Credential, ZenohPeer, encode_frame
+    from service_support import RANGE_M, moving_pair, running_service, secure_settings
+
+    for args in (["init", tmp_path], ["issue", tmp_path, "ego"], ["issue", tmp_path, "car1"]):
+        assert CliRunner().invoke(cli, ["keys", *map(str, args)]).exit_code == 0
+    auth = {"ca_cert": str(tmp_path / "ca.pub"), "credential": str(tmp_path / "ego.cred"), "fleet_key": None}
+    settings = secure_settings(True, auth=auth)
+    _, ego, peer = moving_pair(1)[0]
+    car1 = Credential.load(tmp_path / "car1.cred")
+    ep, ca = settings.zenoh.listen, str(tmp_path / "ca.pub")
+    with running_service(settings):
+        with (
+            ZenohPeer("ego", connect=ep, trust=ca) as ego_car,
+            ZenohPeer("car1", connect=ep, key=car1, trust=ca) as car,
+        ):
+            assert ego_car.wait_for_subscriber(10)
+            now = time.time()
+            ego_car.publish(encode_frame(ego.points, ego.boxes, vehicle_id="ego", stamp=now, range_m=RANGE_M))
+            time.sleep(0.3)
+            frame = encode_frame(peer.points, peer.boxes, vehicle_id="car1", stamp=now, range_m=RANGE_M)
+            result = car.request_align(frame, ego_id="ego", timeout=10.0)
+    assert not result.success and result.reason == "no_ego_frame"
+    assert any("the ego's own frames were refused" in n and "unauthenticated" in n for n in result.notes), result.notes
