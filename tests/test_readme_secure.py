@@ -23,11 +23,12 @@ import pytest
 from service_support import free_port
 
 REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
 
 
 def readme_block(marker: str) -> str:
     """The fenced block right after ``<!-- readme-test: MARKER -->`` in README.md."""
-    m = re.search(rf"<!-- readme-test: {marker} -->\n```\w+\n(.*?)\n```", (REPO / "README.md").read_text(), re.S)
+    m = re.search(rf"<!-- readme-test: {marker} -->\n```\w+\n(.*?)\n```", README.read_text(), re.S)
     assert m, f"README.md has no block marked {marker}"
     return m.group(1)
 
@@ -110,8 +111,15 @@ def test_the_readme_secure_path_runs_twice_and_the_signed_recipe_prints_true(tmp
             [sys.executable, "-c", recipe], cwd=work, env=env, capture_output=True, text=True, timeout=180
         )
         assert run.returncode == 0, run.stderr[-3000:]
+        # what the README says it prints, twice (Zenoh, then REST), to its rounding
+        claimed = re.search(r"it prints `(True None [-\d. ]+)`\s+twice", " ".join(README.read_text().split()))
+        assert claimed, "the README no longer says what the recipe prints"
+        want = [float(x) for x in claimed.group(1).split()[2:]]
         lines = run.stdout.splitlines()
         assert len(lines) == 2 and all(line.startswith("True None ") for line in lines), run.stdout
+        for line in lines:
+            got = [float(x) for x in line.split()[2:]]
+            assert len(got) == 3 and max(abs(g - w) for g, w in zip(got, want, strict=True)) <= 0.011, run.stdout
     finally:
         os.killpg(service.pid, signal.SIGTERM)  # bash and the service it runs
         try:
