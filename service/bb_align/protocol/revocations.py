@@ -137,10 +137,17 @@ class RevocationsInForce:
                 f"{self.path}: revocation list version {rl.version} is older than version {in_force} already "
                 f"verified{'' if self.state is None else f' (recorded in {self.state})'}: refused as a rollback"
             )
+        started = self.current is not None
         self.current, self._seen = rl, seen
         if self.state is not None and rl.version > self.floor:
-            _write_atomic(self.state, json.dumps({"kind": "bb-align-revocations-seen", "version": rl.version}))
             self.floor = rl.version
+            try:
+                _write_atomic(self.state, json.dumps({"kind": "bb-align-revocations-seen", "version": rl.version}))
+            except OSError as e:
+                why = f"{self.state}: cannot record revocation list version {rl.version} ({e.strerror or e})"
+                if not started:  # at start-up: refuse rather than run without the rollback check across restarts
+                    raise ValueError(why + "; choose another file (auth.revocations_state)") from None
+                log.warning("%s: an older list will be refused until this process stops", why)
 
     def _poll(self) -> None:
         now = time.monotonic()

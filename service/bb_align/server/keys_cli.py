@@ -31,6 +31,16 @@ def _fail(command: str, problem: str, shell: bool = False) -> typer.Exit:
     return typer.Exit(2)
 
 
+def _vehicle_id(command: str, vehicle_id: str) -> str:
+    import re
+
+    from bb_align.protocol import VEHICLE_ID_PATTERN
+
+    if not re.match(VEHICLE_ID_PATTERN, vehicle_id):
+        raise _fail(command, f"{vehicle_id!r} is not a vehicle id ({VEHICLE_ID_PATTERN})", shell=True)
+    return vehicle_id
+
+
 def _exports(directory: Path, vehicle_id: str, cred: Path) -> list[str]:
     """The settings that make a service use ``cred`` as its own identity, as shell."""
     lines = [
@@ -84,7 +94,7 @@ def keys_issue(
     from bb_align.protocol import Credential, FleetAuthority, fingerprint
     from bb_align.protocol.revocations import record_issued
 
-    target = directory / f"{vehicle_id}.cred"
+    target = directory / f"{_vehicle_id('issue', vehicle_id)}.cred"
     try:
         if target.exists() and not force:
             cred = Credential.load(target)
@@ -112,7 +122,7 @@ def keys_env(
     """Print, as shell, the settings of an existing credential: ``eval "$(bb-align keys env DIR ego)"``."""
     from bb_align.protocol import Credential
 
-    target = directory / f"{vehicle_id}.cred"
+    target = directory / f"{_vehicle_id('env', vehicle_id)}.cred"
     try:
         cred = Credential.load(target)
     except FileNotFoundError:
