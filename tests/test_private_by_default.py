@@ -38,6 +38,7 @@ def test_peers_poses_bandwidth_and_per_car_metrics_need_the_token(pair):
     _, ego, peer = pair[0]
     settings = secure_settings(False, auth={"fleet_key": FLEET_KEY, "rest_token": TOKEN})
     with running_service(settings) as (_, url):
+        wait_for(lambda: httpx.get(f"{url}/readyz").status_code == 200, what="frames accepted")
         with AlignClient(url, token=TOKEN, key=FLEET_KEY) as client:
             t = time.time()
             assert client.align(_enc(peer, "car1", 1, t), _enc(ego, "ego", 1, t)).peer_id == "car1"

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from bb_align.cli import app as cli
 from bb_align.protocol import Credential, Limits, RevocationList, WireError, fingerprint, load_frame
 from bb_align_client import AlignClient, encode_frame
-from service_support import RANGE_M, free_port, moving_pair, running_service, secure_settings
+from service_support import RANGE_M, free_port, moving_pair, running_service, secure_settings, wait_for
 
 LIMITS = Limits()
 CT = {"content-type": "application/msgpack"}
@@ -139,6 +139,7 @@ def test_the_client_refuses_an_answer_signed_by_a_revoked_ego_key(fleet, pair):
     settings = secure_settings(False, auth={"ca_cert": str(fleet / "ca.pub"), "credential": str(fleet / "ego.cred")})
     ego_cred, car1 = Credential.load(fleet / "ego.cred"), Credential.load(fleet / "car1.cred")
     with running_service(settings) as (_, url):
+        wait_for(lambda: httpx.get(f"{url}/readyz").status_code == 200, what="frames accepted")
         with AlignClient(url, key=car1, trust=str(fleet / "ca.pub")) as client:  # the documented trust="ca.pub"
             t = time.time()
             assert client.align(_enc(peer, "car1", 1, t), _enc(ego, "ego", 1, t, key=ego_cred)).ego_id == "ego"
@@ -157,6 +158,7 @@ def test_a_stale_key_stamping_ahead_cannot_lock_the_rotated_key_out(fleet, pair)
     new = Credential.load(fleet / "car1.cred")
     settings = secure_settings(False, auth={"ca_cert": str(fleet / "ca.pub"), "credential": str(fleet / "ego.cred")})
     with running_service(settings) as (app, url):
+        wait_for(lambda: httpx.get(f"{url}/readyz").status_code == 200, what="frames accepted")
         service = app.state.service
 
         def post(seq, key, stamp):
