@@ -138,7 +138,7 @@ def test_a_peer_is_told_when_the_ego_frames_it_needs_were_refused(tmp_path):
 
     from bb_align.cli import app as cli
     from bb_align_client import Credential, ZenohPeer, encode_frame
-    from service_support import RANGE_M, moving_pair, running_service, secure_settings
+    from service_support import RANGE_M, moving_pair, running_service, secure_settings, wait_for
 
     for args in (["init", tmp_path], ["issue", tmp_path, "ego"], ["issue", tmp_path, "car1"]):
         assert CliRunner().invoke(cli, ["keys", *map(str, args)]).exit_code == 0
@@ -147,7 +147,8 @@ def test_a_peer_is_told_when_the_ego_frames_it_needs_were_refused(tmp_path):
     _, ego, peer = moving_pair(1)[0]
     car1 = Credential.load(tmp_path / "car1.cred")
     ep, ca = settings.zenoh.listen, str(tmp_path / "ca.pub")
-    with running_service(settings):
+    with running_service(settings) as (_, url):
+        wait_for(lambda: httpx.get(f"{url}/readyz").status_code == 200, what="frames accepted")
         with (
             ZenohPeer("ego", connect=ep, trust=ca) as ego_car,
             ZenohPeer("car1", connect=ep, key=car1, trust=ca) as car,
