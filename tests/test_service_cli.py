@@ -340,6 +340,13 @@ def test_keys_issue_keeps_a_credential_without_force_and_prints_its_settings(tmp
     exports = [line for line in first_run.stdout.splitlines() if line.startswith("export ")]
     assert len(exports) == 3 and exports == [ln for ln in again.stdout.splitlines() if ln.startswith("export ")]
     assert (tmp_path / "car1.cred").read_bytes() == first  # untouched
+    env = runner.invoke(app, ["keys", "env", str(tmp_path), "car1"])  # only the settings of what exists
+    assert env.exit_code == 0 and [ln for ln in env.stdout.splitlines() if ln.startswith("export ")] == exports
+    missing = runner.invoke(app, ["keys", "env", str(tmp_path), "car9"])  # eval "$(...)" fails too: `false`
+    assert missing.exit_code == 2 and missing.stdout.strip() == "false" and "car9.cred" in missing.stderr
+    assert runner.invoke(app, ["keys", "init", str(tmp_path), "--force"]).exit_code == 0  # a new authority
+    stale = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])  # kept, but no longer vouched for
+    assert stale.exit_code == 2 and stale.stdout.strip() == "false" and "--force" in stale.stderr
     forced = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1", "--force"])
     assert forced.exit_code == 0 and (tmp_path / "car1.cred").read_bytes() != first
 

@@ -41,6 +41,22 @@ def _vehicle_id(command: str, vehicle_id: str) -> str:
     return vehicle_id
 
 
+def _check_kept(command: str, directory: Path, cred) -> None:
+    """A credential kept must still be one the authority in ``directory`` vouches for (not expired, not from an
+    authority replaced since): otherwise its settings would make a service that refuses to start."""
+    from bb_align.protocol import IdentityError, TrustStore
+
+    try:
+        TrustStore.load(directory / "ca.pub").certificate(cred.certificate_bytes)
+    except IdentityError as e:
+        raise _fail(
+            command,
+            f"{directory / (cred.vehicle_id + '.cred')} is not valid under {directory / 'ca.pub'} ({e.detail}): "
+            f"bb-align keys issue {directory} {cred.vehicle_id} --force",
+            shell=True,
+        ) from None
+
+
 def _exports(directory: Path, vehicle_id: str, cred: Path) -> list[str]:
     """The settings that make a service use ``cred`` as its own identity, as shell."""
     lines = [
@@ -98,6 +114,7 @@ def keys_issue(
     try:
         if target.exists() and not force:
             cred = Credential.load(target)
+            _check_kept("issue", directory, cred)
             typer.echo(
                 f"# kept {target} (key {fingerprint(cred.certificate.public_key)[:16]}; --force makes a new key)"
             )
@@ -133,6 +150,10 @@ def keys_env(
         raise _fail("env", f"{target}: {e}", shell=True) from None
     if cred.vehicle_id != vehicle_id:
         raise _fail("env", f"{target} is {cred.vehicle_id!r}'s credential, not {vehicle_id!r}'s", shell=True)
+    try:
+        _check_kept("env", directory, cred)
+    except (OSError, ValueError, KeyError) as e:
+        raise _fail("env", f"{directory / 'ca.pub'}: {e}", shell=True) from None
     typer.echo("\n".join(_exports(directory, vehicle_id, target)))
 
 
