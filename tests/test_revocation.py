@@ -144,6 +144,8 @@ def test_the_client_refuses_an_answer_signed_by_a_revoked_ego_key(fleet, pair):
             t = time.time()
             assert client.align(_enc(peer, "car1", 1, t), _enc(ego, "ego", 1, t, key=ego_cred)).ego_id == "ego"
         assert keys("revoke", fleet, "ego").exit_code == 0  # revoked.json lands beside ca.pub
+        kept = keys("issue", fleet, "ego")  # a revoked credential is not kept: its service would not start
+        assert kept.exit_code == 2 and "revoked" in kept.stderr and kept.stdout.strip() == "false"
         with AlignClient(url, key=car1, trust=str(fleet / "ca.pub")) as client:
             t = time.time()
             with pytest.raises(WireError) as e:

@@ -42,12 +42,15 @@ def _vehicle_id(command: str, vehicle_id: str) -> str:
 
 
 def _check_kept(command: str, directory: Path, cred) -> None:
-    """A credential kept must still be one the authority in ``directory`` vouches for (not expired, not from an
-    authority replaced since): otherwise its settings would make a service that refuses to start."""
+    """A credential kept must still be one the authority in ``directory`` vouches for (not expired, not revoked,
+    not from an authority replaced since): otherwise its settings would make a service that refuses to start."""
     from bb_align.protocol import IdentityError, TrustStore
 
     try:
-        TrustStore.load(directory / "ca.pub").certificate(cred.certificate_bytes)
+        store = TrustStore.load(directory / "ca.pub")
+        if (directory / "revoked.json").exists():
+            store.use_revocations(directory / "revoked.json")
+        store.certificate(cred.certificate_bytes)
     except IdentityError as e:
         raise _fail(
             command,
