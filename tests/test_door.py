@@ -39,7 +39,7 @@ def frame_car1():
 def _door(fleet, newest=None):
     d, _ = fleet
     ring = AuthSettings(ca_cert=d / "ca.pub", credential=d / "ego.cred").keyring()
-    return Door(ring, LIMITS, "ego", lambda vid: (newest or {}).get(vid), recent=64), ring
+    return Door(ring, LIMITS, "ego", lambda vid, key: (newest or {}).get(vid), recent=64), ring
 
 
 def _refusal(door, sender, data) -> WireError:

@@ -242,7 +242,8 @@ def test_compose_parses_and_its_settings_and_demo_options_are_valid(monkeypatch,
     keys_dir = services["keys"]["volumes"][0].split(":")[1]
     script = services["keys"]["command"][0].replace("$$", "$").replace(keys_dir, str(tmp_path))
     subprocess.run(["sh", "-c", script.replace("bb-align", f"{sys.executable} -m bb_align")], check=True)
-    assert {p.name for p in tmp_path.iterdir()} == {"ca.pub", "ca.key", "ego.cred", "car1.cred", "car2.cred"}
+    made = {"ca.pub", "ca.key", "ego.cred", "car1.cred", "car2.cred", "issued"}  # issued/: the public register
+    assert {p.name for p in tmp_path.iterdir()} == made
     _clear_env(monkeypatch)
     for k, v in services["bb-align"]["environment"].items():
         monkeypatch.setenv(k, str(v).replace(keys_dir, str(tmp_path)))
@@ -326,14 +327,26 @@ def test_a_second_serve_on_a_busy_port_says_which_port_and_option_and_exits_2(mo
             assert "Traceback" not in out.stderr
 
 
-def test_keys_issue_refuses_to_replace_a_credential_without_force(tmp_path):
+def test_keys_issue_keeps_a_credential_without_force_and_prints_its_settings(tmp_path):
+    """Issue 46: the secure path's `eval "$(bb-align keys issue DIR ego)"` could not run twice (exit 2, nothing
+    set). Now an existing credential is kept, untouched, and its settings printed; --force makes a new key."""
     runner = CliRunner()
     assert runner.invoke(app, ["keys", "init", str(tmp_path)]).exit_code == 0
-    assert runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"]).exit_code == 0
+    first_run = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
+    assert first_run.exit_code == 0
     first = (tmp_path / "car1.cred").read_bytes()
     again = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])
-    assert again.exit_code == 2 and "--force" in again.stderr and "car1.cred" in again.stderr
+    assert again.exit_code == 0 and "# kept" in again.stdout and "--force" in again.stdout
+    exports = [line for line in first_run.stdout.splitlines() if line.startswith("export ")]
+    assert len(exports) == 3 and exports == [ln for ln in again.stdout.splitlines() if ln.startswith("export ")]
     assert (tmp_path / "car1.cred").read_bytes() == first  # untouched
+    env = runner.invoke(app, ["keys", "env", str(tmp_path), "car1"])  # only the settings of what exists
+    assert env.exit_code == 0 and [ln for ln in env.stdout.splitlines() if ln.startswith("export ")] == exports
+    missing = runner.invoke(app, ["keys", "env", str(tmp_path), "car9"])  # eval "$(...)" fails too: `false`
+    assert missing.exit_code == 2 and missing.stdout.strip() == "false" and "car9.cred" in missing.stderr
+    assert runner.invoke(app, ["keys", "init", str(tmp_path), "--force"]).exit_code == 0  # a new authority
+    stale = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1"])  # kept, but no longer vouched for
+    assert stale.exit_code == 2 and stale.stdout.strip() == "false" and "--force" in stale.stderr
     forced = runner.invoke(app, ["keys", "issue", str(tmp_path), "car1", "--force"])
     assert forced.exit_code == 0 and (tmp_path / "car1.cred").read_bytes() != first
 

@@ -73,10 +73,12 @@ def _settings(fleet, zenoh=True, align=None, **auth):
 
 
 # ---- identities (finding 5) ------------------------------------------------------------------------------------
-def test_keys_cli_writes_private_files_0600_and_refuses_to_overwrite_the_authority(fleet):
+def test_keys_cli_writes_private_files_0600_and_keeps_the_authority(fleet):
     for name in ("ca.key", "ego.cred", "car1.cred"):
         assert stat.S_IMODE(os.stat(fleet / name).st_mode) == 0o600, name
-    assert CliRunner().invoke(cli, ["keys", "init", str(fleet)]).exit_code == 2
+    key = (fleet / "ca.key").read_bytes()
+    again = CliRunner().invoke(cli, ["keys", "init", str(fleet)])  # issue 46: re-runnable, the authority kept
+    assert again.exit_code == 0 and "kept" in again.stdout and (fleet / "ca.key").read_bytes() == key
     cred = Credential.load(fleet / "car1.cred")
     assert cred.vehicle_id == "car1" and "private" not in repr(cred)
     assert len(cred.certificate_bytes) < 200  # travels in every signed frame
@@ -627,11 +629,12 @@ def test_a_revoked_certificate_is_refused_and_a_rotated_key_is_taken(tmp_path, p
             "ca_cert": str(tmp_path / "ca.pub"),
             "credential": str(tmp_path / "ego.cred"),
             "revocations": str(tmp_path / "revoked.json"),
+            "revocations_state": str(tmp_path / "state.json"),
         },
     )
     assert settings.startup_problem() is None
     ring = settings.auth.keyring()
-    ring.trust.revocations_poll_s = 0.0  # read the list again at once when it changes (default: every 2 s)
+    ring.trust.revocations.poll_s = 0.0  # read the list again at once when it changes (default: every 2 s)
     _, _, peer = pair[0]
 
     def load(name, seq, key):
@@ -650,7 +653,7 @@ def test_a_revoked_certificate_is_refused_and_a_rotated_key_is_taken(tmp_path, p
         load("car1", 2, car1)
     assert "revoked" in e.value.detail
     doc = (tmp_path / "revoked.json").read_text()  # a list edited by anyone but the authority
-    (tmp_path / "revoked.json").write_text(doc.replace('"car1"', '"carX"'))
+    (tmp_path / "revoked.json").write_text(doc.replace('"version": 2', '"version": 3'))
     fresh = secure_settings(False, auth=settings.auth.model_dump(exclude={"fleet_key", "rest_token"}))
     assert "does not verify" in fresh.startup_problem()
 

@@ -11,16 +11,18 @@ Needs only ``bb_align.protocol`` and the BV encoder; Zenoh is loaded when ``Zeno
 first used (a REST-only harness never loads it).
 """
 
-from bb_align.protocol import Result
+from bb_align.protocol import Credential, Result
 
 from .deskew import deskew_sweep
 from .encode import decode_result, encode_frame, sign_frame
 from .errors import FrameRefused, ServiceError
 from .rest import AlignClient, AsyncAlignClient
+from .trust import trust_store
 
 __all__ = [
     "AlignClient",
     "AsyncAlignClient",
+    "Credential",
     "FrameRefused",
     "PoseStream",
     "Result",
@@ -30,6 +32,7 @@ __all__ = [
     "deskew_sweep",
     "encode_frame",
     "sign_frame",
+    "trust_store",
 ]
 
 

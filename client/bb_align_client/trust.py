@@ -31,20 +31,32 @@ def answer_trust(
     """``trust``: the fleet authority's ``ca.pub`` (a path or a TrustStore; answers must then be signed with the
     ego's certificate) or an AnswerTrust. Without it, a fleet HMAC ``key`` verifies HMAC-signed answers.
     ``verify_answers=False``: accept unsigned answers (the demo profile only). Otherwise: ValueError, so that
-    a car never takes unverified poses by accident."""
+    a car never takes unverified poses by accident. A path's authority comes with its revocation list when
+    ``revoked.json`` lies beside ``ca.pub`` (``bb-align keys revoke`` writes it there): answers signed with a
+    revoked key are refused, and the list is read again when it changes (never an older version)."""
     if not verify_answers:
         return None
     fleet = key if isinstance(key, (bytes, str)) and key_id == FLEET_KEY_ID else None
     if isinstance(trust, AnswerTrust):
         return trust
     if isinstance(trust, (str, Path)):
-        trust = TrustStore.load(trust)
+        trust = trust_store(trust)
     if trust is not None or fleet is not None:
         return AnswerTrust(trust, fleet)
     raise ValueError(
         "answers are verified by default: pass trust=<the fleet authority's ca.pub> (or the fleet key as key=), "
         "or verify_answers=False for the unauthenticated demo profile"
     )
+
+
+def trust_store(ca_pub: Path | str, revocations: Path | str | None = None) -> TrustStore:
+    """The authority of ``ca_pub`` with its revocation list: ``revocations``, else ``revoked.json`` beside
+    ``ca_pub`` when there is one. ValueError when the list is not signed by that authority."""
+    store = TrustStore.load(ca_pub)
+    listed = Path(revocations) if revocations is not None else Path(ca_pub).with_name("revoked.json")
+    if revocations is not None or listed.exists():
+        store.use_revocations(listed)
+    return store
 
 
 def read_answer(

@@ -167,7 +167,7 @@ def make_credentials(directory: Path, vehicle_ids: Iterable[str]) -> dict:
     from typer.testing import CliRunner
 
     from bb_align.protocol import Credential
-    from bb_align.server.commands import keys_app
+    from bb_align.server.keys_cli import keys_app
 
     runner = CliRunner()
     for args in (["init", str(directory)], *(["issue", str(directory), vid] for vid in vehicle_ids)):

@@ -30,7 +30,6 @@ from .identity import (
     Credential,
     FleetAuthority,
     IdentityError,
-    RevocationList,
     TrustStore,
 )
 from .keys import align_key, frames_key, poses_key
@@ -51,6 +50,7 @@ from .models import (
     wrap_yaw,
 )
 from .png import check_png
+from .revocations import RevocationList, fingerprint
 from .schemas import json_schemas, write_json_schemas
 from .signatures import AuthError, Keyring, frame_mac
 from .validation import validate_frame
@@ -108,6 +108,7 @@ __all__ = [
     "setting_env",
     "sign",
     "to_json",
+    "fingerprint",
     "validate_frame",
     "wrap_yaw",
     "write_json_schemas",

@@ -19,7 +19,7 @@ from .errors import WireError, invalid, too_large
 from .identity import FRAME_DOMAIN, RESULT_DOMAIN, SIGNATURE_BYTES, Credential, IdentityError, TrustStore
 from .limits import FLEET_KEY_ID, Limits, limit_env
 from .models import BOX_FIELDS, JSON, MSGPACK, SCHEMA_VERSION, AlignRequest, Frame, Refusal, Result, Signed
-from .signatures import MAC_BYTES, AuthError, Keyring, frame_mac
+from .signatures import MAC_BYTES, AuthError, Keyring, frame_mac, signer_key
 from .validation import validate_frame
 
 
@@ -162,12 +162,13 @@ def _frame_from(
     f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
     if not isinstance(obj, dict):
         raise invalid(where or "message", f"must be a map (a Frame or a Signed frame), got {type(obj).__name__}")
-    signer = None
+    signer = key = None
     if _is_envelope(obj):
         env = _envelope(obj, where)
         if keyring is not None:
             try:
                 signer = keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, now)
+                key = signer_key(env.alg, env.key_id, env.cert)
             except AuthError as e:
                 if keyring.required or not e.unknown:
                     raise WireError(e.status, e.error, e.detail, f("mac"), env.alg) from None
@@ -191,6 +192,7 @@ def _frame_from(
             keyring.authorize(signer, frame.vehicle_id)
         except AuthError as e:
             raise WireError(e.status, e.error, e.detail, f("vehicle_id"), signer) from None
+        frame._signer_key = key
     return frame
 
 

@@ -161,59 +161,20 @@ class FleetAuthority:
         doc = _read(Path(directory) / "ca.key", "bb-align-ca-key")
         return cls(doc["name"], Ed25519PrivateKey.from_private_bytes(base64.b64decode(doc["private_key"])))
 
-    def revoke(self, certificate: Certificate, previous: RevocationList | None = None) -> RevocationList:
-        """The revocation list ``previous`` (or an empty one) with ``certificate``'s key added, signed anew."""
-        if certificate.issuer != self.name:
-            raise ValueError(f"the certificate was issued by {certificate.issuer!r}, not by {self.name!r}")
+    def revoke(self, revoke: dict[bytes, str], previous=None):
+        """A new revocation list (``revocations.RevocationList``): ``previous``'s entries (or none) and the keys of
+        ``revoke`` (SHA-256 fingerprint -> vehicle id), its version one more than ``previous``'s, signed."""
+        from .revocations import RevocationList
+
+        if previous is not None and previous.issuer != self.name:
+            raise ValueError(f"the revocation list was issued by {previous.issuer!r}, not by {self.name!r}")
+        now = time.time()
         entries = dict(previous.entries) if previous is not None else {}
-        entries.setdefault(certificate.public_key, (certificate.vehicle_id, time.time()))
-        unsigned = RevocationList(self.name, time.time(), entries, b"")
-        signature = self._key.sign(REVOCATION_DOMAIN + unsigned.tbs())
-        return RevocationList(self.name, unsigned.issued_at, entries, signature)
-
-
-@dataclass(frozen=True)
-class RevocationList:
-    """Certificates the authority has revoked, by public key (a vehicle's new key, issued for the same id, stays
-    valid: that is key rotation), signed by the authority. File ``revoked.json`` (``bb-align keys revoke``)."""
-
-    issuer: str
-    issued_at: float
-    entries: dict  # public key (raw, 32 bytes) -> (vehicle id, revoked at)
-    signature: bytes
-
-    def tbs(self) -> bytes:
-        rows = sorted([pk, vid, at] for pk, (vid, at) in self.entries.items())
-        return msgpack.packb([1, self.issuer, self.issued_at, rows], use_bin_type=True)
-
-    def save(self, path: Path) -> Path:
-        doc = {
-            "kind": "bb-align-revocations",
-            "issuer": self.issuer,
-            "issued_at": self.issued_at,
-            "revoked": [
-                {"vehicle_id": vid, "public_key": _b64(pk), "revoked_at": at} for pk, (vid, at) in self.entries.items()
-            ],
-            "signature": _b64(self.signature),
-        }
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(doc, indent=1))
-        os.replace(tmp, path)  # a service reading it never sees half a file
-        return path
-
-    @classmethod
-    def load(cls, path: Path | str) -> RevocationList:
-        """Read (not verify) a revocation list; ValueError when it is not one."""
-        doc = _read(Path(path), "bb-align-revocations")
-        try:
-            entries = {
-                base64.b64decode(e["public_key"]): (str(e["vehicle_id"]), float(e["revoked_at"]))
-                for e in doc["revoked"]
-            }
-            return cls(str(doc["issuer"]), float(doc["issued_at"]), entries, base64.b64decode(doc["signature"]))
-        except (KeyError, TypeError, ValueError) as e:
-            raise ValueError(f"{path}: malformed revocation list ({type(e).__name__}: {e})") from None
+        for fp, vid in revoke.items():
+            entries.setdefault(fp, (vid, now))
+        version = 1 if previous is None else previous.version + 1
+        unsigned = RevocationList(self.name, version, now, entries, b"")
+        return RevocationList(self.name, version, now, entries, self._key.sign(REVOCATION_DOMAIN + unsigned.tbs()))
 
 
 class Credential:
@@ -261,21 +222,19 @@ class TrustStore:
         self._cache: OrderedDict[bytes, tuple[Certificate, Ed25519PublicKey]] = OrderedDict()
         self._cache_size = cache_size
         self._lock = threading.Lock()
-        self._revoked: frozenset[bytes] = frozenset()
-        self._revocations: Path | None = None
-        self._revocations_seen: tuple[float, int] | None = None  # (mtime, size) of the file last read
-        self._revocations_checked = 0.0
-        self.revocations_poll_s = 2.0
+        self.revocations = None  # revocations.RevocationsInForce once use_revocations is called
 
-    def use_revocations(self, path: Path | str) -> int:
-        """Refuse every certificate the authority's list at ``path`` revokes (``bb-align keys revoke``); the file is
-        read again when it changes (looked at every ``revocations_poll_s``). Returns how many are revoked;
-        ValueError when the list is not signed by a trusted authority."""
-        self._revocations = Path(path)
-        self._reload_revocations()
-        return len(self._revoked)
+    def use_revocations(self, path: Path | str, state: Path | None = None) -> int:
+        """Refuse every key the authority's list at ``path`` revokes (``bb-align keys revoke``); the file is read
+        again when it changes (every ``revocations.poll_s``), and an older version than one already verified is
+        refused (``state``: where the highest version verified is kept across restarts). Returns the list's
+        version; ValueError when it is not signed by a trusted authority or is older than one verified before."""
+        from .revocations import RevocationsInForce
 
-    def verify_revocations(self, rl: RevocationList) -> None:
+        self.revocations = RevocationsInForce(path, self.verify_revocations, state)
+        return self.revocations.version
+
+    def verify_revocations(self, rl) -> None:
         ca = self._cas.get(rl.issuer)
         if ca is None:
             raise ValueError(f"revocation list issued by {rl.issuer!r}, not a trusted fleet authority")
@@ -283,26 +242,6 @@ class TrustStore:
             ca.verify(rl.signature, REVOCATION_DOMAIN + rl.tbs())
         except InvalidSignature:
             raise ValueError("the revocation list's authority signature does not verify") from None
-
-    def _reload_revocations(self) -> None:
-        st = self._revocations.stat()
-        seen = (st.st_mtime, st.st_size)
-        if seen == self._revocations_seen:
-            return
-        rl = RevocationList.load(self._revocations)
-        self.verify_revocations(rl)
-        self._revoked = frozenset(rl.entries)
-        self._revocations_seen = seen
-
-    def _poll_revocations(self) -> None:
-        now = time.monotonic()
-        if self._revocations is None or now - self._revocations_checked < self.revocations_poll_s:
-            return
-        self._revocations_checked = now
-        try:
-            self._reload_revocations()
-        except (OSError, ValueError):  # a broken or forged file: the list last verified stays in force
-            pass
 
     @classmethod
     def load(cls, *paths: Path | str) -> TrustStore:
@@ -337,8 +276,7 @@ class TrustStore:
             raise IdentityError(401, f"certificate of {cert.vehicle_id!r} is not valid now (expired or not yet)")
         if cert.vehicle_id == FLEET_KEY_ID:  # the shared fleet key's id: a certificate can never speak as it
             raise IdentityError(403, f"a certificate for the reserved id {FLEET_KEY_ID!r} is never accepted")
-        self._poll_revocations()
-        if cert.public_key in self._revoked:
+        if self.revocations is not None and self.revocations.revoked(cert.public_key):
             raise IdentityError(401, f"certificate of {cert.vehicle_id!r} is revoked by its authority")
         return hit
 

@@ -15,7 +15,16 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, WithJsonSchema
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    PrivateAttr,
+    WithJsonSchema,
+)
 
 from bb_align.engine.bev import BevImage, decode_png, image_size_px
 from bb_align.engine.config import BevConfig
@@ -171,6 +180,19 @@ class Frame(_Wire):
         "service tracks the offset between the two odometry frames, which holds where the images are weak",
     )
     num_points: int | None = Field(None, ge=0, description="points in the raw sweep (bandwidth accounting)")
+    # Which key signed it (set by the loader once the signature verified; not on the wire): the receiver keeps one
+    # replay window per sender and key, so a stale key stamping ahead cannot lock a rotated key out.
+    _signer_key: bytes | None = PrivateAttr(None)
+
+    def __eq__(self, other: object) -> bool:  # what the frame says, whoever signed it
+        return isinstance(other, Frame) and self.__dict__ == other.__dict__
+
+    __hash__ = None  # lists inside: never hashable
+
+    @property
+    def signer_key(self) -> bytes | None:
+        """The verified signer's key: its Ed25519 public key, or ``hmac:<key id>``; None when unsigned."""
+        return self._signer_key
 
     def bev_image(self, limits: Limits | None = None) -> BevImage:
         """Decode the PNG into the engine's BevImage. The PNG's structure is checked again first (cheap), so

@@ -18,7 +18,7 @@ import hashlib
 import hmac
 from collections.abc import Callable
 
-from .identity import FRAME_DOMAIN, IdentityError, TrustStore
+from .identity import FRAME_DOMAIN, Certificate, IdentityError, TrustStore
 from .limits import FLEET_KEY_ID
 
 DOMAIN = b"bb-align/frame/v1\x00"
@@ -30,6 +30,18 @@ def frame_mac(key: bytes | str, key_id: str, payload: bytes, domain: bytes = DOM
     ``key`` announced as ``key_id``."""
     key = key.encode() if isinstance(key, str) else key
     return hmac.new(key, domain + key_id.encode() + b"\x00" + payload, hashlib.sha256).digest()
+
+
+def signer_key(alg: str, key_id: str, cert: bytes | None) -> bytes | None:
+    """Which key an envelope claims to be signed with, read without verifying anything: the certificate's Ed25519
+    public key, or ``hmac:<key id>``; None for a certificate that does not parse. A receiver keeps one replay
+    window per sender and key (a rotated key is not locked out by the old one's stamps)."""
+    if alg != "ed25519":
+        return b"hmac:" + key_id.encode()
+    try:
+        return Certificate.from_bytes(cert or b"").public_key
+    except IdentityError:
+        return None
 
 
 class AuthError(Exception):

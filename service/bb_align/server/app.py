@@ -65,6 +65,7 @@ class Readiness(BaseModel):
     ready: bool
     workers_running: bool
     zenoh: bool | None  # None: Zenoh disabled
+    frames_accepted: bool  # False while frames are still refused as stamped before this service started
     ego_frames: int
 
 
@@ -365,16 +366,19 @@ def _add_status_routes(app: FastAPI, doors: _Doors) -> None:
     @app.get(
         "/readyz",
         response_model=Readiness,
-        summary="Workers running and Zenoh open",
+        summary="Workers running, Zenoh open, and frames stamped now accepted",
         responses={503: {"model": Readiness, "description": "Not ready"}},
     )
     async def readyz() -> JSONResponse:
         link = app.state.link
         zenoh_ok = None if not settings.zenoh.enabled else bool(link is not None and link.is_open)
+        floor = service.peer_table.not_before  # frames stamped earlier are refused (replays across a restart)
+        accepting = floor is None or time.time() >= floor
         r = Readiness(
-            ready=service.running and zenoh_ok is not False,
+            ready=service.running and zenoh_ok is not False and accepting,
             workers_running=service.running,
             zenoh=zenoh_ok,
+            frames_accepted=accepting,
             ego_frames=len(service.cache),
         )
         return JSONResponse(r.model_dump(), status_code=200 if r.ready else 503)

@@ -1,4 +1,4 @@
-"""``bb-align serve`` and ``bb-align wire-schemas`` (registered into the main CLI)."""
+"""``bb-align serve`` and ``bb-align wire-schemas`` (registered into the main CLI; ``bb-align keys``: keys_cli)."""
 
 from __future__ import annotations
 
@@ -33,6 +33,12 @@ def serve(
         help="recorded or simulated data (= BBALIGN_LIMITS__REPLAY=true): stamps are not checked against this "
         "machine's clock and a sender whose (stamp, seq) goes back starts a new pass; replay protection is OFF",
     ),
+    insecure: bool = typer.Option(
+        False,
+        "--insecure",
+        help="allow REST beyond loopback (--host) without a bearer token (= BBALIGN_INSECURE=true); otherwise the "
+        "service refuses to start that way",
+    ),
     log_level: str = typer.Option("info", help="uvicorn log level"),
 ) -> None:
     """Run the ego-side service: REST and Zenoh doors, ego-frame cache, engine workers (env: BBALIGN_*).
@@ -47,13 +53,11 @@ def serve(
     from .settings import Settings
 
     zenoh = {k: v for k, v in (("listen", zenoh_listen), ("connect", zenoh_connect), ("mode", zenoh_mode)) if v}
-    if no_zenoh:
-        zenoh["enabled"] = False
+    zenoh |= {"enabled": False} if no_zenoh else {}
     given = {
         k: v for k, v in (("ego_id", ego_id), ("host", host), ("port", port), ("workers", workers)) if v is not None
     }
-    if demo:
-        given["profile"] = "demo"
+    given |= ({"profile": "demo"} if demo else {}) | ({"insecure": True} if insecure else {})
     if replay:  # merged with BBALIGN_LIMITS__* from the environment (pydantic-settings merges nested values)
         given["limits"] = {"replay": True}
     try:
@@ -201,92 +205,9 @@ def wire_schemas(
         typer.echo(str(p))
 
 
-keys_app = typer.Typer(
-    help="Fleet authority and vehicle credentials (Ed25519, docs/security.md).",
-    no_args_is_help=True,
-    rich_markup_mode=None,
-)
-
-
-@keys_app.command("init")
-def keys_init(
-    directory: Path = typer.Argument(..., help="where ca.pub and ca.key go"),
-    name: str = typer.Option("bb-align-fleet-ca", help="the authority's name (certificates name their issuer)"),
-    force: bool = typer.Option(False, help="replace an existing authority"),
-) -> None:
-    """Make a fleet authority: DIR/ca.pub (give it to every service and car) and DIR/ca.key (keep it offline)."""
-    from bb_align.protocol import FleetAuthority
-
-    if (directory / "ca.key").exists() and not force:
-        typer.secho(f"{directory / 'ca.key'} exists (use --force to replace it)", err=True, fg="red")
-        raise typer.Exit(2)
-    pub, key = FleetAuthority.generate(name).save(directory)
-    typer.echo(f"{pub} (trusted by services and cars)\n{key} (mode 0600: keep it offline)")
-
-
-@keys_app.command("issue")
-def keys_issue(
-    directory: Path = typer.Argument(..., help="the authority's directory (bb-align keys init)"),
-    vehicle_id: str = typer.Argument(..., help="the vehicle the credential is for"),
-    days: float = typer.Option(365.0, min=0.001, help="validity, days"),
-    force: bool = typer.Option(False, "--force", help="replace an existing credential of this vehicle"),
-) -> None:
-    """Issue DIR/<VEHICLE_ID>.cred: a fresh Ed25519 key and its certificate (mode 0600; give it to that car only).
-    Prints, as shell, the settings that make a service use it as its own identity:
-    ``eval "$(bb-align keys issue DIR ego)"; bb-align serve``."""
-    from bb_align.protocol import FleetAuthority
-
-    target = directory / f"{vehicle_id}.cred"
-    if target.exists() and not force:
-        typer.secho(
-            f"bb-align keys issue: {target} exists; use --force to replace it (the old one stays valid until it "
-            "expires)",
-            err=True,
-            fg="red",
-        )
-        raise typer.Exit(2)
-    try:
-        cred = FleetAuthority.load(directory).issue(vehicle_id, days=days)
-    except (OSError, ValueError) as e:
-        typer.secho(f"bb-align keys issue: {e}", err=True, fg="red")
-        raise typer.Exit(2) from None
-    path = cred.save(target)
-    typer.echo(f"# wrote {path}; for a service whose ego id is {vehicle_id!r}:")
-    typer.echo(f"export BBALIGN_EGO_ID={vehicle_id}")
-    typer.echo(f"export BBALIGN_AUTH__CA_CERT={(directory / 'ca.pub').resolve()}")
-    typer.echo(f"export BBALIGN_AUTH__CREDENTIAL={path.resolve()}")
-
-
-@keys_app.command("revoke")
-def keys_revoke(
-    directory: Path = typer.Argument(..., help="the authority's directory (bb-align keys init)"),
-    vehicle_id: str = typer.Argument(..., help="the vehicle whose credential is revoked"),
-    cred: Path | None = typer.Option(None, help="the credential to revoke (default DIR/<VEHICLE_ID>.cred)"),
-) -> None:
-    """Revoke a vehicle credential: add its key to DIR/revoked.json, the list the authority signs. Services with
-    BBALIGN_AUTH__REVOCATIONS=DIR/revoked.json refuse it (read again within seconds of a change). To rotate a key:
-    ``bb-align keys issue DIR car1`` (a new key, same id), give the car its new credential, then revoke the old
-    one with ``--cred``."""
-    from bb_align.protocol import Credential, FleetAuthority
-    from bb_align.protocol.identity import RevocationList
-
-    path = directory / "revoked.json"
-    try:
-        ca = FleetAuthority.load(directory)
-        cert = Credential.load(cred or directory / f"{vehicle_id}.cred").certificate
-        if cert.vehicle_id != vehicle_id:
-            raise ValueError(f"{cred} is {cert.vehicle_id!r}'s credential, not {vehicle_id!r}'s")
-        previous = RevocationList.load(path) if path.exists() else None
-        revoked = ca.revoke(cert, previous)
-    except (OSError, ValueError, KeyError) as e:
-        typer.secho(f"bb-align keys revoke: {e}", err=True, fg="red")
-        raise typer.Exit(2) from None
-    revoked.save(path)
-    typer.echo(f"# {path}: {len(revoked.entries)} revoked; services need:")
-    typer.echo(f"export BBALIGN_AUTH__REVOCATIONS={path.resolve()}")
-
-
 def register(app: typer.Typer) -> None:
+    from .keys_cli import keys_app
+
     app.command()(serve)
     app.command("wire-schemas")(wire_schemas)
     app.add_typer(keys_app, name="keys")

@@ -64,6 +64,9 @@ from .tracks import PeerTracks
 log = logging.getLogger("bb_align.server")
 
 
+EGO_REFUSAL_NOTE_S = 10.0  # an ego frame refused this recently is named in peers' results without an ego frame
+
+
 class ServiceReason(str, Enum):
     """Why the service could not align a peer frame at all (Result.reason; the engine's own reasons are
     bb_align.engine.FailureReason values)."""
@@ -176,13 +179,14 @@ class AlignService:
             self.keyring,
             limits,
             settings.ego_id,
-            lambda vid: self.peer_table.newest(vid, STREAM),
+            lambda vid, key: self.peer_table.newest(vid, STREAM, key),
             limits.intake_recent_signatures,
         )
         self._door_counters: dict[tuple[str, str], tuple] = {}
         self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
+        self._ego_refusal: tuple[float, str] | None = None  # (monotonic time, why) of the last ego frame refused
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -260,6 +264,8 @@ class AlignService:
             self._door_counters[(door, e.error)] = counters
         for c in counters:
             c.inc()
+        if sender == self.settings.ego_id:
+            self._ego_refusal = (time.monotonic(), f"{e.error}: {e.detail}")
         self._log_refusal(door, e.error, "refused a message from %r on %s: %s", sender, door, e)
 
     def submit_query(
@@ -467,7 +473,20 @@ class AlignService:
     def _refused(self, job: Job, e: WireError) -> None:
         e.counted = True  # the REST door counts the refusals it raises itself, not these again
         self.metrics.rejected.labels(job.door, e.error).inc()
+        if job.sender == self.settings.ego_id and job.reply is None:  # an ego stream frame
+            self._ego_refusal = (time.monotonic(), f"{e.error}: {e.detail}")
         self._log_refusal(job.door, e.error, "refused a message from %r on %s: %s", job.sender or "?", job.door, e)
+
+    def _ego_refusal_notes(self) -> list[str]:
+        """For a peer's result without a usable ego frame: why, when the ego's own frames were refused lately (a
+        peer cannot see the service's log)."""
+        last = self._ego_refusal
+        if last is None or time.monotonic() - last[0] > EGO_REFUSAL_NOTE_S:
+            return []
+        return [
+            f"the ego's own frames were refused ({time.monotonic() - last[0]:.1f} s ago: {last[1]}); the ego signs "
+            "its frames with the service's credential (auth.credential)"
+        ]
 
     def _accept_stream(self, job: Job) -> bool:
         """An admitted stream frame: the ego's goes into the cache at once (a PNG decode, on the caller's thread,
@@ -707,7 +726,14 @@ class AlignService:
         entry = self.cache.nearest(peer.stamp)
         if entry is None:
             return self._finish(
-                job, Result(**base, success=False, reason=ServiceReason.no_ego_frame.value, timings_ms=timings)
+                job,
+                Result(
+                    **base,
+                    success=False,
+                    reason=ServiceReason.no_ego_frame.value,
+                    timings_ms=timings,
+                    notes=self._ego_refusal_notes(),
+                ),
             )
         skew = peer.stamp - entry.stamp
         if abs(skew) > s.max_ego_skew_s:
@@ -721,7 +747,10 @@ class AlignService:
                     success=False,
                     reason=ServiceReason.stale_ego_frame.value,
                     timings_ms=timings,
-                    notes=[f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s"],
+                    notes=[
+                        f"nearest ego frame is {abs(skew):.3f} s away, the limit is {s.max_ego_skew_s} s",
+                        *self._ego_refusal_notes(),
+                    ],
                 ),
             )
         if not wait:

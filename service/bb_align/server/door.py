@@ -13,8 +13,9 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
    gate refuses it whoever signed it (a compromised car's junk, and a keyless sender's, costs no MAC);
 4. a byte-for-byte copy of a message verified here recently (a replay of a frame still on its way to the gate):
    refused without a signature check;
-5. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender (a replay of
-   an older frame): read without trusting it, since a frame that old is refused whoever signed it;
+5. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender with the key
+   the envelope names (a replay of an older frame): read without trusting it, since a frame that old is refused
+   whoever signed it;
 6. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
    the key chunk it came under.
 
@@ -35,7 +36,7 @@ import msgpack
 
 from bb_align.protocol import WireError, peek_signed
 from bb_align.protocol.models import Signed
-from bb_align.protocol.signatures import AuthError, Keyring
+from bb_align.protocol.signatures import AuthError, Keyring, signer_key
 
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE
 
@@ -214,14 +215,15 @@ class KeyRate:
 
 class Door:
     """``lane(sender, data)`` for stream messages: the intake lane a raw message may wait in, or WireError when
-    the gate would certainly refuse it. ``newest(vehicle_id)``: the newest (stamp, seq) accepted from a sender."""
+    the gate would certainly refuse it. ``newest(vehicle_id, key)``: the newest (stamp, seq) accepted from a sender
+    signed with that key (``signatures.signer_key``)."""
 
     def __init__(
         self,
         keyring: Keyring,
         limits,
         ego_id: str,
-        newest: Callable[[str], tuple[float, int] | None],
+        newest: Callable[[str, bytes | None], tuple[float, int] | None],
         recent: int,
     ):
         self.keyring, self.limits, self.ego_id = keyring, limits, ego_id
@@ -243,7 +245,7 @@ class Door:
             raise _not_a_frame()
         if self.recent.is_copy(env.key_id, env.mac, env.payload):
             raise WireError(409, "replayed", "a copy of a message already received", "mac")
-        self._refuse_old(sender, claimed)
+        self._refuse_old(sender, signer_key(env.alg, env.key_id, env.cert), claimed)
         try:
             signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
         except AuthError as e:
@@ -277,8 +279,8 @@ class Door:
         if header in _BIN_HEADERS and (start == end or data[start] not in _MAP_FIRST_BYTES):
             raise _not_a_frame()
 
-    def _refuse_old(self, sender: str, claimed: tuple[float, int]) -> None:
-        newest = self._newest(sender)
+    def _refuse_old(self, sender: str, key: bytes | None, claimed: tuple[float, int]) -> None:
+        newest = self._newest(sender, key)
         if newest is None:
             return
         if claimed <= newest:

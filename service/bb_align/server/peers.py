@@ -71,8 +71,23 @@ class _Entry:
     def __init__(self, now: float):
         self.status = PeerStatus()
         self.last_seen = now
-        self.newest: dict[str, tuple[float, int]] = {}  # channel -> newest (stamp, seq) accepted
+        # (channel, signer's key) -> newest (stamp, seq) accepted: one window per key, so that a car's old key,
+        # still valid during a rotation, cannot stamp ahead and lock its new key out
+        self.newest: dict[tuple[str, bytes | None], tuple[float, int]] = {}
         self.outcomes: set[str] = set()  # metric label values used, removed on eviction
+
+
+KEYS_PER_SENDER = 4  # replay windows kept per sender and channel (keys valid at once: a rotation needs 2)
+
+
+def _bound_keys(newest: dict, channel: str) -> None:
+    """At most KEYS_PER_SENDER windows per channel: the one whose newest frame is oldest goes (only the authority
+    makes keys, so a sender has more valid at once only by the authority's choice)."""
+    slots = [slot for slot in newest if slot[0] == channel]
+    while len(slots) > KEYS_PER_SENDER:
+        oldest = min(slots, key=newest.__getitem__)
+        del newest[oldest]
+        slots.remove(oldest)
 
 
 class PeerTable:
@@ -127,11 +142,11 @@ class PeerTable:
                         limit_env("max_peers"),
                     )
                 entry = self._entries[frame.vehicle_id] = _Entry(now)
-            key = (frame.stamp, frame.seq)
-            newest = entry.newest.get(channel)
+            key, slot = (frame.stamp, frame.seq), (channel, frame.signer_key)
+            newest = entry.newest.get(slot)
             rewound = newest is not None and key <= newest
             if rewound and self.new_pass_on_rewind:  # a recording played again: its window starts over
-                entry.newest[channel] = key
+                entry.newest[slot] = key
                 entry.status.sequence_restarts += 1
             elif rewound and self.refuse_replays:
                 self._notify(evicted)
@@ -146,17 +161,19 @@ class PeerTable:
                     limit_env("replay"),
                 )
             else:
-                entry.newest[channel] = max(key, newest) if newest is not None else key
+                entry.newest[slot] = max(key, newest) if newest is not None else key
+                _bound_keys(entry.newest, channel)
             entry.last_seen = now
         self._notify(evicted)
         return rewound and self.new_pass_on_rewind
 
-    def newest(self, vehicle_id: str, channel: str) -> tuple[float, int] | None:
-        """The newest (stamp, seq) accepted from a tracked sender on ``channel`` (None: none, or not tracked). The
-        restart floor (``not_before``) is not part of it: the gate refuses those frames and tells their sender."""
+    def newest(self, vehicle_id: str, channel: str, key: bytes | None = None) -> tuple[float, int] | None:
+        """The newest (stamp, seq) accepted from a tracked sender on ``channel`` signed with ``key`` (None: none,
+        or not tracked). The restart floor (``not_before``) is not part of it: the gate refuses those frames and
+        tells their sender."""
         with self._lock:
             entry = self._entries.get(vehicle_id)
-            return None if entry is None else entry.newest.get(channel)
+            return None if entry is None else entry.newest.get((channel, key))
 
     def sweep(self) -> list[str]:
         """Forget every sender idle for longer than idle_s; returns their ids."""

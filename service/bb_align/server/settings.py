@@ -71,7 +71,14 @@ class AuthSettings(BaseModel):
     revocations: Path | None = Field(
         None,
         description="the authority's signed revocation list (bb-align keys revoke DIR <vehicle_id>, DIR/revoked.json):"
-        " certificates it names are refused; read again when the file changes",
+        " keys it names are refused; read again when the file changes; an older version than one verified before is"
+        " refused, at run time and at start-up",
+    )
+    revocations_state: Path | None = Field(
+        None,
+        description="where the highest revocation-list version this service verified is kept, so that an older "
+        "list put back is refused at start-up too (default: $XDG_STATE_HOME, else ~/.local/state, "
+        "/bb-align/revocations-<authority>.json)",
     )
 
     @field_validator("fleet_key", "rest_token")
@@ -114,7 +121,7 @@ class AuthSettings(BaseModel):
             return None
         store = TrustStore.load(self.ca_cert)
         if self.revocations is not None:
-            store.use_revocations(self.revocations)
+            store.use_revocations(self.revocations, self.revocations_state or _default_state(self.ca_cert))
         return store
 
     @cached_property
@@ -143,9 +150,15 @@ class AuthSettings(BaseModel):
     def identity_problem(self, ego_id: str) -> str | None:
         """Why the configured identity files cannot be used (None: fine)."""
         try:
-            trust, cred = self.trust, self.ego_credential
+            cred = self.ego_credential
+            if self.ca_cert is not None:
+                TrustStore.load(self.ca_cert)
         except (OSError, ValueError, KeyError) as e:
             return f"auth.ca_cert / auth.credential: {type(e).__name__}: {e}"
+        try:
+            trust = self.trust
+        except (OSError, ValueError, KeyError) as e:
+            return f"auth.revocations: {e}"
         if self.revocations is not None and trust is None:
             return "auth.revocations needs auth.ca_cert (the authority that signed it)"
         if cred is not None:
@@ -171,6 +184,12 @@ class Settings(BaseSettings):
     ego_id: str = Field("ego", pattern=VEHICLE_ID_PATTERN, description="vehicle id of this car's own frames")
     host: str = Field("127.0.0.1", description="REST bind address (loopback by default)")
     port: int = Field(8000, ge=0, le=65535, description="REST port (0: any free port)")
+    insecure: bool = Field(
+        False,
+        description="serve REST beyond loopback without a bearer token (bb-align serve --insecure); otherwise the "
+        "service refuses to start that way. Only behind another boundary (a container whose port is published on "
+        "the host's loopback)",
+    )
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     auth: AuthSettings = Field(default_factory=AuthSettings)
     align: AlignConfig = Field(default_factory=AlignConfig)
@@ -279,6 +298,11 @@ class Settings(BaseSettings):
                 "BBALIGN_AUTH__FLEET_KEY), or run the embedded demo without authentication (bb-align serve --demo, "
                 "BBALIGN_PROFILE=demo)"
             )
+        if not _loopback_host(self.host) and self.auth.rest_token is None and not self.insecure:
+            return (
+                f"REST on {self.host} (beyond loopback) without a bearer token would give anyone on the network every "
+                "peer's pose: set BBALIGN_AUTH__REST_TOKEN, or serve on 127.0.0.1, or say --insecure"
+            )
         return self.auth.identity_problem(self.ego_id)
 
     def security_warnings(self) -> list[str]:
@@ -288,7 +312,7 @@ class Settings(BaseSettings):
             why = "demo profile" if self.profile == "demo" else "auth.mode='off'"
             out.append(f"AUTHENTICATION IS OFF ({why}): any process that reaches the endpoints can inject frames")
         exposed = [e for e in self.zenoh.listen if not _loopback_endpoint(e)] if self.zenoh.enabled else []
-        if self.host not in ("127.0.0.1", "localhost", "::1"):
+        if not _loopback_host(self.host):
             exposed.append(f"REST on {self.host}")
         if self.limits.replay:
             out.append(
@@ -297,8 +321,8 @@ class Settings(BaseSettings):
             )
         if exposed and self.auth.mode == "off":
             out.append("NOT LOOPBACK-ONLY WITHOUT AUTHENTICATION: " + ", ".join(exposed))
-        if self.host not in ("127.0.0.1", "localhost", "::1") and self.auth.rest_token is None:
-            out.append("REST is reachable beyond loopback without a bearer token (auth.rest_token)")
+        if not _loopback_host(self.host) and self.auth.rest_token is None:
+            out.append("REST is reachable beyond loopback without a bearer token (auth.rest_token; --insecure)")
         plain = (
             [
                 e
@@ -313,6 +337,25 @@ class Settings(BaseSettings):
         return out
 
 
+def _default_state(ca_cert: Path) -> Path:
+    """Where a service keeps the highest revocation-list version it verified for the authority of ``ca_cert``."""
+    import hashlib
+    import os
+
+    base = Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state")
+    authority = hashlib.sha256(Path(ca_cert).read_bytes()).hexdigest()[:16]
+    return base / "bb-align" / f"revocations-{authority}.json"
+
+
+def _loopback_host(host: str) -> bool:
+    import ipaddress
+
+    try:
+        return host == "localhost" or ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
 def _loopback_endpoint(endpoint: str) -> bool:
     host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
-    return endpoint.startswith("unixsock-stream/") or host in ("127.0.0.1", "localhost", "::1")
+    return endpoint.startswith("unixsock-stream/") or _loopback_host(host)
