@@ -113,8 +113,7 @@ class Follower:
         def acquire(T_pred: np.ndarray | None) -> Measurement:  # the prediction is not a prior: judged after
             t = time.perf_counter()
             runs.append(self.crosscheck(ego, peer, T_prior=T_prior, tz=tz, roll=roll, pitch=pitch))
-            if not runs[-1].success and T_pred is None and self._stream_due(stamp):
-                # No track and this frame alone gives none: the last second of frames together may.
+            if not runs[-1].success and T_pred is None and self._stream_due(stamp):  # no track, none from one frame
                 runs.append(self._from_stream(runs[-1], T_prior, stamp))
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])

@@ -46,12 +46,6 @@ def serve(
     Frames must be signed (Ed25519 vehicle certificates or HMAC, docs/security.md) unless --demo. --replay is for
     recorded or simulated data (stamps on their own clock, a recording played more than once). SIGTERM/SIGINT:
     stop taking messages, finish or answer what was accepted, close Zenoh, exit 0."""
-    from pydantic import ValidationError
-
-    from bb_align.engine.config import describe_errors
-
-    from .settings import Settings
-
     zenoh = {k: v for k, v in (("listen", zenoh_listen), ("connect", zenoh_connect), ("mode", zenoh_mode)) if v}
     zenoh |= {"enabled": False} if no_zenoh else {}
     given = {
@@ -60,18 +54,33 @@ def serve(
     given |= ({"profile": "demo"} if demo else {}) | ({"insecure": True} if insecure else {})
     if replay:  # merged with BBALIGN_LIMITS__* from the environment (pydantic-settings merges nested values)
         given["limits"] = {"replay": True}
+    given |= {"zenoh": zenoh} if zenoh else {}
+    settings = _settings_or_exit(given)
+    typer.echo(banner(settings))
+    run_server(settings, log_level)
+
+
+def _settings_or_exit(given: dict):
+    """The service's settings from the options ``given`` and the environment, or exit 2 with one line naming the
+    problem (an environment variable named as such, "did you mean" for a typo; a port in use)."""
+    from pydantic import ValidationError
+
+    from bb_align.engine.config import describe_errors
+
+    from .settings import Settings
+
+    settings = None
     try:
-        settings = Settings(**given, **({"zenoh": zenoh} if zenoh else {}))
+        settings = Settings(**given)
         problem = _unknown_variable(os.environ)
-    except ValidationError as e:  # one line, an environment variable named as such ("did you mean" for a typo)
+    except ValidationError as e:
         problem = describe_errors(e, Settings, ENV_PREFIX, os.environ)
     if problem is None:
         problem = settings.startup_problem() or busy_port(settings)
     if problem is not None:
         typer.secho(f"bb-align serve: {problem}", err=True, fg="red")
         raise typer.Exit(2)
-    typer.echo(banner(settings))
-    run_server(settings, log_level)
+    return settings
 
 
 ENV_PREFIX = "BBALIGN_"
