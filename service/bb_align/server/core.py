@@ -44,16 +44,14 @@ from bb_align.protocol import (
     limit_env,
     load_frame,
     pack,
-    peek_signed,
     setting_env,
     sign_result,
     to_json,
 )
-from bb_align.protocol.signatures import AuthError
 
 from .bandwidth import BandwidthMeter, FrameBytes
 from .cache import EgoCache
-from .door import Door
+from .door import Door, SignatureBudget
 from .metrics import Metrics
 from .peers import PeerStatus, PeerTable, process_started_at
 from .refusals import RefusalNotices
@@ -134,15 +132,7 @@ class AlignService:
         self.cache = EgoCache(settings.ego_cache_size)
         self.keyring = settings.auth.keyring()
         self._answer_key, self._answer_key_id = settings.auth.answer_key()
-        # Ego frames are only decoded and cached by their own job (cheap), so they may go first.
-        # Cross-checks beside tracks use at most all workers but one: the streams keep one to themselves.
-        self.scheduler = Scheduler(
-            settings.peer_queue_depth,
-            settings.max_pending_requests,
-            priority=frozenset({settings.ego_id}),
-            background_prefix=_CROSSCHECK,
-            max_background=max(1, settings.workers - 1),
-        )
+        self.scheduler = self._scheduler(settings)
         self.intake = Intake(
             limits.intake_queue,
             limits.intake_bytes,
@@ -179,10 +169,42 @@ class AlignService:
             lambda vid: self.peer_table.newest(vid, STREAM),
             limits.intake_recent_signatures,
         )
+        # The query door: the same checks, its own signature budget (a query flood cannot spend the stream's)
+        self.query_door = Door(
+            self.keyring,
+            limits,
+            settings.ego_id,
+            lambda vid: self.peer_table.newest(vid, REQUEST),
+            limits.intake_recent_signatures,
+            budget=SignatureBudget(limits.signature_share, limits.signature_burst_s),
+        )
         self._door_counters: dict[tuple[str, str], tuple] = {}
         self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
         self._threads: list[threading.Thread] = []
         self._log_refusal = _RateLimitedLog()
+
+    def _scheduler(self, settings: Settings) -> Scheduler:
+        """Ego frames are only decoded and cached by their own job (cheap), so they may go first. Heavy jobs
+        (acquisitions of peers without a track, cross-checks beside tracks) go after every tracked frame that is
+        ready and use at most all workers but one: tracked frames keep one to themselves (scheduler.py)."""
+        return Scheduler(
+            settings.peer_queue_depth,
+            settings.max_pending_requests,
+            priority=frozenset({settings.ego_id}),
+            background_prefix=_CROSSCHECK,
+            max_background=max(1, settings.workers - 1),
+            heavy=self._acquires,
+            light_expected=lambda: self.tracking and self.tracks.any_tracking(),
+            workers=settings.workers,
+            max_wait_s=settings.max_frame_wait_s,
+            on_expired=lambda job: self._count_drop(job.sender),
+        )
+
+    def _acquires(self, sender: str) -> bool:
+        """Whether a peer's next frame runs a full acquisition (tracking on, and the peer has no track)."""
+        if not self.tracking or sender.startswith("@"):
+            return False
+        return self.tracks.state(sender) != "tracking"
 
     # ---- lifecycle ---------------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -266,7 +288,22 @@ class AlignService:
         self, reply: Callable[[object], None], data: bytes, door: str = "zenoh", refused: WireError | None = None
     ) -> bool:
         """A raw query payload to align and answer through ``reply`` (called once, with a Result or an
-        exception); ``refused``: the door already knows the answer is this error."""
+        exception); ``refused``: the door already knows the answer is this error. With authentication on, the
+        query door (door.py: cheap checks first, the signature under its own budget) refuses here, on the
+        caller's thread: a refused query is answered at once with an unsigned error and never waits in the
+        intake, so a keyless query flood takes no place there and makes the service sign nothing."""
+        if refused is None and self.keyring.required:
+            try:
+                signer = self.query_door.query(data)
+            except WireError as e:
+                self._door_refused("", door, e)
+                try:
+                    reply(e)
+                except Exception:
+                    log.info("a refused query could not be answered")
+                return False
+            job = Job("", time.perf_counter(), door, data=data, nbytes=len(data), reply=reply, meta={"signer": signer})
+            return self._to_intake(job, SIGNED)
         job = Job(
             "",
             time.perf_counter(),
@@ -276,7 +313,7 @@ class AlignService:
             reply=reply,
             meta={"refused": refused} if refused is not None else {},
         )
-        return self._to_intake(job, self._query_lane(job) if refused is None else UNVERIFIED_LANE)
+        return self._to_intake(job, SIGNED if refused is None else UNVERIFIED_LANE)
 
     def submit_frame(
         self, frame: Frame, nbytes: int, encoding: str = MSGPACK, door: str = "rest", received: float | None = None
@@ -333,22 +370,6 @@ class AlignService:
             self._refused(job, e)
             raise
         return self._queue_request(job)
-
-    def _query_lane(self, job: Job) -> str:
-        """A query must be answered, so junk ones wait too (in the unverified lane, the gate replies with the
-        error); its signature is checked here so that a signed query never waits behind junk."""
-        if not self.keyring.required:
-            return SIGNED
-        env = peek_signed(job.data, self.settings.limits) if job.data else None
-        if env is None or not self.keyring.knows(env.key_id, env.alg):
-            return UNVERIFIED_LANE
-        try:
-            job.meta["signer"] = self.keyring.verify_signed(
-                env.key_id, env.alg, env.mac, env.payload, env.cert, time.time()
-            )
-        except AuthError:
-            return UNVERIFIED_LANE
-        return SIGNED
 
     def _to_intake(self, job: Job, lane: str) -> bool:
         pushed_out = self.intake.put(job, lane)
