@@ -190,8 +190,9 @@ class _Doors:
     def screen(self, data: bytes, encoding: str, request: bool) -> None:
         """What a msgpack body costs before it is decoded (authentication on): the sender it claims is out of REST
         allowance (429, nothing decoded, no signature checked: a key holder's flood is refused for the cost of
-        reading its headers); then the door's cheap checks (a copy, not newer than that sender's last, a stamp
-        outside the clock window, a copy of a forgery) and the signature under REST's own budget. The frame is
+        reading its headers); then the door's cheap checks (a stamp outside the clock window, a copy of a
+        forgery; replays of verified frames are left to the peer table, whose refusal names the replay profile)
+        and the signature under REST's own budget. The frame is
         then loaded (and its signature checked again) as before; a JSON body (the curl convenience) goes
         straight to that. ``request``: the body is an AlignRequest (its peer frame is screened)."""
         if not self.service.keyring.required or encoding != MSGPACK:
@@ -208,7 +209,7 @@ class _Doors:
         sender = Door.claimed_sender(env, claimed)
         if self.rate.empty(sender):
             raise self._too_many(sender)
-        self.door.precheck(sender, env, claimed)
+        self.door.precheck(sender, env, claimed, replays=False)
         self.door._verify(env, claimed)
 
     def _too_many(self, vehicle_id: str) -> WireError:

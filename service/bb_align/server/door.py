@@ -424,12 +424,15 @@ class Door:
             raise _not_a_frame()
         return env, claimed
 
-    def precheck(self, sender: str, env: Signed, claimed: tuple, probe: bool = False) -> None:
+    def precheck(self, sender: str, env: Signed, claimed: tuple, probe: bool = False, replays: bool = True) -> None:
         """Steps 4-7 (no crypto): a copy of a message verified or failed lately, not newer than the sender's last,
-        a stamp outside the clock window (``probe``: one a second per sender may still be checked, stream)."""
-        if self.recent.is_copy(env.key_id, env.mac, env.payload):
+        a stamp outside the clock window (``probe``: one a second per sender may still be checked, stream).
+        ``replays=False`` leaves copies and old frames of verified senders to the peer table (REST: its refusal
+        names the replay profile and the restart floor)."""
+        if replays and self.recent.is_copy(env.key_id, env.mac, env.payload):
             raise WireError(409, "replayed", "a copy of a message already received", "mac")
-        self._refuse_old(sender, claimed[:2])
+        if replays:
+            self._refuse_old(sender, claimed[:2])
         if self.limits.clock_checked:
             try:
                 _check_stamp_clock(claimed[0], self._clock(), self.limits, "stamp")

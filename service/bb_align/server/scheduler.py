@@ -44,6 +44,7 @@ class Job:
     reply: Callable[[Any], None] | None = None  # requests: called once with a Result or an exception
     task: str = "frame"  # or "ego_features": compute the features of the cache entry in ``meta["entry"]``
     meta: dict = field(default_factory=dict)
+    heavy: bool = False  # taken as a heavy job (counted against max_background until done)
 
 
 class Scheduler:
@@ -125,6 +126,7 @@ class Scheduler:
     def _take(self, key) -> Job | None:
         """Take the key's next job (lock held); None when it was a stream frame too old to work on (kept in
         ``_expired_job``; the sender is let go)."""
+        heavy = self._is_heavy(key)  # before the job leaves its queue (a request's is the queue's first)
         self._ready.remove(key)
         if key is _REQUESTS:
             job = self._requests.popleft()
@@ -141,9 +143,9 @@ class Scheduler:
                     self._streams.pop(key, None)
                 return None
             self._busy.add(key)
-        if self._is_heavy(key):
+        if heavy:
             self._running_background += 1
-            job.meta["heavy"] = True
+            job.heavy = True
         return job
 
     def _too_old(self, job: Job) -> bool:
@@ -185,7 +187,8 @@ class Scheduler:
     def done(self, job: Job) -> None:
         """A worker finished a job; its sender may be scheduled again (an empty queue is let go)."""
         with self._cv:
-            if job.meta.pop("heavy", False):
+            if job.heavy:
+                job.heavy = False
                 self._running_background -= 1
                 self._cv.notify()  # a heavy job held back may run now
             if job.reply is not None:
