@@ -356,3 +356,25 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
         s3.put_frame(job(j.sender, k % 200))  # its next frame arrived meanwhile
         s3.done(j)
     assert set(served.values()) == {10}
+
+
+def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent():
+    """Cross-checks (one per track every few seconds, each a full acquisition) grow with the tracks: unbounded, 16
+    peers' cross-checks took a worker from the tracked frames. Past ``background_share`` of the workers' time they
+    let waiting tracked frames go first; with nothing else waiting they still run (fake clock, no timing)."""
+    now = [0.0]
+    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
+                  clock=lambda: now[0])  # fmt: skip
+    job = lambda sender: Job(sender, now[0], "test")  # noqa: E731
+    now[0] = 1.0  # a full bucket: 0.5 worker-seconds
+    s.put_frame(job("@bg:car1"))
+    s.put_frame(job("car2"))
+    bg = s.get(0)
+    assert bg.sender == "@bg:car1"  # its turn, within the share
+    now[0] += 0.8  # a 0.8 s cross-check: the bucket (full at 0.5 worker-seconds) is charged 0.8, spent
+    s.done(bg)
+    assert s.get(0).sender == "car2"
+    for sender in ("@bg:car3", "car4"):
+        s.put_frame(job(sender))
+    assert s.get(0).sender == "car4"  # the tracked frame goes past the waiting cross-check
+    assert s.get(0).sender == "@bg:car3"  # nothing else waits: it runs anyway

@@ -45,6 +45,7 @@ class Job:
     task: str = "frame"  # or "ego_features": compute the features of the cache entry in ``meta["entry"]``
     meta: dict = field(default_factory=dict)
     heavy: bool = False  # taken as a heavy job (counted against max_background until done)
+    started: float | None = None  # when a worker took it (background jobs: charged to background_share)
 
 
 class Scheduler:
@@ -60,6 +61,7 @@ class Scheduler:
         workers: int | None = None,
         max_wait_s: float | None = None,
         on_expired: Callable[[Job], None] | None = None,
+        background_share: float | None = None,
         clock: Callable[[], float] = time.perf_counter,
     ):
         self.depth = depth
@@ -69,6 +71,10 @@ class Scheduler:
         self.max_wait_s, self._on_expired, self._clock = max_wait_s, on_expired, clock
         self._running_background = 0  # heavy jobs running (acquisitions, cross-checks)
         self._expired_job: Job | None = None
+        # background jobs (cross-checks) while light jobs wait: at most this share of the workers' time, a bucket
+        # of worker-seconds (one second's worth at most); with nothing light waiting they run freely
+        self.background_share = background_share
+        self._bg_tokens, self._bg_then = 0.0, clock()
         self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
         self._cv = threading.Condition()
@@ -146,6 +152,7 @@ class Scheduler:
         if heavy:
             self._running_background += 1
             job.heavy = True
+        job.started = self._clock()
         return job
 
     def _too_old(self, job: Job) -> bool:
@@ -174,8 +181,27 @@ class Scheduler:
         key = next((k for k in self._ready if k in self.priority), None)
         if key is None:
             full = self._running_background >= self._heavy_cap()
-            key = next((k for k in self._ready if not (full and self._is_heavy(k))), None)
+            held = self._background_held()
+            key = next(
+                (k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))),
+                None,
+            )
         return key
+
+    def _background_held(self) -> bool:
+        """Whether background jobs must let light ones go first: their share of the workers' time is spent and a
+        light job is waiting. Their number grows with the tracks (a cross-check per track every few seconds, each
+        ~0.3 s); unbounded, 16 peers' cross-checks took a whole worker from the tracked frames (issue 47)."""
+        if self.background_share is None:
+            return False
+        now = self._clock()
+        workers = self.workers or 1
+        cap = self.background_share * workers
+        self._bg_tokens = min(cap, self._bg_tokens + (now - self._bg_then) * cap)
+        self._bg_then = now
+        if self._bg_tokens > 0.0:
+            return False
+        return any(not self._is_heavy(k) for k in self._ready)
 
     def _heavy_cap(self) -> int:
         """``max_background``; every worker while no light stream job can come (no peer is tracked yet:
@@ -190,6 +216,9 @@ class Scheduler:
             if job.heavy:
                 job.heavy = False
                 self._running_background -= 1
+                if self.background_share is not None and self._background(job.sender) and job.started is not None:
+                    self._background_held()  # refill up to now, then charge the job's time
+                    self._bg_tokens -= self._clock() - job.started
                 self._cv.notify()  # a heavy job held back may run now
             if job.reply is not None:
                 return
