@@ -750,9 +750,10 @@ class AlignService:
             )
         if not wait:
             return entry.frame, None
-        if not entry.ready and (s.prefer_prepared_ego or entry.busy):
-            # (busy: another worker is preparing the nearest one right now; waiting for it left both workers idle
-            # behind one ego preparation each sweep, 16 peers: 98 ms p50 of every result, issue 47)
+        if not entry.ready and (s.prefer_prepared_ego or (entry.busy and self.scheduler.backlog())):
+            # (busy, with other work waiting: another worker is preparing the nearest one right now; waiting for it
+            # left both workers idle behind one ego preparation each sweep, 16 peers: 98 ms p50 of every result,
+            # issue 47. With nothing else waiting, the wait costs no one and the nearest frame is used.)
             # An ego frame already prepared and within the skew saves a whole prepare (the result names the
             # ego frame it used): under load the ego stream is then prepared only as often as peers need it.
             entry = self.cache.nearest_ready(peer.stamp, s.max_ego_skew_s) or entry

@@ -242,6 +242,11 @@ class Scheduler:
                 self._ready.remove(sender)
             return left
 
+    def backlog(self) -> bool:
+        """Whether work is waiting for a worker now (a worker that would wait for something holds it up)."""
+        with self._cv:
+            return bool(self._ready)
+
     def senders(self) -> int:
         """Senders with a queue (waiting or being served)."""
         with self._cv:
