@@ -84,30 +84,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", default="now")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
-    ap.add_argument("--compare", type=Path, action="append", default=[], help="LABEL=FILE.json of an earlier run")
+    ap.add_argument("--compare", action="append", default=[], help="LABEL=FILE.json of an earlier run (repeatable)")
+    ap.add_argument("--replot", action="store_true", help="measure nothing: plot the recorded --json again")
     args = ap.parse_args(argv)
     try:
         peers = sorted({int(p) for p in args.peers.split(",") if p.strip()})
     except ValueError:
         print(f"service_load: --peers: not comma-separated integers: {args.peers!r}", file=sys.stderr)
         return 2
-    report = measure(peers, args.seconds, args.workers, args.warmup)
-    report["label"] = args.label
-    report["command"] = "benchmarks/service_load.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.replot and args.json is None:
+        print("service_load: --replot: needs --json FILE", file=sys.stderr)
+        return 2
+    if args.replot:  # no measurement: draw the recorded --json (and --compare) again
+        report = json.loads(args.json.read_text())
+    else:
+        report = measure(peers, args.seconds, args.workers, args.warmup)
+        report["label"] = args.label
+        report["command"] = "benchmarks/service_load.py " + " ".join(argv if argv is not None else sys.argv[1:])
     for n, run in sorted(report["runs"].items(), key=lambda kv: int(kv[0])):
         lat = run["latency_ms"]
         print(
             f"{n:>3} peers: {run['results_fps']:6.1f} results/s, dropped {run['drop_fraction']:.0%}, "
             f"p50 {lat['p50']:.0f} ms, p99 {lat['p99']:.0f} ms, per peer {per_peer(run)}, {run['outcomes']}"
         )
-    if args.json is not None:
+    if args.json is not None and not args.replot:
         args.json.write_text(json.dumps(report, indent=1, default=float))
     if args.plot is not None:
         reports = {}
         for spec in args.compare:
             label, _, file = str(spec).partition("=")
             reports[label] = json.loads(Path(file).read_text())
-        reports[args.label] = report
+        reports[args.label if args.replot else report["label"]] = report
         plot(reports, args.plot)
     return 0
 
