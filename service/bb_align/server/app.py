@@ -203,14 +203,14 @@ class _Doors:
                 return  # the loader names what is wrong with it
             data = peer
         try:
-            env, claimed = self.door._envelope(data)
+            env, claimed = self.door.envelope(data)
         except WireError:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
             return
         sender = Door.claimed_sender(env, claimed)
         if self.rate.empty(sender):
             raise self._too_many(sender)
         self.door.precheck(sender, env, claimed, replays=False)
-        self.door._verify(env, claimed)
+        self.door.verify(env, claimed)
 
     def _too_many(self, vehicle_id: str) -> WireError:
         limits = self.settings.limits

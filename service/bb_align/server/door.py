@@ -388,9 +388,9 @@ class Door:
 
     def lane(self, sender: str, data: bytes) -> tuple[str, str | None]:
         """(lane, verified signer or None) for a stream message under key chunk ``sender``; raises WireError."""
-        env, claimed = self._envelope(data)
+        env, claimed = self.envelope(data)
         self.precheck(sender, env, claimed, probe=True)
-        signer = self._verify(env, claimed)
+        signer = self.verify(env, claimed)
         try:
             self.keyring.authorize(signer, sender)
         except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
@@ -400,16 +400,16 @@ class Door:
     def query(self, data: bytes) -> str:
         """The verified signer of a query's payload (a Signed frame); WireError for what the gate would refuse and
         for what the budget does not check now. Nothing refused here waits in the intake."""
-        env, claimed = self._envelope(data)
+        env, claimed = self.envelope(data)
         self.precheck(self.claimed_sender(env, claimed), env, claimed, probe=False)
-        return self._verify(env, claimed)
+        return self.verify(env, claimed)
 
     @staticmethod
     def claimed_sender(env: Signed, claimed: tuple) -> str:
         """The vehicle a message claims to come from: its key id, or the frame's own id under the fleet key."""
         return (claimed[2] or env.key_id) if env.key_id == FLEET_KEY_ID else env.key_id
 
-    def _envelope(self, data: bytes) -> tuple[Signed, tuple[float, int, str | None]]:
+    def envelope(self, data: bytes) -> tuple[Signed, tuple[float, int, str | None]]:
         """Steps 1-3: a Signed envelope under a known key around something frame-shaped."""
         if not data or data[0] not in _MAP_FIRST_BYTES:
             raise _undecodable("not a msgpack map (a Signed frame is one)")
@@ -442,7 +442,7 @@ class Door:
         if self.recent.failed(env.key_id, env.mac, claimed[:2], env.payload):
             raise WireError(401, "unauthenticated", "a copy of a message whose signature did not verify", "mac")
 
-    def _verify(self, env: Signed, claimed: tuple) -> str:
+    def verify(self, env: Signed, claimed: tuple) -> str:
         """Step 8: the signature, under the budget."""
         who = env.key_id
         if not self.budget.allow(who):
