@@ -289,3 +289,161 @@ def test_the_door_thread_pays_for_each_refusal_before_it_takes_the_next_message(
     many = [f"frame{i}" if i % 7 == 0 else f"junk{i}" for i in range(1000)]
     link._door_loop(Fifo(many), Spy())
     assert [e for e in events if e != "pay"] == many
+
+
+# ---- issue 47, item 1: cheap checks first, the signature under a budget that refuses --------------------------
+def _forged(frame_car1, creds, seq, stamp=None, vid="car1"):
+    """A keyless forgery shaped like vid's frame: a genuine certificate copied from the air, a zero signature."""
+    return msgpack.packb(
+        {
+            "key_id": vid,
+            "alg": "ed25519",
+            "mac": b"\0" * 64,
+            "cert": creds[vid].certificate_bytes,
+            "payload": frame_car1(seq, stamp),
+        }
+    )
+
+
+def _counting(ring):
+    calls = []
+    verify = ring.verify_signed
+    ring.verify_signed = lambda *a, **k: calls.append(a[0]) or verify(*a, **k)
+    return calls
+
+
+def test_each_cheap_check_refuses_before_the_signature_is_checked(fleet, frame_car1):
+    """Issue 47: hour-old genuine frames and copies of forgeries each cost a signature check. Now the stamp window
+    (against the receiver's clock), a copy of a forgery, a copy of a verified frame and a frame not newer than the
+    sender's last are refused with no signature check (counted with a spy); on the stream, one stale frame per
+    sender a second is still checked so that a genuine car with a wrong clock can be told why."""
+    now = time.time()
+    door, ring = _door(fleet, newest={"car1": (now - 5.0, 50)})
+    creds = fleet[1]
+    calls = _counting(ring)
+    hour_old = [sign(frame_car1(100 + i, stamp=now - 3600 + i), creds["car2"]) for i in range(20)]
+    # the probe: checked, and on to the gate (which refuses it and tells car2 why, signed)
+    assert door.lane("car2", hour_old[0]) == (SIGNED, "car2") and len(calls) == 1
+    for data in hour_old[1:]:
+        e = _refusal(door, "car2", data)
+        assert (e.error, e.field, e.setting) == ("invalid", "stamp", "BBALIGN_LIMITS__MAX_STAMP_AGE_S")
+    ahead = sign(frame_car1(200, stamp=now + 60), creds["car2"])
+    assert _refusal(door, "car2", ahead).field == "stamp"
+    assert len(calls) == 1  # none of those 20 cost a check beyond the probe
+    forgery = _forged(frame_car1, creds, 60, stamp=now)
+    assert _refusal(door, "car1", forgery).error == "unauthenticated" and len(calls) == 2
+    for _ in range(50):  # its copies: refused from the cache of failed envelopes
+        assert _refusal(door, "car1", forgery).error == "unauthenticated"
+    genuine = sign(frame_car1(61, stamp=now), creds["car1"])
+    assert door.lane("car1", genuine) == (SIGNED, "car1") and len(calls) == 3
+    assert _refusal(door, "car1", genuine).error == "replayed"  # a copy of a verified frame
+    older = sign(frame_car1(40, stamp=now - 6.0), creds["car1"])  # genuine, older than car1's last accepted
+    assert _refusal(door, "car1", older).error == "replayed"
+    assert len(calls) == 3
+    # the query door: the same checks, and no probe (a query has its reply channel: an unsigned error)
+    qdoor, qring = _door(fleet)
+    qcalls = _counting(qring)
+    with pytest.raises(WireError) as e:
+        qdoor.query(hour_old[3])
+    assert e.value.field == "stamp" and qcalls == []
+    assert qdoor.query(genuine) == "car1" and len(qcalls) == 1
+    with pytest.raises(WireError) as e:
+        qdoor.query(genuine)  # a recorded query played again
+    assert e.value.error == "replayed" and len(qcalls) == 1
+
+
+def test_the_signature_budget_refuses_forgeries_without_sleeping_and_spares_other_cars(fleet, frame_car1, monkeypatch):
+    """Issue 47: the door's budget paid a 4 ms forged check by pausing the door (~200 ms), which let the cars'
+    frames pile up behind it. Now failed checks spend a token bucket of CPU-seconds; while it is empty, forgeries
+    are refused at once (503, no check, no sleep), the car being forged is refused too while it is suspect, and
+    a car that verified lately and was not forged is still checked and accepted."""
+    from bb_align.server.door import SignatureBudget
+
+    t = [1000.0]
+    monkeypatch.setattr(time, "sleep", lambda s: pytest.fail("the door slept"))
+    budget = SignatureBudget(share=0.05, burst_s=0.001, suspect_s=2.0, clock=lambda: t[0])
+    d, _ = fleet
+    ring = AuthSettings(ca_cert=d / "ca.pub", credential=d / "ego.cred").keyring()
+    door = Door(ring, LIMITS, "ego", lambda vid, key: None, recent=64, budget=budget)
+    creds = fleet[1]
+    calls = _counting(ring)
+    now = time.time()
+    assert door.lane("car2", sign(frame_car1(1, stamp=now), creds["car2"]))[1] == "car2"  # car2 verified lately
+    big = 1 << 20
+    forged = [
+        msgpack.packb(
+            {
+                "key_id": "car1",
+                "alg": "ed25519",
+                "mac": b"\0" * 64,
+                "cert": creds["car1"].certificate_bytes,
+                "payload": msgpack.packb({"vehicle_id": "car1", "seq": i, "stamp": now, "png": bytes([i]) * big}),
+            }
+        )
+        for i in range(1, 30)
+    ]
+    errors = [_refusal(door, "car1", f).error for f in forged]
+    checked = len(calls) - 1
+    assert errors[0] == "unauthenticated" and errors.count("overloaded") >= len(forged) - 3, errors
+    assert checked == errors.count("unauthenticated") <= 3  # each failed check spent the bucket; then no check
+    assert budget.refused == errors.count("overloaded")
+    e = _refusal(door, "car1", forged[-1])
+    assert e.status == 503 and e.setting == "BBALIGN_LIMITS__SIGNATURE_SHARE"
+    n = len(calls)
+    assert door.lane("car2", sign(frame_car1(2, stamp=now + 0.1), creds["car2"]))[1] == "car2"
+    assert len(calls) == n + 1  # car2 is still checked, and accepted
+    assert _refusal(door, "car1", sign(frame_car1(3, stamp=now + 0.1), creds["car1"])).error == "overloaded"
+    t[0] += 10.0  # the bucket refills (0.05 CPU-s a second) and car1 is no longer suspect
+    assert door.lane("car1", sign(frame_car1(4, stamp=now + 0.2), creds["car1"])) == (SIGNED, "car1")
+
+
+def _service(fleet, **limits):
+    from bb_align.server.core import AlignService
+    from bb_align.server.settings import Settings
+
+    d, _ = fleet
+    return AlignService(
+        Settings(
+            profile="vehicle",
+            zenoh={"enabled": False},
+            auth={"ca_cert": d / "ca.pub", "credential": d / "ego.cred"},
+            limits={"check_stamp_clock": True, **limits},
+        )
+    )
+
+
+def test_refused_envelopes_never_displace_accepted_ones_in_the_intake(fleet, frame_car1):
+    """Issue 47: 559-650 genuine frames were pushed out of the intake under a forged flood. Refused messages never
+    enter it: a flood of forgeries, copies and stale frames leaves the genuine frames waiting there untouched."""
+    svc = _service(fleet, intake_queue=4)
+    creds = fleet[1]
+    now = time.time()
+    genuine = [sign(frame_car1(i, stamp=now + 0.01 * i), creds[c]) for i, c in ((1, "car1"), (2, "car2"))]
+    assert svc.submit_message("car1", genuine[0]) and svc.submit_message("car2", genuine[1])
+    flood = [_forged(frame_car1, creds, 100 + i, stamp=now + 0.5) for i in range(40)]
+    flood += [genuine[0]] * 20 + [sign(frame_car1(7, stamp=now - 3600), creds["car1"])] * 20
+    # one stale frame a second per sender is checked (the probe: verified, it goes on for the gate to refuse and
+    # tell car1 why); everything else is refused at the door
+    assert sum(svc.submit_message("car1", m) for m in flood) == 1
+    assert svc.intake.lengths()["signed"] == 3 and svc.intake.lengths()["unverified"] == 0
+    taken = [svc.intake.get(0) for _ in range(2)]
+    assert [j.data for j in taken] == genuine and svc.metrics.intake_dropped.labels("signed")._value.get() == 0
+
+
+def test_a_sender_that_never_passed_a_signature_check_gets_no_signed_refusal(fleet, frame_car1):
+    """Issue 47: recorded genuine frames played as align queries made the ego sign ~2 000 Refusals in 20 s. A
+    query refused before its signature verified is answered at once, unsigned (no Refusal), and never waits in
+    the intake; a verified query still waits for the gate."""
+    svc = _service(fleet)
+    creds = fleet[1]
+    now = time.time()
+    genuine = sign(frame_car1(5, stamp=now), creds["car1"])
+    replies: list[object] = []
+    assert svc.submit_query(replies.append, genuine)  # verified: waits for the gate, which signs what it says
+    assert svc.intake.lengths()["signed"] == 1 and replies == []
+    for data in [genuine] * 10 + [_forged(frame_car1, creds, 9, stamp=now)] + [b"\xc1"]:
+        assert not svc.submit_query(replies.append, data)
+    assert len(replies) == 12 and all(isinstance(r, WireError) for r in replies)
+    assert all(getattr(r, "refusal", None) is None for r in replies)  # nothing signed for them
+    assert [r.error for r in replies[:10]] == ["replayed"] * 10 and replies[10].error == "unauthenticated"
+    assert svc.intake.lengths() == {"ego": 0, "signed": 1, "unverified": 0}

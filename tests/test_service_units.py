@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
 
 import numpy as np
 
@@ -16,7 +17,7 @@ from bb_align.server.scheduler import Job, Scheduler
 
 
 def _job(sender, n, reply=None):
-    return Job(sender, 0.0, "test", data=bytes([n]), reply=reply)
+    return Job(sender, time.perf_counter(), "test", data=bytes([n]), reply=reply)
 
 
 def test_latest_only_keeps_the_newest_and_reports_each_drop():
@@ -298,3 +299,82 @@ def test_a_senders_results_leave_in_order_even_when_publishing_is_slow():
         for w in workers:
             w.join(10)
     assert published == [1, 2]
+
+
+def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops_stale_frames_before_work():
+    """Issue 47/45: with 16 peers the service's results fell 31 -> 4 a second: acquisitions took every worker, the
+    tracked peers' frames waited behind them until their tracks ran out, and every frame became an acquisition.
+    The schedule (no timing here, a fake clock): heavy jobs (acquisitions) use at most all workers but one while
+    a peer is tracked, every worker while none is; tracked frames go past waiting acquisitions; peers take turns
+    (latest frame wins); a frame that waited too long is dropped before any work."""
+    now = [100.0]
+    acquiring = {"a1", "a2", "a3"}
+    tracked = [True]
+    expired = []
+    s = Scheduler(
+        depth=1,
+        heavy=lambda key: key in acquiring,
+        light_expected=lambda: tracked[0],
+        workers=2,
+        max_background=1,
+        max_wait_s=1.0,
+        on_expired=expired.append,
+        clock=lambda: now[0],
+    )
+    job = lambda sender, n: Job(sender, now[0], "test", data=bytes([n]))  # noqa: E731
+    for sender in ("a1", "a2", "t1", "a3", "t2"):
+        s.put_frame(job(sender, 0))
+    first = s.get(0)
+    assert first.sender == "a1"  # in turn: an acquisition while none runs
+    light = [s.get(0) for _ in range(2)]
+    assert [j.sender for j in light] == ["t1", "t2"]  # past a2 and a3: one worker for tracked frames
+    assert s.get(0) is None  # only acquisitions are ready, and one runs
+    s.put_frame(job("t1", 1))
+    assert s.get(0) is None  # t1 is busy (its frames in order)
+    s.done(light[0])
+    assert s.get(0).data == bytes([1])  # t1's newer frame, still before a2
+    s.done(first)
+    assert s.get(0).sender == "a2"
+    # Nobody tracked yet (a fleet starting up): acquisitions take every worker.
+    tracked[0] = False
+    assert s.get(0).sender == "a3"
+    # Latest frame wins, and a frame that waited past max_wait_s is dropped before work.
+    s2 = Scheduler(depth=1, max_wait_s=1.0, on_expired=expired.append, clock=lambda: now[0])
+    assert s2.put_frame(job("t9", 1)) is None and s2.put_frame(job("t9", 2)).data == bytes([1])
+    now[0] += 1.5
+    assert s2.get(0) is None and [j.data for j in expired] == [bytes([2])] and s2.pending() == 0
+    s2.put_frame(job("t9", 3))
+    assert s2.get(0).data == bytes([3])
+    # Fair shares: four tracked peers sending continuously: each gets the same number of turns.
+    s3 = Scheduler(depth=1)
+    served = Counter()
+    for sender in ("p1", "p2", "p3", "p4"):
+        s3.put_frame(job(sender, 0))
+    for k in range(40):
+        j = s3.get(0)
+        served[j.sender] += 1
+        s3.put_frame(job(j.sender, k % 200))  # its next frame arrived meanwhile
+        s3.done(j)
+    assert set(served.values()) == {10}
+
+
+def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent():
+    """Cross-checks (one per track every few seconds, each a full acquisition) grow with the tracks: unbounded, 16
+    peers' cross-checks took a worker from the tracked frames. Past ``background_share`` of the workers' time they
+    let waiting tracked frames go first; with nothing else waiting they still run (fake clock, no timing)."""
+    now = [0.0]
+    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
+                  clock=lambda: now[0])  # fmt: skip
+    job = lambda sender: Job(sender, now[0], "test")  # noqa: E731
+    now[0] = 1.0  # a full bucket: 0.5 worker-seconds
+    s.put_frame(job("@bg:car1"))
+    s.put_frame(job("car2"))
+    bg = s.get(0)
+    assert bg.sender == "@bg:car1"  # its turn, within the share
+    now[0] += 0.8  # a 0.8 s cross-check: the bucket (full at 0.5 worker-seconds) is charged 0.8, spent
+    s.done(bg)
+    assert s.get(0).sender == "car2"
+    for sender in ("@bg:car3", "car4"):
+        s.put_frame(job(sender))
+    assert s.get(0).sender == "car4"  # the tracked frame goes past the waiting cross-check
+    assert s.get(0).sender == "@bg:car3"  # nothing else waits: it runs anyway

@@ -129,7 +129,8 @@ class Limits(BaseModel):
         20.0,
         gt=0,
         description="REST: frames a second one verified sender may hand in (/v1/frames and /v1/align together), on "
-        "average; past it 429. Checked after the signature, so nobody spends another car's allowance",
+        "average; past it 429. An empty bucket is refused before decoding or any signature check; only a verified "
+        "signature spends it, so nobody spends another car's allowance",
     )
     rest_burst: float = Field(40.0, ge=1, description="REST: frames one sender may hand in at once (the bucket)")
     query_queue: int = Field(
@@ -142,9 +143,20 @@ class Limits(BaseModel):
     door_share: float = Field(
         0.02,
         gt=0,
-        description="most of one core the Zenoh door may spend on the stream messages it refuses (what a keyless "
-        "flood can take from the engine); frames that pass (about 140 us each, the signature check) are not "
-        "counted against it",
+        description="most of one core the Zenoh door may spend on the stream messages it refuses before any "
+        "signature check (what a keyless flood of junk can take from the engine): past it the door thread waits, "
+        "and Zenoh pushes back on the senders. Signature checks are not counted here (signature_share)",
+    )
+    signature_share: float = Field(
+        0.05,
+        gt=0,
+        le=1,
+        description="per door (Zenoh stream, Zenoh queries, REST): most of one core, on average, spent on signature "
+        "checks that fail (a token bucket of CPU-seconds); while it is spent, only senders that verified lately and "
+        "failed no check are checked, anything else is refused at once (503 overloaded), never waited for",
+    )
+    signature_burst_s: float = Field(
+        0.02, gt=0, le=10, description="CPU-seconds of failed signature checks a door may spend at once (the bucket)"
     )
     door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
     intake_recent_signatures: int = Field(

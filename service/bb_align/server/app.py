@@ -42,7 +42,7 @@ from bb_align.protocol import (
 from .bandwidth import BandwidthReport
 from .core import AlignService, Unavailable
 from .docs_page import docs_html
-from .door import KeyRate
+from .door import Door, KeyRate, SignatureBudget, request_peer
 from .peers import PeerStatus
 from .settings import Settings
 
@@ -179,27 +179,57 @@ def _lifespan(service: AlignService, settings: Settings):
 
 @dataclass
 class _Doors:
-    """What the REST routes share: the service, its settings, the bearer guard and the per-sender rate."""
+    """What the REST routes share: the service, its settings, the bearer guard, the per-sender rate and the REST
+    door's own checks before any decoding (door.Door: its own signature budget)."""
 
     service: AlignService
     settings: Settings
     guard: list
     rate: KeyRate
+    door: Door
+
+    def screen(self, data: bytes, encoding: str, request: bool) -> None:
+        """What a msgpack body costs before it is decoded (authentication on): the sender it claims is out of REST
+        allowance (429, nothing decoded, no signature checked: a key holder's flood is refused for the cost of
+        reading its headers); then the door's cheap checks (a stamp outside the clock window, a copy of a
+        forgery; replays of verified frames are left to the peer table, whose refusal names the replay profile)
+        and the signature under REST's own budget. The frame is
+        then loaded (and its signature checked again) as before; a JSON body (the curl convenience) goes
+        straight to that. ``request``: the body is an AlignRequest (its peer frame is screened)."""
+        if not self.service.keyring.required or encoding != MSGPACK:
+            return
+        if request:
+            peer = request_peer(data)
+            if peer is None:
+                return  # the loader names what is wrong with it
+            data = peer
+        try:
+            env, claimed = self.door.envelope(data)
+        except WireError:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
+            return
+        sender = Door.claimed_sender(env, claimed)
+        if self.rate.empty(sender):
+            raise self._too_many(sender)
+        self.door.precheck(sender, env, claimed, replays=False)
+        self.door.verify(env, claimed)
+
+    def _too_many(self, vehicle_id: str) -> WireError:
+        limits = self.settings.limits
+        return WireError(
+            429,
+            "overloaded",
+            f"{vehicle_id!r} sent more than {limits.rest_rate_hz:g} frames a second (burst {limits.rest_burst:g})"
+            " over REST; retry later",
+            "vehicle_id",
+            limits.rest_rate_hz,
+            limit_env("rest_rate_hz"),
+        )
 
     def charge(self, vehicle_id: str) -> None:
         """One frame from a sender whose signature verified: 429 past its allowance (a frame this sender's key did
         not sign was refused before it got here). Not in the demo profile: there an id proves nothing."""
-        limits = self.settings.limits
         if self.service.keyring.required and not self.rate.allow(vehicle_id):
-            raise WireError(
-                429,
-                "overloaded",
-                f"{vehicle_id!r} sent more than {limits.rest_rate_hz:g} frames a second (burst {limits.rest_burst:g})"
-                " over REST; retry later",
-                "vehicle_id",
-                limits.rest_rate_hz,
-                limit_env("rest_rate_hz"),
-            )
+            raise self._too_many(vehicle_id)
 
     async def outcome(self, future: concurrent.futures.Future, accepted: bool) -> Result:
         """The queued request's result, or the WireError that says why there is none."""
@@ -252,6 +282,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         settings,
         [_bearer(None if token is None else token.get_secret_value())],
         KeyRate(limits.rest_rate_hz, limits.rest_burst, max_keys=limits.max_peers * 4 + 16),
+        Door(
+            service.keyring,
+            limits,
+            settings.ego_id,
+            lambda vid, key: service.peer_table.newest(vid, "frames", key),
+            limits.intake_recent_signatures,
+            budget=SignatureBudget(limits.signature_share, limits.signature_burst_s),
+        ),
     )
 
     @app.exception_handler(WireError)
@@ -288,9 +326,12 @@ def _add_align_route(app: FastAPI, doors: _Doors) -> None:
     async def align(request: Request) -> Response:
         received = time.perf_counter()
         data, encoding = await _read_body(request, limits.max_message_bytes)
-        req = await asyncio.to_thread(
-            load_align_request, data, limits, encoding, keyring=service.keyring, now=time.time()
-        )
+
+        def load() -> AlignRequest:
+            doors.screen(data, encoding, request=True)
+            return load_align_request(data, limits, encoding, keyring=service.keyring, now=time.time())
+
+        req = await asyncio.to_thread(load)
         doors.charge(req.peer.vehicle_id)
         future: concurrent.futures.Future = concurrent.futures.Future()
         accepted = service.submit_request(
@@ -326,9 +367,12 @@ def _add_frame_route(app: FastAPI, doors: _Doors) -> None:
     async def post_frame(request: Request) -> Accepted:
         received = time.perf_counter()
         data, encoding = await _read_body(request, settings.limits.max_message_bytes)
-        frame = await asyncio.to_thread(
-            load_frame, data, settings.limits, encoding, keyring=service.keyring, now=time.time()
-        )
+
+        def load() -> Frame:
+            doors.screen(data, encoding, request=False)
+            return load_frame(data, settings.limits, encoding, keyring=service.keyring, now=time.time())
+
+        frame = await asyncio.to_thread(load)
         doors.charge(frame.vehicle_id)
         if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
             raise WireError(503, "unavailable", "the service is shutting down")

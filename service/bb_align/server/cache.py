@@ -32,6 +32,11 @@ class EgoEntry:
     def ready(self) -> bool:
         return self._prepared is not None
 
+    @property
+    def busy(self) -> bool:
+        """Whether another thread is computing the features right now (whoever asks would wait for it)."""
+        return self._prepared is None and self._lock.locked()
+
     def features(self, prepare: Callable[[EgoEntry], PreparedFrame]) -> PreparedFrame:
         """The entry's features, computed by the first caller; concurrent callers wait for that result."""
         with self._lock:

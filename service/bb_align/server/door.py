@@ -16,8 +16,17 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
 5. a payload whose (stamp, seq) is not newer than the newest frame accepted from the claimed sender with the key
    the envelope names (a replay of an older frame): read without trusting it, since a frame that old is refused
    whoever signed it;
-6. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC), and the signer may sign for
-   the key chunk it came under.
+6. a stamp outside the receiver's clock window (``max_stamp_age_s`` / ``max_stamp_lead_s``; not in the replay
+   profile): an hour-old recording costs no signature check. On the stream, one such frame per sender a second
+   (``StaleProbe``) still has its signature checked, so that a genuine car with a wrong clock hears why (a signed
+   Refusal); every other is refused unsigned, unanswered;
+7. a copy of an envelope whose signature failed here lately (same key, signature, stamp, seq and payload);
+8. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC) under the door's
+   ``SignatureBudget``: failed checks spend CPU-seconds from a token bucket; while it is empty only senders that
+   verified lately and failed no check lately are checked, anything else is refused (503, never a pause); then
+   the signer may sign for the key chunk it came under.
+
+The same checks guard the Zenoh query door (``Door.query``, its own budget) and, from step 4 on, the REST door.
 
 A message that passes goes to the ego's lane (signed by the ego) or the signed lane, one signed by a genuine
 vehicle for another's key chunk to the unverified lane (the gate names the error). The gate checks everything
@@ -34,9 +43,11 @@ from collections.abc import Callable
 
 import msgpack
 
-from bb_align.protocol import WireError, peek_signed
+from bb_align.protocol import WireError, limit_env, peek_signed
+from bb_align.protocol.limits import FLEET_KEY_ID
 from bb_align.protocol.models import Signed
 from bb_align.protocol.signatures import AuthError, Keyring, signer_key
+from bb_align.protocol.validation import _check_stamp_clock
 
 from .scheduler import EGO, SIGNED, UNVERIFIED_LANE
 
@@ -71,6 +82,13 @@ def _not_a_frame() -> WireError:
 def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
     """(stamp, seq) of an encoded frame, read without building it (the other fields are skipped, not copied);
     None when the payload is not a map holding both as numbers."""
+    claimed = frame_claim(payload)
+    return None if claimed is None else claimed[:2]
+
+
+def frame_claim(payload: bytes) -> tuple[float, int, str | None] | None:
+    """(stamp, seq, vehicle_id or None) an encoded frame claims, read without building it; None when the payload is
+    not a map holding stamp and seq as numbers."""
     unpacker = msgpack.Unpacker(raw=False, max_buffer_size=len(payload) + 1)
     unpacker.feed(payload)
     try:
@@ -80,7 +98,7 @@ def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
         found: dict[str, object] = {}
         for _ in range(n):
             key = unpacker.unpack()
-            if key in ("stamp", "seq"):
+            if key in ("stamp", "seq", "vehicle_id"):
                 found[key] = unpacker.unpack()
             else:
                 unpacker.skip()
@@ -89,7 +107,28 @@ def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
     stamp, seq = found.get("stamp"), found.get("seq")
     if type(stamp) not in (int, float) or type(seq) is not int:
         return None
-    return float(stamp), seq
+    vid = found.get("vehicle_id")
+    return float(stamp), seq, (vid if isinstance(vid, str) else None)
+
+
+def request_peer(data: bytes) -> bytes | None:
+    """The raw ``peer`` value of a msgpack AlignRequest (a Signed envelope, itself a map), sliced out without
+    decoding it; None when the body is not a small map holding one."""
+    unpacker = msgpack.Unpacker(raw=False, max_buffer_size=len(data) + 1)
+    unpacker.feed(data)
+    try:
+        n = unpacker.read_map_header()
+        if n > 4:
+            return None
+        for _ in range(n):
+            key = unpacker.unpack()
+            start = unpacker.tell()
+            unpacker.skip()
+            if key == "peer":
+                return data[start : unpacker.tell()]
+    except Exception:  # msgpack raises several types on truncated or odd input
+        return None
+    return None
 
 
 def _scalar(data: bytes, i: int) -> tuple[int, int] | None:
@@ -141,12 +180,29 @@ def envelope_spans(data: bytes) -> dict[bytes, tuple[int, int, int]] | None:
 
 class RecentSignatures:
     """Messages verified at the door lately: (key id, signature) -> digest of the payload, bounded (oldest
-    forgotten). An exact copy is a replay; anything else with the same signature must still be verified."""
+    forgotten). An exact copy is a replay; anything else with the same signature must still be verified.
+    ``failed``/``add_failed``: the same for envelopes whose check failed, keyed also by the claimed (stamp, seq)
+    and the payload's length, so the digest (a pass over the payload) is computed only for a likely copy: a
+    zero-signature forgery with a new stamp costs no digest, its byte-for-byte copy no second check."""
 
     def __init__(self, capacity: int):
         self.capacity = capacity
         self._seen: OrderedDict[tuple[str, bytes], bytes] = OrderedDict()
+        self._failed: OrderedDict[tuple, bytes] = OrderedDict()
         self._lock = threading.Lock()
+
+    def failed(self, key_id: str, mac: bytes, claimed: tuple, payload: bytes) -> bool:
+        with self._lock:
+            digest = self._failed.get((key_id, mac, claimed, len(payload)))
+        return digest is not None and digest == self._digest(payload)
+
+    def add_failed(self, key_id: str, mac: bytes, claimed: tuple, payload: bytes) -> None:
+        key, digest = (key_id, mac, claimed, len(payload)), self._digest(payload)
+        with self._lock:
+            self._failed[key] = digest
+            self._failed.move_to_end(key)
+            while len(self._failed) > self.capacity:
+                self._failed.popitem(last=False)
 
     @staticmethod
     def _digest(payload: bytes) -> bytes:
@@ -201,6 +257,15 @@ class KeyRate:
         self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()  # key -> (tokens, when)
         self._lock = threading.Lock()
 
+    def empty(self, key: str) -> bool:
+        """Whether ``key``'s bucket holds less than one frame now (nothing is charged): the REST door asks this of
+        the sender a body claims before decoding it or checking its signature, so a key holder's flood is refused
+        (429) for the cost of reading its headers, while nobody else can spend that key's allowance."""
+        now = self._clock()
+        with self._lock:
+            tokens, then = self._buckets.get(key, (self.burst, now))
+        return min(self.burst, tokens + (now - then) * self.rate_hz) < 1.0
+
     def allow(self, key: str) -> bool:
         now = self._clock()
         with self._lock:
@@ -213,10 +278,97 @@ class KeyRate:
         return ok
 
 
+class SignatureBudget:
+    """A door's signature checks under a token bucket of CPU-seconds: ``share`` of one core a second on average,
+    ``burst_s`` CPU-seconds at once. Only checks that fail spend it (a check that verifies is the fleet's own
+    traffic, bounded by the cars' rates; a replay of it is refused before its check). While the bucket is empty
+    (in debt: a check's cost is known once it has run) ``allow`` lets through only signers that verified lately
+    and failed no check in the last ``suspect_s``: a keyless sender forging a car's frames can then deny that car
+    alone, and only while it floods; every other car's frames are checked as before. It never sleeps: what it does
+    not allow is refused at once (``overloaded``), so the door goes on with the next message."""
+
+    def __init__(
+        self, share: float, burst_s: float, suspect_s: float = 2.0, max_signers: int = 1024, clock=time.monotonic
+    ):
+        self.share, self.burst_s, self.suspect_s, self.max_signers = share, burst_s, suspect_s, max_signers
+        self._clock = clock
+        self._tokens, self._then = burst_s, clock()
+        self._good: OrderedDict[str, float] = OrderedDict()  # signer -> when it last verified
+        self._bad: OrderedDict[str, float] = OrderedDict()  # claimed signer -> when a check under it last failed
+        self._lock = threading.Lock()
+        self.refused = 0
+        self.failed_cpu_s = 0.0
+
+    def _refill(self, now: float) -> None:
+        self._tokens = min(self.burst_s, self._tokens + (now - self._then) * self.share)
+        self._then = now
+
+    def allow(self, signer: str) -> bool:
+        now = self._clock()
+        with self._lock:
+            self._refill(now)
+            if self._tokens > 0.0:
+                return True
+            bad = self._bad.get(signer)
+            ok = signer in self._good and (bad is None or now - bad > self.suspect_s)
+            if not ok:
+                self.refused += 1
+            return ok
+
+    def spent(self, signer: str, cpu_s: float, verified: bool) -> None:
+        now = self._clock()
+        with self._lock:
+            table = self._good if verified else self._bad
+            table[signer] = now
+            table.move_to_end(signer)
+            while len(table) > self.max_signers:
+                table.popitem(last=False)
+            if not verified:
+                self._refill(now)
+                self._tokens -= cpu_s
+                self.failed_cpu_s += cpu_s
+
+    def error(self, signer: str) -> WireError:
+        return WireError(
+            503,
+            "overloaded",
+            f"the door's budget for signature checks that fail is spent; {signer!r} is not checked now (a sender "
+            "that verified lately and failed no check is)",
+            "mac",
+            self.share,
+            limit_env("signature_share"),
+        )
+
+
+class StaleProbe:
+    """At most one message a second per claimed sender (bounded table) may have its signature checked although
+    its stamp is outside the clock window: so a genuine car with a wrong clock is told why (a signed Refusal),
+    while a recorder playing hour-old frames gets nearly all of them refused before any check."""
+
+    def __init__(self, interval_s: float = 1.0, max_senders: int = 1024, clock=time.monotonic):
+        self.interval_s, self.max_senders, self._clock = interval_s, max_senders, clock
+        self._last: OrderedDict[str, float] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def allow(self, sender: str) -> bool:
+        now = self._clock()
+        with self._lock:
+            last = self._last.get(sender)
+            if last is not None and now - last < self.interval_s:
+                return False
+            self._last[sender] = now
+            self._last.move_to_end(sender)
+            while len(self._last) > self.max_senders:
+                self._last.popitem(last=False)
+            return True
+
+
 class Door:
     """``lane(sender, data)`` for stream messages: the intake lane a raw message may wait in, or WireError when
-    the gate would certainly refuse it. ``newest(vehicle_id, key)``: the newest (stamp, seq) accepted from a sender
-    signed with that key (``signatures.signer_key``)."""
+    the gate would certainly refuse it; ``query(data)`` the same for a query's payload (the verified signer).
+    ``newest(vehicle_id, key)``: the newest (stamp, seq) accepted from a sender signed with that key
+    (``signatures.signer_key``). ``budget``: the door's signature budget (one per door: the stream's, the queries',
+    REST's are separate objects)."""
 
     def __init__(
         self,
@@ -225,13 +377,42 @@ class Door:
         ego_id: str,
         newest: Callable[[str, bytes | None], tuple[float, int] | None],
         recent: int,
+        budget: SignatureBudget | None = None,
+        clock=time.time,
     ):
         self.keyring, self.limits, self.ego_id = keyring, limits, ego_id
         self._newest = newest
         self.recent = RecentSignatures(recent)
+        self.budget = budget or SignatureBudget(limits.signature_share, limits.signature_burst_s)
+        self.stale_probe = StaleProbe()
+        self._clock = clock
+        self.signature_cpu_s = 0.0  # CPU time of the signature checks (the door thread's Budget leaves it out)
 
     def lane(self, sender: str, data: bytes) -> tuple[str, str | None]:
         """(lane, verified signer or None) for a stream message under key chunk ``sender``; raises WireError."""
+        env, claimed = self.envelope(data)
+        self.precheck(sender, env, claimed, probe=True)
+        signer = self.verify(env, claimed)
+        try:
+            self.keyring.authorize(signer, sender)
+        except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
+            return UNVERIFIED_LANE, None
+        return (EGO if sender == self.ego_id else SIGNED), signer
+
+    def query(self, data: bytes) -> str:
+        """The verified signer of a query's payload (a Signed frame); WireError for what the gate would refuse and
+        for what the budget does not check now. Nothing refused here waits in the intake."""
+        env, claimed = self.envelope(data)
+        self.precheck(self.claimed_sender(env, claimed), env, claimed, probe=False)
+        return self.verify(env, claimed)
+
+    @staticmethod
+    def claimed_sender(env: Signed, claimed: tuple) -> str:
+        """The vehicle a message claims to come from: its key id, or the frame's own id under the fleet key."""
+        return (claimed[2] or env.key_id) if env.key_id == FLEET_KEY_ID else env.key_id
+
+    def envelope(self, data: bytes) -> tuple[Signed, tuple[float, int, str | None]]:
+        """Steps 1-3: a Signed envelope under a known key around something frame-shaped."""
         if not data or data[0] not in _MAP_FIRST_BYTES:
             raise _undecodable("not a msgpack map (a Signed frame is one)")
         self._refuse_by_headers(data)
@@ -240,22 +421,48 @@ class Door:
             raise _not_signed()
         if not self.keyring.knows(env.key_id, env.alg):
             raise _no_key(env.key_id, env.alg)
-        claimed = stamp_and_seq(env.payload)
+        claimed = frame_claim(env.payload)
         if claimed is None:  # junk, signed or not: the gate refuses it whoever signed it, so no MAC is spent on it
             raise _not_a_frame()
-        if self.recent.is_copy(env.key_id, env.mac, env.payload):
+        return env, claimed
+
+    def precheck(self, sender: str, env: Signed, claimed: tuple, probe: bool = False, replays: bool = True) -> None:
+        """Steps 4-7 (no crypto): a copy of a message verified or failed lately, not newer than the sender's last,
+        a stamp outside the clock window (``probe``: one a second per sender may still be checked, stream).
+        ``replays=False`` leaves copies and old frames of verified senders to the peer table (REST: its refusal
+        names the replay profile and the restart floor)."""
+        if replays and self.recent.is_copy(env.key_id, env.mac, env.payload):
             raise WireError(409, "replayed", "a copy of a message already received", "mac")
-        self._refuse_old(sender, signer_key(env.alg, env.key_id, env.cert), claimed)
+        if replays:
+            self._refuse_old(sender, signer_key(env.alg, env.key_id, env.cert), claimed[:2])
+        if self.limits.clock_checked:
+            try:
+                _check_stamp_clock(claimed[0], self._clock(), self.limits, "stamp")
+            except WireError:
+                if not (probe and self.stale_probe.allow(sender)):
+                    raise
+        if self.recent.failed(env.key_id, env.mac, claimed[:2], env.payload):
+            raise WireError(401, "unauthenticated", "a copy of a message whose signature did not verify", "mac")
+
+    def verify(self, env: Signed, claimed: tuple) -> str:
+        """Step 8: the signature, under the budget."""
+        who = env.key_id
+        if not self.budget.allow(who):
+            raise self.budget.error(who)
+        t0 = time.thread_time()
         try:
             signer = self.keyring.verify_signed(env.key_id, env.alg, env.mac, env.payload, env.cert, time.time())
         except AuthError as e:
+            cost = time.thread_time() - t0
+            self.signature_cpu_s += cost
+            self.budget.spent(who, cost, verified=False)
+            self.recent.add_failed(env.key_id, env.mac, claimed[:2], env.payload)
             raise WireError(e.status, e.error, e.detail, "mac", env.alg) from None
+        cost = time.thread_time() - t0
+        self.signature_cpu_s += cost
+        self.budget.spent(who, cost, verified=True)
         self.recent.add(env.key_id, env.mac, env.payload)
-        try:
-            self.keyring.authorize(signer, sender)
-        except AuthError:  # a genuine signer under another's key chunk: the gate names what is wrong
-            return UNVERIFIED_LANE, None
-        return (EGO if sender == self.ego_id else SIGNED), signer
+        return signer
 
     def _refuse_by_headers(self, data: bytes) -> None:
         """Refuse from the top-level headers alone (nothing copied, whatever the size) what steps 2-3 would refuse

@@ -1,4 +1,4 @@
-"""Work queues of the service: latest-only per sender, a bounded request queue, fair round-robin.
+"""Work queues of the service: latest-only per sender, a bounded request queue, fair round-robin, heavy jobs capped.
 
 Stream frames (Zenoh ``frames/*``, REST ``/v1/frames``) wait in a per-sender queue of ``depth`` entries (1:
 latest only); a newer frame pushes the oldest out and the push reports it as dropped. Requests (REST
@@ -6,14 +6,23 @@ latest only); a newer frame pushes the oldest out and the push reports it as dro
 is full. Workers take senders and the request queue in round-robin order of readiness (``priority`` senders
 first); a sender's frames are handled by one worker at a time, so its results come out in order.
 
-Background senders (keys starting with ``background_prefix``: a track's cross-check, ~0.3 s of work that answers
-no one) take their turn like the others, but at most ``max_background`` of them run at once: the other workers are
-left to the streams, which would otherwise wait behind them and drop frames.
+Heavy jobs (a peer without a track: a full acquisition, ~0.3-0.5 s; a track's cross-check, keys starting with
+``background_prefix``; whatever ``heavy(key)`` says at the moment a worker looks) take their turn in the same
+round-robin as light ones (a tracked frame, ~20-30 ms; ego features), but at most ``max_background`` of them run
+at once (all workers but one; every worker while no peer is tracked, ``light_expected``): the other workers are
+left to the light jobs, so a tracked frame never waits behind an acquisition, and an acquisition still gets a
+worker however many tracked frames are waiting. This is
+what keeps the service out of congestion collapse (issue 47): served in plain readiness order, 16 peers' frames
+waited behind each other's acquisitions until their tracks ran out (``max_gap_s``) and every frame became an
+acquisition again (results fell from 15.5/s with 8 peers to 4.0/s with 16, measured, docs/performance.md).
+A frame that waited longer than ``max_wait_s`` (when set) is dropped before any work (reported through
+``on_expired``): for deployments where an answer that late is of no use.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,6 +44,8 @@ class Job:
     reply: Callable[[Any], None] | None = None  # requests: called once with a Result or an exception
     task: str = "frame"  # or "ego_features": compute the features of the cache entry in ``meta["entry"]``
     meta: dict = field(default_factory=dict)
+    heavy: bool = False  # taken as a heavy job (counted against max_background until done)
+    started: float | None = None  # when a worker took it (background jobs: charged to background_share)
 
 
 class Scheduler:
@@ -45,10 +56,25 @@ class Scheduler:
         priority: frozenset[str] = frozenset(),
         background_prefix: str | None = None,
         max_background: int = 1,
+        heavy: Callable[[str], bool] | None = None,
+        light_expected: Callable[[], bool] | None = None,
+        workers: int | None = None,
+        max_wait_s: float | None = None,
+        on_expired: Callable[[Job], None] | None = None,
+        background_share: float | None = None,
+        clock: Callable[[], float] = time.perf_counter,
     ):
         self.depth = depth
         self.background_prefix, self.max_background = background_prefix, max_background
-        self._running_background = 0
+        self._heavy = heavy
+        self._light_expected, self.workers = light_expected, workers
+        self.max_wait_s, self._on_expired, self._clock = max_wait_s, on_expired, clock
+        self._running_background = 0  # heavy jobs running (acquisitions, cross-checks)
+        self._expired_job: Job | None = None
+        # background jobs (cross-checks) while light jobs wait: at most this share of the workers' time, a bucket
+        # of worker-seconds (one second's worth at most); with nothing light waiting they run freely
+        self.background_share = background_share
+        self._bg_tokens, self._bg_then = 0.0, clock()
         self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
         self._cv = threading.Condition()
@@ -83,45 +109,120 @@ class Scheduler:
             return True
 
     def get(self, timeout: float | None = None) -> Job | None:
-        """The next job in round-robin order; None on timeout or once closed."""
-        with self._cv:
-            if not self._cv.wait_for(lambda: self._next_key() is not None or self._closed, timeout):
+        """The next job in round-robin order (heavy ones capped); None on timeout or once closed. Stream
+        frames that waited past ``max_wait_s`` are dropped on the way (``on_expired``), never worked on."""
+        expired: list[Job] = []
+        try:
+            with self._cv:
+                while True:
+                    if not self._cv.wait_for(lambda: self._next_key() is not None or self._closed, timeout):
+                        return None
+                    key = self._next_key()
+                    if key is None:  # closed
+                        return None
+                    job = self._take(key)
+                    if job is not None:
+                        return job
+                    expired.append(self._expired_job)
+        finally:
+            for old in expired:
+                if self._on_expired is not None:
+                    self._on_expired(old)
+
+    def _take(self, key) -> Job | None:
+        """Take the key's next job (lock held); None when it was a stream frame too old to work on (kept in
+        ``_expired_job``; the sender is let go)."""
+        heavy = self._is_heavy(key)  # before the job leaves its queue (a request's is the queue's first)
+        self._ready.remove(key)
+        if key is _REQUESTS:
+            job = self._requests.popleft()
+            if self._requests:
+                self._ready.append(_REQUESTS)
+                self._cv.notify()
+        else:
+            job = self._streams[key].popleft()
+            if self._too_old(job):
+                self._expired_job = job
+                if self._streams[key]:
+                    self._ready.append(key)
+                else:
+                    self._streams.pop(key, None)
                 return None
-            key = self._next_key()
-            if key is None:  # closed
-                return None
-            self._ready.remove(key)
-            if self._background(key):
-                self._running_background += 1
-            if key is _REQUESTS:
-                job = self._requests.popleft()
-                if self._requests:
-                    self._ready.append(_REQUESTS)
-                    self._cv.notify()
-                return job
             self._busy.add(key)
-            return self._streams[key].popleft()
+        if heavy:
+            self._running_background += 1
+            job.heavy = True
+        job.started = self._clock()
+        return job
+
+    def _too_old(self, job: Job) -> bool:
+        return (
+            self.max_wait_s is not None
+            and job.task == "frame"
+            and job.reply is None
+            and self._clock() - job.received > self.max_wait_s
+        )
 
     def _background(self, key) -> bool:
         return self.background_prefix is not None and isinstance(key, str) and key.startswith(self.background_prefix)
 
+    def _is_heavy(self, key) -> bool:
+        if self._background(key):
+            return True
+        if self._heavy is None:
+            return False
+        if key is _REQUESTS:
+            return bool(self._requests) and self._heavy(self._requests[0].sender)
+        return self._heavy(key)
+
     def _next_key(self):
-        """The ready key to serve next: a priority sender, else the first in readiness order that may run now."""
+        """The ready key to serve next: a priority sender, else the first in readiness order that may run now (a
+        heavy one only while fewer than ``max_background`` heavy jobs run)."""
         key = next((k for k in self._ready if k in self.priority), None)
         if key is None:
-            full = self._running_background >= self.max_background
-            key = next((k for k in self._ready if not (full and self._background(k))), None)
+            full = self._running_background >= self._heavy_cap()
+            held = self._background_held()
+            key = next(
+                (k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))),
+                None,
+            )
         return key
+
+    def _background_held(self) -> bool:
+        """Whether background jobs must let light ones go first: their share of the workers' time is spent and a
+        light job is waiting. Their number grows with the tracks (a cross-check per track every few seconds, each
+        ~0.3 s); unbounded, 16 peers' cross-checks took a whole worker from the tracked frames (issue 47)."""
+        if self.background_share is None:
+            return False
+        now = self._clock()
+        workers = self.workers or 1
+        cap = self.background_share * workers
+        self._bg_tokens = min(cap, self._bg_tokens + (now - self._bg_then) * cap)
+        self._bg_then = now
+        if self._bg_tokens > 0.0:
+            return False
+        return any(not self._is_heavy(k) for k in self._ready)
+
+    def _heavy_cap(self) -> int:
+        """``max_background``; every worker while no light stream job can come (no peer is tracked yet:
+        ``light_expected`` says so), so that a fleet starting up acquires on every worker."""
+        if self._light_expected is not None and self.workers is not None and not self._light_expected():
+            return max(self.max_background, self.workers)
+        return self.max_background
 
     def done(self, job: Job) -> None:
         """A worker finished a job; its sender may be scheduled again (an empty queue is let go)."""
-        if job.reply is not None:
-            return
         with self._cv:
-            self._busy.discard(job.sender)
-            if self._background(job.sender):
+            if job.heavy:
+                job.heavy = False
                 self._running_background -= 1
-                self._cv.notify()  # a background job held back may run now
+                if self.background_share is not None and self._background(job.sender) and job.started is not None:
+                    self._background_held()  # refill up to now, then charge the job's time
+                    self._bg_tokens -= self._clock() - job.started
+                self._cv.notify()  # a heavy job held back may run now
+            if job.reply is not None:
+                return
+            self._busy.discard(job.sender)
             if self._streams.get(job.sender):
                 if job.sender not in self._ready:
                     self._ready.append(job.sender)
@@ -140,6 +241,11 @@ class Scheduler:
             if sender in self._ready:
                 self._ready.remove(sender)
             return left
+
+    def backlog(self) -> bool:
+        """Whether work is waiting for a worker now (a worker that would wait for something holds it up)."""
+        with self._cv:
+            return bool(self._ready)
 
     def senders(self) -> int:
         """Senders with a queue (waiting or being served)."""

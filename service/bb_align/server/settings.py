@@ -230,6 +230,23 @@ class Settings(BaseSettings):
         description="with tracking and odometry, a track's periodic cross-check (a full acquisition, ~0.3 s) runs "
         "as a job of its own; the peer's frames are tracked meanwhile instead of waiting behind it (and dropped)",
     )
+    crosscheck_share: float | None = Field(
+        0.25,
+        gt=0,
+        le=1,
+        description="cross-checks beside tracks (one per track every track.crosscheck_s, each a full acquisition) "
+        "use at most this share of all workers' time while tracked frames are waiting (any amount when none "
+        "are): their number grows with the tracks, and unbounded they took a worker from 16 peers' results; "
+        "None: no bound",
+    )
+    max_frame_wait_s: float | None = Field(
+        None,
+        gt=0,
+        description="a stream frame that waited this long for a worker is dropped before any work (counted as "
+        "dropped), for deployments where a late answer is worthless; None (default): a peer's latest frame waits "
+        "for its turn however long (a frame whose ego frames are gone is answered stale_ego_frame before any "
+        "engine work, and a newer frame replaces it anyway)",
+    )
     peer_queue_depth: int = Field(
         1, ge=1, le=64, description="frames waiting per peer; older ones are dropped (1 = latest only)"
     )

@@ -34,6 +34,18 @@ class PeerTracks:
                 self._tracks.popitem(last=False)
             return track
 
+    def state(self, peer_id: str) -> str | None:
+        """The peer's track state (``tracking``, ``acquiring``, ``lost``), None without a track; creates nothing
+        (the scheduler asks it to tell a tracked frame from an acquisition)."""
+        with self._lock:
+            track = self._tracks.get(peer_id)
+        return None if track is None else track.follower.track.state.value
+
+    def any_tracking(self) -> bool:
+        """Whether some peer is tracked (its frames are light work, ~20-30 ms, that must not wait)."""
+        with self._lock:
+            return any(t.follower.track.state.value == "tracking" for t in self._tracks.values())
+
     def forget(self, peer_id: str) -> None:
         with self._lock:
             self._tracks.pop(peer_id, None)

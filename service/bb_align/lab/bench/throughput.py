@@ -248,6 +248,10 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         },
         "success_fraction": float(np.mean([r.success for _, r, _ in results])) if results else 0.0,
         "outcomes": dict(Counter("success" if r.success else str(r.reason) for _, r, _ in results)),
+        "sources": dict(Counter(str(r.source) for _, r, _ in results)),
+        "per_peer_results_fps": {
+            c.vehicle_id: sum(1 for _, r, _ in results if r.peer_id == c.vehicle_id) / window_s for c in streams[1:]
+        },
         "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
         "r_err_median_deg": float(np.median([e[1] for e in errors])) if errors else None,
         "service_cpu_cores": cores,
