@@ -165,15 +165,25 @@ class AlignService:
             lambda: len(self.intake),
         )
         self.tracks = PeerTracks(self.aligner, limits.max_peers)  # bounded like the peer table, forgotten with it
-        self.door = Door(
+        self.door, self.query_door = self._doors(settings)
+        self._door_counters: dict[tuple[str, str], tuple] = {}
+        self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
+        self._threads: list[threading.Thread] = []
+        self._log_refusal = _RateLimitedLog()
+        self._ego_refusal: tuple[float, str] | None = None  # (monotonic time, why) of the last ego frame refused
+
+    def _doors(self, settings: Settings) -> tuple[Door, Door]:
+        """The stream's door and the query door: the same checks, each its own signature budget (a query flood
+        cannot spend the stream's)."""
+        limits = settings.limits
+        stream = Door(
             self.keyring,
             limits,
             settings.ego_id,
             lambda vid, key: self.peer_table.newest(vid, STREAM, key),
             limits.intake_recent_signatures,
         )
-        # The query door: the same checks, its own signature budget (a query flood cannot spend the stream's)
-        self.query_door = Door(
+        query = Door(
             self.keyring,
             limits,
             settings.ego_id,
@@ -181,11 +191,7 @@ class AlignService:
             limits.intake_recent_signatures,
             budget=SignatureBudget(limits.signature_share, limits.signature_burst_s),
         )
-        self._door_counters: dict[tuple[str, str], tuple] = {}
-        self.publishers: list[Callable[[Result | Refusal], None]] = []  # results and refusal notices
-        self._threads: list[threading.Thread] = []
-        self._log_refusal = _RateLimitedLog()
-        self._ego_refusal: tuple[float, str] | None = None  # (monotonic time, why) of the last ego frame refused
+        return stream, query
 
     def _scheduler(self, settings: Settings) -> Scheduler:
         """The newest ego frame's features go first (every tracked frame of its sweep needs them, 20-60 ms once
