@@ -154,6 +154,7 @@ class RestFlood:
     def _run(self) -> None:
         import httpx
 
+        from bb_align.protocol import pack_align_request
         from bb_align_client import encode_frame, sign_frame
         from service_support import RANGE_M
 
@@ -164,7 +165,7 @@ class RestFlood:
                     seq = self.seq
                 _, _, p = self.frames[seq % len(self.frames)]
                 frame = encode_frame(p.points, p.boxes, vehicle_id="car3", stamp=time.time(), seq=seq, range_m=RANGE_M)
-                body = sign_frame(frame, self.cred)
+                body = pack_align_request(sign_frame(frame, self.cred))  # the peer frame; the ego's is cached
                 try:
                     r = http.post("/v1/align", content=body, headers={"content-type": "application/msgpack"})
                     code = str(r.status_code)
@@ -174,11 +175,13 @@ class RestFlood:
                     self.status[code] += 1
 
     def start(self) -> None:
+        self.t0 = time.monotonic()
         for t in self.threads:
             t.start()
 
     def finish(self) -> dict:
         self.stop_event.set()
+        self.status["seconds"] = round(time.monotonic() - self.t0, 1)
         for t in self.threads:
             t.join(60)
         return {
@@ -207,13 +210,19 @@ def attackers(probe: str, ep: str, seconds: float, recorded: dict, certs: dict):
     raise ValueError(probe)
 
 
+def throttled(svc) -> float:
+    """Seconds the door thread has slept so far (its refusals' CPU share spent)."""
+    return door_refused(svc).get("bbalign_door_throttled_seconds", 0.0)
+
+
 def run_probe(probe: str, ctx: dict, seconds: float) -> dict:
     """Baseline, attack, after: one window each, the genuine streams going on throughout."""
     streams, listener, svc = ctx["streams"], ctx["listener"], ctx["svc"]
     refused0 = door_refused(svc)
-    peers = [svc.get("/v1/peers")]
+    peers, slept = [svc.get("/v1/peers")], [throttled(svc)]
     windows = {"baseline": streams.run(seconds)}
     peers.append(svc.get("/v1/peers"))
+    slept.append(throttled(svc))
     if probe == "rest_flood":
         attack = [RestFlood(svc.rest, ctx["creds"]["car3"], ctx["frames"], 8)]
     else:
@@ -223,20 +232,24 @@ def run_probe(probe: str, ctx: dict, seconds: float) -> dict:
             a.start()
         windows["during"] = streams.run(seconds)
         peers.append(svc.get("/v1/peers"))
+        slept.append(throttled(svc))
         report = [a.finish() for a in attack]
     finally:
         for a in attack:
             getattr(a, "stop", lambda: None)()
     peers.append(svc.get("/v1/peers"))  # the attackers' last messages are in the after window
+    slept.append(throttled(svc))
     windows["after"] = streams.run(seconds)
     time.sleep(2.5)
     peers.append(svc.get("/v1/peers"))
     refused1 = door_refused(svc)
+    slept.append(refused1.get("bbalign_door_throttled_seconds", 0.0))
     out = {w: count(listener, streams.sent, t0, t1, t1 + 2.0) for w, (t0, t1) in windows.items()}
     for i, w in ((0, "baseline"), (1, "during"), (3, "after")):
         p0, p1 = peers[i], peers[i + 1]
         out[w]["frames"] = {c: {k: p1.get(c, {}).get(k, 0) - p0.get(c, {}).get(k, 0) for k in ("frames_accepted",
                             "frames_dropped")} for c in CARS}  # fmt: skip
+        out[w]["door_slept_s"] = round(slept[i + 1] - slept[i], 2)
     base = out["baseline"]["results_per_s"]
     for w in ("during", "after"):
         out[w]["kept"] = {c: round(out[w]["results_per_s"][c] / base[c], 3) if base[c] else None for c in CARS}
