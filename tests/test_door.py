@@ -447,3 +447,24 @@ def test_a_sender_that_never_passed_a_signature_check_gets_no_signed_refusal(fle
     assert all(getattr(r, "refusal", None) is None for r in replies)  # nothing signed for them
     assert [r.error for r in replies[:10]] == ["replayed"] * 10 and replies[10].error == "unauthenticated"
     assert svc.intake.lengths() == {"ego": 0, "signed": 1, "unverified": 0}
+
+
+def test_a_failed_checks_digest_is_paid_as_signature_work_not_from_the_doors_sleeping_share(fleet, frame_car1):
+    """The digest kept of a forgery whose check failed (a pass over its 1 MB payload) is counted in
+    ``signature_cpu_s``, which the door thread leaves out of its sleeping Budget: paid there, forged 1 MB frames at
+    6 a second kept the door asleep and the cars' frames seconds late (benchmarks/door_probes.py, issue 47).
+    The digest is made to cost 30 ms of this thread's CPU: the signature work booked covers it."""
+    door, _ = _door(fleet)
+    _, creds = fleet
+    add_failed = door.recent.add_failed
+
+    def costly(*args):
+        t0 = time.thread_time()
+        while time.thread_time() - t0 < 0.03:
+            pass
+        add_failed(*args)
+
+    door.recent.add_failed = costly
+    before = door.signature_cpu_s
+    err = _refusal(door, "car1", _forged(frame_car1, creds, 7))
+    assert err.error == "unauthenticated" and door.signature_cpu_s - before >= 0.03

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 import httpx
+import pytest
 
 from bb_align.lab.flood import FloodConfig, FloodProcess
 from bb_align.lab.harness import start_service
@@ -95,3 +96,32 @@ def _ego_frames_received(svc) -> float:
     text = httpx.get(svc.rest + "/metrics", timeout=10).text
     want = 'bbalign_frames_received_total{door="zenoh",kind="ego"} '
     return sum(float(ln.rsplit(" ", 1)[1]) for ln in text.splitlines() if ln.startswith(want))
+
+
+def test_forged_frames_carry_the_copied_certificate_a_fresh_stamp_and_a_bad_signature(tmp_path):
+    """The probes of issue 47 (benchmarks/door_probes.py) send 1 MB envelopes shaped like frames: the genuine
+    certificate given, a frame payload with a fresh stamp and a seq far ahead, and a zero or a random signature
+    that does not verify under the certificate's key; paced kinds are due at their rate."""
+    import msgpack
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
+    from bb_align.lab.flood import _due, big_junk
+    from bb_align.lab.harness import make_credentials
+    from bb_align.protocol import Limits, peek_signed
+    from bb_align.protocol.identity import Certificate
+
+    cert = make_credentials(tmp_path, ["car1"])["car1"].certificate_bytes
+    public = Ed25519PublicKey.from_public_bytes(Certificate.from_bytes(cert).public_key)
+    sigs = set()
+    for kind in ("forged_frame", "forged_frame_random_sig", "forged_frame_random_sig"):
+        env = peek_signed(big_junk(kind, "car2", 1 << 20, cert), Limits())
+        body = msgpack.unpackb(env.payload, raw=False)
+        assert (env.key_id, env.alg, env.cert) == ("car2", "ed25519", cert) and len(env.mac) == 64
+        assert abs(body["stamp"] - time.time()) < 5 and body["seq"] == 1 << 62 and len(body["png"]) == 1 << 20
+        with pytest.raises(InvalidSignature):
+            public.verify(env.mac, env.payload)
+        sigs.add(env.mac)
+    assert len(sigs) == 3 and b"\0" * 64 in sigs
+    t0 = time.perf_counter()
+    assert _due(t0, 0, 3.0) and not _due(t0, 3, 3.0) and _due(t0, 10**6, 0.0)

@@ -10,7 +10,11 @@ It holds no key. What it sends is what anyone in radio range can make:
   ahead, so nothing short of the signature check (SHA-512 over the whole payload) can refuse it: the costliest
   junk a keyless sender can make;
 - ``unsigned``: a large unsigned frame-shaped map;
-- ``replay``: genuine signed frames recorded from the air earlier in the run, sent again byte for byte.
+- ``forged_frame_random_sig``: the same with 64 random bytes for the signature;
+- ``replay``: genuine signed frames recorded from the air earlier in the run, sent again byte for byte (or, with
+  ``query_key``, sent as align queries on that key; the replies are counted, signed or not).
+
+``kinds`` picks the large kinds, ``big_per_s`` / ``replays_per_s`` pace them (0: as fast as the publisher goes).
 
 It runs in its own process (``python -m bb_align.lab.flood``, instructions as one JSON line on stdin), so it
 competes with the service for CPU as a co-located attacker would, but never for the soak's GIL. It prints one
@@ -22,16 +26,22 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
+from typing import Literal
 
 import msgpack
 from pydantic import BaseModel, Field
 
+from bb_align.protocol import Limits, peek_signed
+
 BIG_KINDS = ("zero_mac_hmac", "zero_mac_ed25519", "forged_frame", "unsigned")
-NEEDS_CERT = ("zero_mac_ed25519", "forged_frame")
+ALL_BIG_KINDS = (*BIG_KINDS, "forged_frame_random_sig")
+NEEDS_CERT = ("zero_mac_ed25519", "forged_frame", "forged_frame_random_sig")
 
 
 class FloodConfig(BaseModel):
@@ -43,6 +53,10 @@ class FloodConfig(BaseModel):
     big_bytes: int = Field(1 << 20, ge=1, description="payload bytes of each large envelope")
     replays_per_cycle: int = Field(20, ge=0, description="recorded genuine frames sent again per cycle")
     ready_timeout_s: float = Field(30.0, gt=0, description="longest wait for the service's subscriber")
+    kinds: list[Literal[ALL_BIG_KINDS]] = Field(list(BIG_KINDS), min_length=1, description="large kinds, in turn")
+    big_per_s: float = Field(0.0, ge=0, description="pace of the large envelopes (0: as fast as the publisher goes)")
+    replays_per_s: float = Field(0.0, ge=0, description="pace of the replays (0: as fast as the publisher goes)")
+    query_key: str | None = Field(None, description="send the replays as queries on this key (e.g. bbalign/align/ego)")
 
 
 def _envelope(key_id: str, alg: str, mac: bytes, payload: bytes, cert: bytes | None = None) -> bytes:
@@ -60,8 +74,9 @@ def big_junk(kind: str, vehicle_id: str, big_bytes: int, cert: bytes | None) -> 
     if kind == "zero_mac_ed25519":
         return _envelope(vehicle_id, "ed25519", b"\0" * 64, blob, cert)
     frame = {"schema_version": 1, "vehicle_id": vehicle_id, "seq": 1 << 62, "stamp": time.time(), "png": blob}
-    if kind == "forged_frame":
-        return _envelope(vehicle_id, "ed25519", b"\0" * 64, msgpack.packb(frame, use_bin_type=True), cert)
+    if kind in ("forged_frame", "forged_frame_random_sig"):
+        mac = b"\0" * 64 if kind == "forged_frame" else os.urandom(64)
+        return _envelope(vehicle_id, "ed25519", mac, msgpack.packb(frame, use_bin_type=True), cert)
     if kind == "unsigned":
         return msgpack.packb(frame, use_bin_type=True)
     raise ValueError(kind)
@@ -93,8 +108,9 @@ def flood(
         deadline = time.monotonic() + config.ready_timeout_s
         while not all(p.matching_status.matching for p in pubs.values()) and time.monotonic() < deadline:
             time.sleep(0.02)
-        big = [(k, vid) for vid in ids for k in BIG_KINDS if targets[vid] or k not in NEEDS_CERT]
+        big = [(k, vid) for vid in ids for k in config.kinds if targets[vid] or k not in NEEDS_CERT]
         replays = [(vid, data) for vid, data in recorded if vid in pubs]
+        replies, put_replay = Counter(), _replayer(session, pubs, config.query_key)
         print("ready", flush=True)
         t0, cpu0 = time.perf_counter(), time.process_time()
         end, i, r = t0 + config.duration_s, 0, 0
@@ -103,20 +119,23 @@ def flood(
                 pubs[ids[j % len(ids)]].put(b"\xc1")  # 0xc1: never valid msgpack
             sent["byte"] += config.small_per_cycle
             nbytes["byte"] += config.small_per_cycle
-            for _ in range(config.big_per_cycle if big else 0):
+            for _ in range(config.big_per_cycle if big and _due(t0, i, config.big_per_s) else 0):
                 kind, vid = big[i % len(big)]
                 data = big_junk(kind, vid, config.big_bytes, targets[vid])  # fresh stamps
                 pubs[vid].put(data)
                 sent[kind] += 1
                 nbytes[kind] += len(data)
                 i += 1
-            for _ in range(config.replays_per_cycle if replays else 0):
+            for _ in range(config.replays_per_cycle if replays and _due(t0, r, config.replays_per_s) else 0):
                 vid, data = replays[r % len(replays)]
-                pubs[vid].put(data)
+                put_replay(vid, data, replies)
                 sent["replay"] += 1
                 nbytes["replay"] += len(data)
                 r += 1
+            if config.small_per_cycle == 0:
+                time.sleep(0.0005)  # paced kinds only: do not spin
         elapsed, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+        time.sleep(2.0 if config.query_key else 0.0)  # the last replies come in
         for p in pubs.values():
             p.undeclare()
     total = sum(sent.values())
@@ -128,7 +147,34 @@ def flood(
         "msg_per_s": total / elapsed,
         "mb_per_s": sum(nbytes.values()) / elapsed / 1e6,
         "cpu_cores": cpu / elapsed,  # the flooder's own CPU (it shares this machine's cores with the service)
+        "query_replies": dict(replies),  # with query_key: replies by kind (signed_ok, signed_err, unsigned_err...)
     }
+
+
+def _due(t0: float, n: int, per_s: float) -> bool:
+    """Whether the ``n``-th paced message is due (always, unpaced)."""
+    return per_s <= 0 or time.perf_counter() >= t0 + n / per_s
+
+
+def _replayer(session, pubs: dict, query_key: str | None):
+    """Send one recorded frame: put on its car's frame key, or asked as a query on ``query_key`` with its replies
+    counted (the flooder does not wait for them: a replayer never does)."""
+    lock, limits = threading.Lock(), Limits()
+
+    def put(vid: str, data: bytes, replies: Counter) -> None:
+        pubs[vid].put(data)
+
+    def ask(vid: str, data: bytes, replies: Counter) -> None:
+        def on_reply(reply) -> None:
+            ok = reply.ok is not None
+            payload = (reply.ok if ok else reply.err).payload.to_bytes()
+            kind = ("signed_" if peek_signed(payload, limits) is not None else "unsigned_") + ("ok" if ok else "err")
+            with lock:
+                replies[kind] += 1
+
+        session.get(query_key, on_reply, payload=data, timeout=5.0)
+
+    return put if query_key is None else ask
 
 
 class FloodProcess:
