@@ -32,7 +32,7 @@ from .geometry import ground_se2, pose_error, se3_from_se2, worst_sigma_m
 from .pipeline import Aligner
 from .result import AlignResult
 from .stream_acquire import StreamFrame
-from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
+from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine, odometry_jump
 from .verdict import CAP_STAGE1_FAILED, FailureReason
 
 
@@ -136,11 +136,10 @@ class Follower:
             return
         frame = StreamFrame(frame.ego, frame.peer, ground_pose(frame.O_ego), ground_pose(frame.O_peer), frame.stamp)
         if self.recent:
-            last, c = self.recent[-1], self.cfg
+            last = self.recent[-1]
             dt = frame.stamp - last.stamp
-            steps = [pose_error(a, b) for a, b in ((frame.O_ego, last.O_ego), (frame.O_peer, last.O_peer))]
-            jump = any(t > c.max_odometry_speed_m_s * dt or r > c.max_odometry_yaw_rate_deg_s * dt for t, r in steps)
-            if dt <= 0 or jump:
+            steps = (("ego", last.O_ego, frame.O_ego), ("peer", last.O_peer, frame.O_peer))
+            if dt <= 0 or odometry_jump(self.cfg, dt, steps):
                 self.recent.clear()
         self.recent.append(frame)
         window = self.aligner.config.stream.window_s

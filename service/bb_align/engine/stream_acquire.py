@@ -30,11 +30,11 @@ import numpy as np
 from .acquisition.free_space import conflicts
 from .acquisition.model import Hypothesis
 from .covariance import left_covariance, params_covariance, probability_within
-from .evidence import OffsetSample, StreamEvidence
+from .evidence import StreamEvidence
 from .frame import PreparedFrame
 from .geometry import distinct_pose, ground_se2, log_left
 from .result import AlignResult
-from .tracker import adjoint
+from .tracker import adjoint, odometry_drift, offset_sample
 from .verdict import FailureReason
 
 
@@ -52,12 +52,10 @@ class StreamFrame:
 
 @dataclass
 class _Explained:
-    """A hypothesis X explained by every frame: each frame's judged pose (3x3), its covariance (left increments)
-    and landscape score, or None where the frame does not bound it."""
+    """A hypothesis X explained by every frame: the landscape scores of the frames that agree on it, the free
+    space's conflict there and the frames' fusion."""
 
     X: np.ndarray
-    poses: list[np.ndarray | None] = field(default_factory=list)
-    covs: list[np.ndarray | None] = field(default_factory=list)
     scores: list[float] = field(default_factory=list)
     conflict: float = 0.0
     fused: tuple[np.ndarray, np.ndarray, int] | None = None  # (X, covariance of its left increments, frames)
@@ -127,26 +125,22 @@ class StreamAcquirer:
     # ---- 2. each hypothesis explained by every frame ------------------------------------------------------------
     def explain(self, frames: list[StreamFrame], X: np.ndarray) -> _Explained:
         a, sc = self.aligner, self.cfg.stream
-        e = _Explained(X)
+        e, q = _Explained(X), odometry_drift(self.cfg.track)
         stream = self._stream(frames)
         hyps = []
         for f in frames:
             T_pred = np.linalg.inv(f.O_ego) @ X @ f.O_peer
             m = a.measure(f.ego, f.peer, T_pred)
             if not m.success:
-                e.poses.append(None), e.covs.append(None), e.scores.append(0.0)
+                e.scores.append(0.0)
                 continue
             land = a.judge(f.ego, f.peer, m.T_bv)
             e.scores.append(land.score)
             if land.at_edge:
-                e.poses.append(None), e.covs.append(None)
                 continue
-            cov = left_covariance(land.covariance, land.T)
-            e.poses.append(land.T), e.covs.append(cov)
             hyps.append((f, Hypothesis(T=land.T, inliers=0)))
-            A, Ad_T, q = adjoint(f.O_ego), adjoint(land.T), self._drift_rate()
-            drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
-            stream.add(OffsetSample(f.stamp, f.O_ego @ land.T @ np.linalg.inv(f.O_peer), A @ cov @ A.T, drift))
+            cov = left_covariance(land.covariance, land.T)
+            stream.add(offset_sample(f.stamp, land.T, cov, f.O_ego, f.O_peer, q))
         fused = stream.fused(frames[-1].stamp)
         if fused is None or fused.frames < max(1, int(np.ceil(sc.min_bounded_share * len(frames)))):
             return e  # too few frames bound it and agree on it: no answer from this hypothesis
@@ -165,11 +159,6 @@ class StreamAcquirer:
         tc = self.cfg.track
         span = frames[-1].stamp - frames[0].stamp
         return StreamEvidence(span + 1e-6, len(frames), tc.evidence_correlation, tc.gate_chi2, tc.evidence_agreement)
-
-    def _drift_rate(self) -> np.ndarray:
-        tc = self.cfg.track
-        s = np.array([np.radians(tc.odometry_drift_deg_per_s), tc.odometry_drift_m_per_s, tc.odometry_drift_m_per_s])
-        return np.diag(s**2)
 
     # ---- 3. rivals -----------------------------------------------------------------------------------------------
     def _rivals(self, best: _Explained, others: list[_Explained], n: int) -> list[tuple[float, _Explained]]:

@@ -99,6 +99,33 @@ def combine(m: Measurement, other: Measurement, agreement_chi2: float) -> tuple[
     return (m, False) if fused is None else (Measurement(True, *fused, evidence=m.evidence), True)
 
 
+def odometry_drift(cfg: TrackConfig) -> np.ndarray:
+    """Each car's odometry drift per second, (yaw, tx, ty) variances in its own body frame."""
+    sigma = [np.radians(cfg.odometry_drift_deg_per_s), cfg.odometry_drift_m_per_s, cfg.odometry_drift_m_per_s]
+    return np.diag(np.square(sigma))
+
+
+def offset_sample(
+    stamp: float, T: np.ndarray, cov: np.ndarray, O_e: np.ndarray, O_p: np.ndarray, q: np.ndarray
+) -> OffsetSample:
+    """One frame's own measurement of T_ego_peer (covariance of its left increments) as a measurement of the
+    odometry offset X = O_e T O_p^-1, its covariance growing with age by both cars' drift ``q`` (per second)."""
+    A, Ad_T = adjoint(O_e), adjoint(T)  # left increments of T_ego_peer -> of X
+    drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
+    return OffsetSample(stamp, O_e @ T @ np.linalg.inv(O_p), A @ cov @ A.T, drift)
+
+
+def odometry_jump(cfg: TrackConfig, dt: float, steps) -> str | None:
+    """Why an odometry step of ``dt`` seconds cannot be a car's motion (a relocalisation or reset), if so: ``steps``
+    is (car, pose before, pose now) per car, 3x3 odometry poses."""
+    for car, O0, O1 in steps:
+        yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
+        speed, rate = np.hypot(tx, ty) / dt, abs(np.degrees(wrap_angle(yaw))) / dt
+        if speed > cfg.max_odometry_speed_m_s or rate > cfg.max_odometry_yaw_rate_deg_s:
+            return f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt:.2f} s)"
+    return None
+
+
 def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """One Kalman update for innovation ``nu`` (covariance R) of a state with covariance P seen through H: the
     innovation's squared Mahalanobis distance, the state increment and the updated covariance (symmetrised)."""
@@ -221,11 +248,7 @@ class PeerTrack:
         frames is unknown, so the answer is this frame's own measurement."""
         if not self.with_odometry:
             return ev.T_ego_peer, ev.covariance, self._within(ev.T_ego_peer, ev.covariance)
-        A = adjoint(O_e)  # left increments of T_ego_peer -> of X = O_e T O_p^-1
-        Ad_T, q = adjoint(ev.T_ego_peer), self._drift_rate()
-        drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
-        X_i = O_e @ ev.T_ego_peer @ np.linalg.inv(O_p)
-        self.stream.add(OffsetSample(stamp, X_i, A @ ev.covariance @ A.T, drift))
+        self.stream.add(offset_sample(stamp, ev.T_ego_peer, ev.covariance, O_e, O_p, odometry_drift(self.cfg)))
         fused = self.stream.fused(stamp)
         H = adjoint(np.linalg.inv(O_e))
         T, P_T = np.linalg.inv(O_e) @ fused.X @ O_p, H @ fused.covariance @ H.T
@@ -241,13 +264,6 @@ class PeerTrack:
         return (
             f"{held} puts the answer within {a.max_error_m:g} m / {a.max_error_deg:g} deg with probability "
             f"{p:.2f} only (answer.confidence {a.confidence:g})"
-        )
-
-    def _drift_rate(self) -> np.ndarray:
-        """Each car's odometry drift per second, (yaw, tx, ty) variances in its own body frame."""
-        c = self.cfg
-        return np.diag(
-            np.array([np.radians(c.odometry_drift_deg_per_s), c.odometry_drift_m_per_s, c.odometry_drift_m_per_s]) ** 2
         )
 
     # ---- the cross-check beside the track ----------------------------------------------------------------------
@@ -292,7 +308,7 @@ class PeerTrack:
             # Each car's odometry drifts in its own body frame: the ego's error is a left increment of T_ego_peer,
             # the peer's a right one (at the peer, up to 100 m away: its yaw drift moves the peer sideways in the
             # ego frame). Both carried to left increments of X = O_e T O_p^-1.
-            q = self._drift_rate() * dt
+            q = odometry_drift(c) * dt
             T_prev = np.linalg.inv(O_e) @ self.X @ O_p
             Ad_T, A = adjoint(T_prev), adjoint(O_e)
             X, P = self.X, self.P + A @ (q + Ad_T @ q @ Ad_T.T) @ A.T  # the offset stays; its uncertainty grows
@@ -400,15 +416,7 @@ class PeerTrack:
         if self.odometry_seen is None:
             return None
         t0, O_e0, O_p0 = self.odometry_seen
-        dt = max(stamp - t0, 1e-3)
-        for car, O0, O1 in (("ego", O_e0, O_e), ("peer", O_p0, O_p)):
-            yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
-            speed, rate = np.hypot(tx, ty) / dt, abs(np.degrees(wrap_angle(yaw))) / dt
-            if speed > self.cfg.max_odometry_speed_m_s or rate > self.cfg.max_odometry_yaw_rate_deg_s:
-                return (
-                    f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt:.2f} s)"
-                )
-        return None
+        return odometry_jump(self.cfg, max(stamp - t0, 1e-3), (("ego", O_e0, O_e), ("peer", O_p0, O_p)))
 
     # ---- bookkeeping -------------------------------------------------------------------------------------------
     def _keep(self, stamp: float, X: np.ndarray, P: np.ndarray) -> None:
