@@ -176,22 +176,12 @@ class AlignService:
         """The stream's door and the query door: the same checks, each its own signature budget (a query flood
         cannot spend the stream's)."""
         limits = settings.limits
-        stream = Door(
-            self.keyring,
-            limits,
-            settings.ego_id,
-            lambda vid, key: self.peer_table.newest(vid, STREAM, key),
-            limits.intake_recent_signatures,
-        )
-        query = Door(
-            self.keyring,
-            limits,
-            settings.ego_id,
-            lambda vid, key: self.peer_table.newest(vid, REQUEST, key),
-            limits.intake_recent_signatures,
-            budget=SignatureBudget(limits.signature_share, limits.signature_burst_s),
-        )
-        return stream, query
+
+        def door(channel: str, budget: SignatureBudget | None = None) -> Door:
+            newest = lambda vid, key: self.peer_table.newest(vid, channel, key)  # noqa: E731
+            return Door(self.keyring, limits, settings.ego_id, newest, limits.intake_recent_signatures, budget=budget)
+
+        return door(STREAM), door(REQUEST, SignatureBudget(limits.signature_share, limits.signature_burst_s))
 
     def _scheduler(self, settings: Settings) -> Scheduler:
         """The newest ego frame's features go first (every tracked frame of its sweep needs them, 20-60 ms once
