@@ -85,7 +85,7 @@ def main(
                     "landscape_p50_ms": float(np.median(o["landscape_ms"])),
                 }
             )
-    command = "python benchmarks/tracked_frame.py " + " ".join(f"--run {r}" for r in runs)
+    command = "python benchmarks/tracked_frame.py " + " ".join(f"--run {r}" for r in runs) + f" --laps {laps}"
     lines = [
         f"Made by `{command}`.",
         "",
