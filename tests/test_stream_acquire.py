@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bb_align.engine.geometry import pose_error
+from bb_align.engine.geometry import pose_error, se2, se3_from_se2
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.stream_acquire import StreamFrame
 from bb_align.io.clouds import load_cloud
@@ -44,6 +44,29 @@ def test_the_far_car_is_found_from_a_second_of_stream_where_its_frame_alone_is_n
     assert r.success, (r.reason, r.notes)
     assert t_err < 1.0 and r_err < 1.0
     assert r.confidence >= aligner.config.answer.confidence
+
+
+def test_the_reported_pose_answers_a_step_the_stream_alone_refuses_and_a_false_one_answers_nothing(
+    shared_data, aligner
+):
+    """The real street, step 24 (ego frame 4, the car ahead in frame 94). Without a prior the second of stream finds
+    the car (0.19 m off) but a rival 10 m along the street keeps its probability at 0.85: refused. With a GNSS-grade
+    prior 1.5 m / 1.5 deg off the truth, the rival lies outside the prior's window: answered within 1 m & 1 deg. With
+    a reported pose 20 m off along the street (a lying or drifting GNSS), the truth lies outside its window and the
+    alias inside it is not answered: a wrong prior costs the answer, never makes a wrong one."""
+    plan = schedule("kitti00_run_far", 3)[15:25]
+    frames, poses = _frames(shared_data / "kitti00_run_far", aligner, plan, {})
+    e, p = plan[-1]
+    T_true = np.linalg.inv(poses[e]) @ poses[p]
+    alone = aligner.align_stream(frames)
+    assert not alone.success and pose_error(alone.T_ego_peer, T_true)[0] < 1.0
+    r = aligner.align_stream(frames, se3_from_se2(se2(np.radians(1.5), 1.5, -1.0)) @ T_true)
+    assert r.success, (r.reason, r.notes)
+    t_err, r_err = pose_error(r.T_ego_peer, T_true)
+    assert t_err < 1.0 and r_err < 1.0
+    for along_m in (20.0, -20.0):
+        lie = aligner.align_stream(frames, se3_from_se2(se2(0.0, along_m, 0.0)) @ T_true)
+        assert not lie.success, (along_m, lie.notes)
 
 
 def test_frames_given_out_of_order_give_the_same_answer(shared_data, aligner):
@@ -112,7 +135,13 @@ def test_align_over_two_folders_answers_at_their_last_frame(shared_data, tmp_pat
     out = CliRunner().invoke(app, ["align", str(ego), str(peer), "--json"])
     assert out.exit_code == 0, out.output
     body = json.loads(out.output)
-    assert body["success"] and body["frames"] == 4
+    assert body["success"] and body["frames"] == 4 and not body["prior_used"]
+    assert body["error_vs_lidar_pose"]["t_m"] < 0.3 and body["error_vs_lidar_pose"]["r_deg"] < 0.3
+    prior = tmp_path / "prior.txt"  # the reported pose at the last pair, 1 m and 1 deg off the reference
+    np.savetxt(prior, se3_from_se2(se2(np.radians(1.0), 0.8, -0.6)) @ np.linalg.inv(poses[3]) @ poses[6])
+    out = CliRunner().invoke(app, ["align", str(ego), str(peer), "--prior", str(prior), "--json"])
+    body = json.loads(out.output)
+    assert out.exit_code == 0 and body["success"] and body["prior_used"], out.output
     assert body["error_vs_lidar_pose"]["t_m"] < 0.3 and body["error_vs_lidar_pose"]["r_deg"] < 0.3
     bare = _write_car(tmp_path / "bare", "1", folder, [9, 8], poses, odometry=False)
     out = CliRunner().invoke(app, ["align", str(ego), str(bare)])

@@ -136,7 +136,8 @@ def align(
         exists=True,
         dir_okay=False,
         help="a prior T_ego_peer: a 4x4 (or 3x3 ground-plane) matrix as plain text, e.g. composed from both cars' "
-        "reported poses; the answer must lie within config prior.max_translation_m / max_yaw_deg of it",
+        "reported poses (two folders: at their last frame pair); the answer must lie within config "
+        "prior.max_translation_m / max_yaw_deg of it",
     ),
     frames: int | None = typer.Option(
         None, min=1, max=50, help="two folders: align their last this many frame pairs (default config stream.frames)"
@@ -151,10 +152,8 @@ def align(
     if ego_cloud.is_dir() != peer_cloud.is_dir():
         raise typer.BadParameter("give two clouds or two folders of frames", param_hint="PEER_CLOUD")
     stream = ego_cloud.is_dir()
-    if stream and (ego_boxes or peer_boxes or plot or prior):
-        raise typer.BadParameter(
-            "two folders take their boxes from their yaml files; no plot or prior", param_hint="--prior"
-        )
+    if stream and (ego_boxes or peer_boxes or plot):
+        raise typer.BadParameter("two folders take their boxes from their yaml files; no plot", param_hint="--plot")
 
     if plot is not None:  # fail now, not after the alignment
         from bb_align.io.plot import pyplot
@@ -165,12 +164,12 @@ def align(
     if bev_over:
         cfg = cfg.model_copy(update={"bev": cfg.bev.model_copy(update=bev_over)})
     aligner = Aligner(cfg)
+    T_prior = _load_prior(prior) if prior is not None else None
     if stream:
-        return _align_stream(aligner, ego_cloud, peer_cloud, frames or cfg.stream.frames, json_out)
+        return _align_stream(aligner, ego_cloud, peer_cloud, frames or cfg.stream.frames, json_out, T_prior)
     pts_ego, pts_peer = _points(ego_cloud), _points(peer_cloud)
     ego = aligner.prepare(pts_ego, load_boxes(ego_boxes) if ego_boxes else None, keep_maps=True)
     peer = aligner.prepare(pts_peer, load_boxes(peer_boxes) if peer_boxes else None, keep_maps=True)
-    T_prior = _load_prior(prior) if prior is not None else None
     result = aligner.align(ego, peer, T_prior=T_prior)
     if plot is not None:
         from bb_align.io.plot import plot_alignment
@@ -190,8 +189,8 @@ def align(
         raise typer.Exit(ALIGN_FAILED)
 
 
-def _align_stream(aligner, ego_dir: Path, peer_dir: Path, frames: int, json_out: bool) -> None:
-    """`align` over two folders: the last ``frames`` pairs together (bb_align.io.streams)."""
+def _align_stream(aligner, ego_dir: Path, peer_dir: Path, frames: int, json_out: bool, T_prior=None) -> None:
+    """`align` over two folders: the last ``frames`` pairs together (bb_align.io.streams), ``T_prior`` at the last."""
     import numpy as np
 
     from bb_align.engine.geometry import pose_error
@@ -201,12 +200,12 @@ def _align_stream(aligner, ego_dir: Path, peer_dir: Path, frames: int, json_out:
         pairs, ego, peer = stream_frames(aligner, ego_dir, peer_dir, frames)
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="EGO_CLOUD / PEER_CLOUD") from None
-    result = aligner.align_stream(pairs)
+    result = aligner.align_stream(pairs, T_prior)
     truth = None
     if ego.T_world_sensor is not None and peer.T_world_sensor is not None:
         truth = pose_error(result.T_ego_peer, np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor)
     if json_out:
-        body = {**result.to_dict(), "frames": len(pairs), "frame": peer.timestamp}
+        body = {**result.to_dict(), "frames": len(pairs), "frame": peer.timestamp, "prior_used": T_prior is not None}
         if truth is not None:
             body["error_vs_lidar_pose"] = {"t_m": truth[0], "r_deg": truth[1]}
         typer.echo(json.dumps(body))

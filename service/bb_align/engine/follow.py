@@ -153,10 +153,12 @@ class Follower:
         return self.last_stream_try is None or stamp - self.last_stream_try >= sc.every_s
 
     def _from_stream(self, alone: AlignResult, T_prior: np.ndarray | None, stamp: float) -> AlignResult:
-        """The acquisition from the last second of frames (``Aligner.align_stream``), checked against the reported
-        pose as an acquisition that searched every pose is (``_check_prior``)."""
+        """The acquisition from the last second of frames (``Aligner.align_stream``), with the reported pose as
+        its prior (``track.prior`` gate, as a single frame's acquisition) and checked against it as an acquisition
+        that searched every pose is (``_check_prior``)."""
         self.last_stream_try = stamp
-        r = self.aligner.align_stream(list(self.recent))
+        gate = T_prior is not None and self.cfg.prior == "gate"
+        r = self.aligner.align_stream(list(self.recent), T_prior if gate else None)
         r.notes.insert(0, f"this frame alone: {alone.reason}; then the last {len(self.recent)} frames together")
         if T_prior is not None:
             self._check_prior(r, T_prior)

@@ -204,15 +204,16 @@ class Aligner:
                 pair, reason = self._within_prior(ego, peer, self._window(T_prior))
             return self.verdict.finish(pair.result, reason, tz=tz, roll=roll, pitch=pitch)  # lines 15-17
 
-    def align_stream(self, frames: list) -> AlignResult:
+    def align_stream(self, frames: list, T_prior: np.ndarray | None = None) -> AlignResult:
         """T_ego_peer at the last of ``frames`` (``engine.stream_acquire.StreamFrame``: both cars' prepared frames,
         odometry poses and stamps, e.g. a second of a 10 Hz stream), from every frame together: a pose must
         explain every frame, an alias that does not persist loses its weight, the covariance is what the frames
-        pin down together (engine.stream_acquire). No prior: a first answer where one frame alone cannot give
-        one."""
+        pin down together (engine.stream_acquire): a first answer where one frame alone cannot give one.
+        ``T_prior``: a reported T_ego_peer at the last frame (4x4 or 3x3), as ``align``'s: the search inside its
+        window, the rivals weighed by it."""
         from .stream_acquire import StreamAcquirer  # it builds on this class's steps
 
-        return StreamAcquirer(self)(frames)
+        return StreamAcquirer(self)(frames, T_prior)
 
     def _solve(
         self,

@@ -19,6 +19,11 @@ a pose must explain every frame, and an alias that does not persist loses its we
 4. **the answer**: the winner's frames fused as the stream fuses them (``StreamEvidence``: information-weighted,
    the odometry's drift since each frame, the design effect, frames that disagree left out), at the last frame,
    widened by the rivals as modes; ``success`` by the answer rule, as every answer.
+
+With a reported pose (a GNSS-grade ``T_prior`` at the last frame), as ``align --prior`` is for one pair: each
+searched frame is searched with the prior carried to it by the odometry, a hypothesis farther from it than the
+prior's window (``prior.max_translation_m`` / ``max_yaw_deg``) is dropped, and the winner and its rivals' weights
+count the prior's density (``prior.sigma_m`` / ``sigma_deg``) beside the frames' scores.
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ from .acquisition.model import Hypothesis
 from .covariance import left_covariance, params_covariance, probability_within
 from .evidence import StreamEvidence
 from .frame import PreparedFrame
-from .geometry import distinct_pose, ground_se2, log_left
+from .geometry import distinct_pose, ground_se2, log_left, pose_error, se2_params
+from .landscape import GaussianPrior
 from .result import AlignResult
 from .tracker import adjoint, odometry_drift, offset_sample
 from .verdict import FailureReason
@@ -72,15 +78,23 @@ class StreamAcquirer:
         self.aligner = aligner
         self.cfg = aligner.config
 
-    def __call__(self, frames: list[StreamFrame]) -> AlignResult:
+    def __call__(self, frames: list[StreamFrame], T_prior: np.ndarray | None = None) -> AlignResult:
         if not frames:
             raise ValueError("frames: at least one frame of each car is needed")
         frames = [_ground(f) for f in sorted(frames, key=lambda f: f.stamp)]
         sc = self.cfg.stream
         r = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
-        seeds = self.hypotheses(frames, r)
+        X_prior = None
+        if T_prior is not None:  # the reported pose at the last frame, as an odometry offset
+            X_prior = frames[-1].O_ego @ ground_se2(np.asarray(T_prior, dtype=float)) @ np.linalg.inv(frames[-1].O_peer)
+        seeds = self.hypotheses(frames, r, X_prior)
         explained = [self.explain(frames, X) for X in seeds[: sc.max_hypotheses]]
         explained = [e for e in explained if e.fused is not None]
+        if X_prior is not None:
+            inside = [e for e in explained if self._inside_prior(e.fused[0], X_prior, frames[-1])]
+            if len(inside) < len(explained):
+                r.notes.append(f"{len(explained) - len(inside)} outside the reported pose's window")
+            explained = inside
         r.notes.append(
             f"stream acquisition: {len(frames)} frames over {frames[-1].stamp - frames[0].stamp:.2f} s, "
             f"{len(seeds)} hypotheses from {min(sc.search_frames, len(frames))} searched frames, "
@@ -93,23 +107,53 @@ class StreamAcquirer:
         if not explained:
             why = FailureReason.free_space_conflict if ruled_out else FailureReason.too_few_inliers_bv
             return self._finish(r, why, frames)
-        explained.sort(key=lambda e: -e.score)
+        weigh = self._weigh(frames, X_prior)
+        explained.sort(key=lambda e: -weigh(e))
         best = explained[0]
-        self._answer(r, frames, best, self._rivals(best, explained[1:], len(frames)))
+        self._answer(r, frames, best, self._rivals(best, explained[1:], weigh))
         return self._finish(r, None, frames)
 
+    def _inside_prior(self, X: np.ndarray, X_prior: np.ndarray, last: StreamFrame) -> bool:
+        """Whether the pose of offset X lies within the prior's window of the reported one, at the last frame."""
+        t_err, r_err = pose_error(_at(last, X), _at(last, X_prior))
+        p = self.cfg.prior
+        return t_err <= p.max_translation_m and r_err <= p.max_yaw_deg
+
+    def _weigh(self, frames: list[StreamFrame], X_prior: np.ndarray | None):
+        """A hypothesis's log weight: its frames' summed landscape scores times ``effective_points`` over the design
+        effect (frames that share their errors are not independent evidence), plus the prior's log density of its
+        pose at the last frame."""
+        design = 1.0 + self.cfg.track.evidence_correlation * (len(frames) - 1)
+        points, last = self.cfg.landscape.effective_points, frames[-1]
+        prior = None
+        if X_prior is not None:
+            pc = self.cfg.prior
+            prior = GaussianPrior(_at(last, X_prior), pc.sigma_m, pc.sigma_deg)
+
+        def log_weight(e: _Explained) -> float:
+            w = points * e.score / design
+            if prior is not None:
+                w += float(prior.log_density(np.array(se2_params(_at(last, e.fused[0]))))[0])
+            return w
+
+        return log_weight
+
     # ---- 1. hypotheses -----------------------------------------------------------------------------------------
-    def hypotheses(self, frames: list[StreamFrame], r: AlignResult) -> list[np.ndarray]:
+    def hypotheses(
+        self, frames: list[StreamFrame], r: AlignResult, X_prior: np.ndarray | None = None
+    ) -> list[np.ndarray]:
         """The poses the full search verified on ``search_frames`` of the frames (the last, then spread over the
         stream), as offsets X: every searched frame's best first, then their second best, and so on (no frame's
-        aliases crowd out another frame's answer); near ones merged, those the free space rules out left out."""
+        aliases crowd out another frame's answer); near ones merged, those the free space rules out left out.
+        ``X_prior``: each frame searched with the reported pose carried to it (``Aligner.align``'s ``T_prior``)."""
         n, k = len(frames), min(self.cfg.stream.search_frames, len(frames))
         picks = sorted({int(round(i)) for i in np.linspace(n - 1, 0, k)}, reverse=True)
         ac, fs = self.cfg.acquire, self.cfg.free_space
         ranked: list[list[np.ndarray]] = []
         for i in picks:
             f = frames[i]
-            res = self.aligner.align(f.ego, f.peer)
+            T_prior = None if X_prior is None else np.linalg.inv(f.O_ego) @ X_prior @ f.O_peer
+            res = self.aligner.align(f.ego, f.peer, T_prior=T_prior)
             for name, ms in res.timings_ms.items():
                 r.timings_ms[f"search_{name}"] = r.timings_ms.get(f"search_{name}", 0.0) + ms
             hyps: list[Hypothesis] = [] if res.acquisition is None else res.acquisition.hypotheses
@@ -161,17 +205,16 @@ class StreamAcquirer:
         return StreamEvidence(span + 1e-6, len(frames), tc.evidence_correlation, tc.gate_chi2, tc.evidence_agreement)
 
     # ---- 3. rivals -----------------------------------------------------------------------------------------------
-    def _rivals(self, best: _Explained, others: list[_Explained], n: int) -> list[tuple[float, _Explained]]:
-        """(weight, hypothesis) of every other hypothesis distinct from the winner after refinement."""
-        ac, tc = self.cfg.acquire, self.cfg.track
-        design = 1.0 + tc.evidence_correlation * (n - 1)
-        out, kept = [], [best.fused[0]]
+    def _rivals(self, best: _Explained, others: list[_Explained], weigh) -> list[tuple[float, _Explained]]:
+        """(weight, hypothesis) of every other hypothesis distinct from the winner after refinement: exp of its log
+        weight (``_weigh``) less the winner's."""
+        ac = self.cfg.acquire
+        out, kept, top = [], [best.fused[0]], weigh(best)
         for e in others:
             if not distinct_pose(e.fused[0], kept, ac.distinct_m, ac.distinct_deg):
                 continue
             kept.append(e.fused[0])
-            w = float(np.exp(self.cfg.landscape.effective_points * (e.score - best.score) / design))
-            out.append((w, e))
+            out.append((float(np.exp(min(50.0, weigh(e) - top))), e))
         return out
 
     # ---- 4. the answer --------------------------------------------------------------------------------------------
@@ -210,6 +253,11 @@ class StreamAcquirer:
         r = self.aligner.verdict.finish(r, reason, tz=0.0, roll=0.0, pitch=0.0)
         r.confidence = float(p)
         return r
+
+
+def _at(f: StreamFrame, X: np.ndarray) -> np.ndarray:
+    """T_ego_peer (3x3) at frame f of the odometry offset X."""
+    return np.linalg.inv(f.O_ego) @ X @ f.O_peer
 
 
 def _ground(f: StreamFrame) -> StreamFrame:
