@@ -44,6 +44,10 @@ def test_the_far_car_is_found_from_a_second_of_stream_where_its_frame_alone_is_n
     assert r.success, (r.reason, r.notes)
     assert t_err < 1.0 and r_err < 1.0
     assert r.confidence >= aligner.config.answer.confidence
+    # A reported pose 20 m along the street (a drifting GNSS): the frames alone answer outside its window, so the
+    # images and the report disagree, as for one pair; the alias inside the window is not taken.
+    lie = aligner.align_stream(frames, se3_from_se2(se2(0.0, 20.0, 0.0)) @ T_true)
+    assert not lie.success and lie.reason == "disagrees_with_prior", lie.notes
 
 
 def test_the_reported_pose_answers_a_step_the_stream_alone_refuses_and_a_false_one_answers_nothing(
@@ -53,7 +57,8 @@ def test_the_reported_pose_answers_a_step_the_stream_alone_refuses_and_a_false_o
     the car (0.19 m off) but a rival 10 m along the street keeps its probability at 0.85: refused. With a GNSS-grade
     prior 1.5 m / 1.5 deg off the truth, the rival lies outside the prior's window: answered within 1 m & 1 deg. With
     a reported pose 20 m off along the street (a lying or drifting GNSS), the truth lies outside its window and the
-    alias inside it is not answered: a wrong prior costs the answer, never makes a wrong one."""
+    alias inside it (bounded by half of the frames) is not answered: a wrong prior costs the answer, never makes a
+    wrong one."""
     plan = schedule("kitti00_run_far", 3)[15:25]
     frames, poses = _frames(shared_data / "kitti00_run_far", aligner, plan, {})
     e, p = plan[-1]

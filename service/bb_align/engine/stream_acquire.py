@@ -90,11 +90,6 @@ class StreamAcquirer:
         seeds = self.hypotheses(frames, r, X_prior)
         explained = [self.explain(frames, X) for X in seeds[: sc.max_hypotheses]]
         explained = [e for e in explained if e.fused is not None]
-        if X_prior is not None:
-            inside = [e for e in explained if self._inside_prior(e.fused[0], X_prior, frames[-1])]
-            if len(inside) < len(explained):
-                r.notes.append(f"{len(explained) - len(inside)} outside the reported pose's window")
-            explained = inside
         r.notes.append(
             f"stream acquisition: {len(frames)} frames over {frames[-1].stamp - frames[0].stamp:.2f} s, "
             f"{len(seeds)} hypotheses from {min(sc.search_frames, len(frames))} searched frames, "
@@ -104,6 +99,13 @@ class StreamAcquirer:
         explained = [e for e in explained if e.conflict <= self.cfg.free_space.max_conflict]
         if ruled_out:
             r.notes.append(f"the free space rules out {len(ruled_out)} of them")
+        if X_prior is not None and explained:
+            if self._images_disagree(r, frames, explained, X_prior):
+                return self._finish(r, FailureReason.disagrees_with_prior, frames)
+            inside = [e for e in explained if self._inside_prior(e.fused[0], X_prior, frames[-1])]
+            if len(inside) < len(explained):
+                r.notes.append(f"{len(explained) - len(inside)} outside the reported pose's window")
+            explained = inside
         if not explained:
             why = FailureReason.free_space_conflict if ruled_out else FailureReason.too_few_inliers_bv
             return self._finish(r, why, frames)
@@ -112,6 +114,27 @@ class StreamAcquirer:
         best = explained[0]
         self._answer(r, frames, best, self._rivals(best, explained[1:], weigh))
         return self._finish(r, None, frames)
+
+    def _images_disagree(self, r: AlignResult, frames, explained: list[_Explained], X_prior: np.ndarray) -> bool:
+        """As for one pair with a prior: what the frames alone answer (no prior) stands against the report when it
+        is a success outside the prior's window (an alias inside the window must not win because the report
+        lies); a failure alone leaves the search inside the window."""
+        weigh = self._weigh(frames, None)
+        ranked = sorted(explained, key=lambda e: -weigh(e))
+        if self._inside_prior(ranked[0].fused[0], X_prior, frames[-1]):
+            return False
+        alone = AlignResult(success=False, T_ego_peer=np.eye(4), T_bv=np.eye(3), T_box=np.eye(3))
+        self._answer(alone, frames, ranked[0], self._rivals(ranked[0], ranked[1:], weigh))
+        a = self.cfg.answer
+        if probability_within(alone.covariance, a.max_error_m, a.max_error_deg) < a.confidence:
+            return False
+        t_err, r_err = pose_error(alone.T_bv, _at(frames[-1], X_prior))
+        r.T_bv, r.covariance = alone.T_bv, alone.covariance
+        r.notes.append(
+            f"the frames alone answer {t_err:.1f} m / {r_err:.1f} deg from the reported pose (prior tolerance "
+            f"{self.cfg.prior.max_translation_m:g} m / {self.cfg.prior.max_yaw_deg:g} deg)"
+        )
+        return True
 
     def _inside_prior(self, X: np.ndarray, X_prior: np.ndarray, last: StreamFrame) -> bool:
         """Whether the pose of offset X lies within the prior's window of the reported one, at the last frame."""
