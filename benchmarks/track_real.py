@@ -17,7 +17,7 @@ import typer
 from tqdm import tqdm
 
 from bb_align.lab.recording import RECORD_HELP, output_path
-from bb_align.lab.tracking.real_runs import RUNS, records, summary, track_run
+from bb_align.lab.tracking.real_runs import RUNS, folders, records, summary, track_run
 
 
 def table(rows: dict[str, dict]) -> str:
@@ -74,7 +74,11 @@ def main(
     out = out or output_path("docs/tracking/real_runs", record)
     all_steps: dict[str, list] = {}
     jobs = [
-        (run, odo, gnss) for run in RUNS if (data / run).is_dir() for odo in (True, False) for gnss in (True, False)
+        (run, odo, gnss)
+        for run in RUNS
+        if all(f.is_dir() for f in folders(data, run))
+        for odo in (True, False)
+        for gnss in (True, False)
     ]
     for run, odo, gnss in tqdm(jobs, desc="real runs", unit="run"):
         key = f"{run} {'with' if odo else 'without'} {'with' if gnss else 'without'}"

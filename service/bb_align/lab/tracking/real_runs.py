@@ -8,7 +8,11 @@ same poses). Every answer is scored against the run's reference poses:
 - ``kitti08_run`` (residential) and ``kitti01_run`` (highway entry, fast, turning: strong self-motion
   distortion): the peer is frame ``9 - k`` while the ego is at frame ``k``, 0-9 m apart;
 - ``kitti00_run_far``: the peer alternates between frames 94 and 95 (the car 73-80 m ahead), its odometry
-  jumping back and forth by one sweep's travel, as the poses say.
+  jumping back and forth by one sweep's travel, as the poses say;
+- ``kitti00_run_far_behind``: the same two cars with their roles swapped: the ego is the car ahead (frames 94 /
+  95), the peer the car 73-80 m behind it;
+- ``no_overlap``: the ego drives ``kitti08_run``'s frames, the peer ``kitti00_run_far``'s, in two cities: no pose
+  is right, so every success is wrong; its GNSS-grade pose claims the far run's geometry (the peer 73-80 m ahead).
 
 With ``gnss``, each frame also carries a GNSS-grade reported pose: the reference ``T_ego_peer`` moved by a smooth
 random walk (a first-order Gauss-Markov process, 2 m / 2 deg 1-sigma, 3 s correlation time, seeded), as two cars'
@@ -29,7 +33,12 @@ from bb_align.engine.pipeline import Aligner
 from bb_align.io.clouds import load_cloud
 from bb_align.lab.tracking.replay import error_components, stream_sample
 
-RUNS = ("kitti08_run", "kitti01_run", "kitti00_run_far")
+RUNS = ("kitti08_run", "kitti01_run", "kitti00_run_far", "kitti00_run_far_behind", "no_overlap")
+# (ego's folder, peer's folder) of the runs not named after one folder
+_FOLDERS = {
+    "kitti00_run_far_behind": ("kitti00_run_far", "kitti00_run_far"),
+    "no_overlap": ("kitti08_run", "kitti00_run_far"),
+}
 FAR_PEER_FRAMES = (94, 95)
 STEP_S = 0.1
 GNSS_SIGMA_M, GNSS_SIGMA_DEG, GNSS_TAU_S = 2.0, 2.0, 3.0
@@ -68,9 +77,11 @@ class Step:
     err: list[float] | None = None  # the answer's (yaw rad, tx m, ty m) minus the reference's
     covariance: list[list[float]] | None = None  # the answer's, of those parameters
 
+    truth: bool = True  # False: no pose is right (the two cars' scans do not overlap)
+
     @property
     def wrong(self) -> bool:
-        return self.success and not (self.t_err_m < 1.0 and self.r_err_deg < 1.0)
+        return self.success and not (self.truth and self.t_err_m < 1.0 and self.r_err_deg < 1.0)
 
 
 def run_poses(folder: Path) -> dict[int, np.ndarray]:
@@ -88,11 +99,19 @@ def run_poses(folder: Path) -> dict[int, np.ndarray]:
     return poses
 
 
+def folders(data: Path, run: str) -> tuple[Path, Path]:
+    """(the ego's folder, the peer's folder) of a run."""
+    ego, peer = _FOLDERS.get(run, (run, run))
+    return data / ego, data / peer
+
+
 def schedule(run: str, laps: int = 3) -> list[tuple[int, int]]:
     """(ego frame, peer frame) per step: the ego forward, back and forward over frames 0-9 (``laps`` passes)."""
     ego = [k if lap % 2 == 0 else 9 - k for lap in range(laps) for k in range(10)]
-    if run == "kitti00_run_far":
-        return [(e, FAR_PEER_FRAMES[i % 2]) for i, e in enumerate(ego)]
+    if run in ("kitti00_run_far", "no_overlap"):
+        return [(e, FAR_PEER_FRAMES[i % 2]) if run == "kitti00_run_far" else (e, e) for i, e in enumerate(ego)]
+    if run == "kitti00_run_far_behind":
+        return [(p, e) for e, p in schedule("kitti00_run_far", laps)]
     return [(e, 9 - e) for e in ego]
 
 
@@ -107,27 +126,34 @@ def track_run(
 ):
     """Every step of one run through a fresh follower; a Step per peer frame. ``gnss``: each frame carries a
     GNSS-grade reported pose (module doc; ``seed`` seeds its errors), the acquisitions' prior."""
-    folder = data / run
-    aligner, poses = Aligner(config or AlignConfig()), run_poses(folder)
+    ego_dir, peer_dir = folders(data, run)
+    aligner = Aligner(config or AlignConfig())
+    ego_poses, peer_poses = run_poses(ego_dir), run_poses(peer_dir)
+    truth = ego_dir == peer_dir  # two cities: no pose is right
+    far_poses = run_poses(data / "kitti00_run_far") if not truth else None
     follower = Follower(aligner)
     frames: dict[tuple[int, bool], object] = {}
 
     def frame(k: int, peer: bool):
         if (k, peer) not in frames:  # the ego frame needs no features: the follower measures against it
+            folder = peer_dir if peer else ego_dir
             frames[(k, peer)] = aligner.prepare(load_cloud(folder / f"{k:06d}.bin"), features=peer)
         return frames[(k, peer)]
 
     steps, plan = [], schedule(run, laps)
     errors = gnss_errors(len(plan), seed)
     for i, (e, p) in enumerate(plan):
-        T_true = np.linalg.inv(poses[e]) @ poses[p]
-        O = {"O_ego": poses[e], "O_peer": poses[p]} if odometry else {}
+        if truth:
+            T_true = np.linalg.inv(ego_poses[e]) @ peer_poses[p]
+        else:  # what the reports claim: the far run's geometry (the peer 73-80 m ahead)
+            T_true = np.linalg.inv(far_poses[e]) @ far_poses[FAR_PEER_FRAMES[i % 2]]
+        O = {"O_ego": ego_poses[e], "O_peer": peer_poses[p]} if odometry else {}
         if gnss:
             O["T_prior"] = se3_from_se2(se2(*errors[i])) @ T_true
         r = follower.step(frame(e, False), frame(p, True), STEP_S * i, **O)
-        t_err, r_err = pose_error(r.T_ego_peer, T_true)
+        t_err, r_err = pose_error(r.T_ego_peer, T_true) if truth else (float("nan"), float("nan"))
         dist = float(np.hypot(T_true[0, 3], T_true[1, 3]))
-        ev = stream_sample(follower, STEP_S * i, O.get("O_ego"), O.get("O_peer"), T_true)
+        ev = stream_sample(follower, STEP_S * i, O.get("O_ego"), O.get("O_peer"), T_true if truth else None)
         steps.append(
             Step(
                 run, i, e, p, dist, r.source, r.track_state, bool(r.success), r.reason, t_err, r_err,
@@ -135,8 +161,9 @@ def track_run(
                 event=r.track_event,
                 evidence_err=ev["evidence_err"],
                 evidence_cov=ev["evidence_cov"],
-                err=error_components(r.T_ego_peer, T_true),
-                covariance=None if r.covariance is None else np.asarray(r.covariance).tolist(),
+                err=error_components(r.T_ego_peer, T_true) if truth else None,
+                covariance=None if r.covariance is None or not truth else np.asarray(r.covariance).tolist(),
+                truth=truth,
             )
         )  # fmt: skip
     return steps
@@ -150,7 +177,7 @@ def summary(steps: list[Step]) -> dict:
         o["steps"] += 1
         o["successful"] += s.success
         o["wrong"] += s.wrong
-        if s.success:
+        if s.success and s.truth:
             o["worst_m"], o["worst_deg"] = max(o["worst_m"], s.t_err_m), max(o["worst_deg"], s.r_err_deg)
         else:
             reasons = o.setdefault("refused", {})
