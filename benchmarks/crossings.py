@@ -75,6 +75,11 @@ def run_pair(seed: int) -> dict:
     p_t, p_r = pose_error(prior, T_true)
     yaw = float(np.degrees(se2_params(ground_se2(T_true))[0]))
     outcome = ("right" if t_err < RIGHT_M and r_err < RIGHT_DEG else "wrong") if result.success else "refused"
+    # the answer's covariance against its true error (truth minus estimate, the covariance's own parameters)
+    err = np.subtract(se2_params(ground_se2(T_true)), se2_params(ground_se2(result.T_ego_peer)))
+    err[0] = np.arctan2(np.sin(err[0]), np.cos(err[0]))
+    cov = None if result.covariance is None else np.asarray(result.covariance, dtype=float)
+    bounded = cov is not None and np.all(np.isfinite(cov)) and cov.max() < 1e5
     return {
         "seed": seed,
         "sensors": [ego.sensor, peer.sensor],
@@ -85,6 +90,10 @@ def run_pair(seed: int) -> dict:
         "reason": result.reason,
         "t_err_m": round(float(t_err), 3),
         "r_err_deg": round(float(r_err), 3),
+        "yaw_err_deg": round(float(np.degrees(err[0])), 3),
+        "sigma_yaw_deg": round(float(np.degrees(np.sqrt(cov[0, 0]))), 3) if bounded else None,
+        "sigma_t_worst_m": round(float(np.sqrt(np.linalg.eigvalsh(cov[1:, 1:])[-1])), 3) if bounded else None,
+        "d2": round(float(err @ np.linalg.solve(cov, err)), 3) if bounded else None,
     }
 
 
@@ -101,6 +110,11 @@ def summarise(rows: list[dict]) -> dict:
             "success_pct": round(100.0 * sum(r["outcome"] == "right" for r in rs) / n, 1),
             "refused": dict(Counter(r["reason"] for r in rs if r["outcome"] == "refused")),
         }
+        right_or_refused = [r for r in rs if r["outcome"] != "wrong" and r["d2"] is not None]
+        if right_or_refused:  # how the covariance stands against the true error (chi2(3) median 2.37)
+            out["d2_median"] = round(float(np.median([r["d2"] for r in right_or_refused])), 2)
+        refused_right = [r for r in rs if r["reason"] == "degenerate_pose" and r["t_err_m"] < 1 and r["r_err_deg"] < 1]
+        out["degenerate_but_within_1m_1deg"] = len(refused_right)
         if ok:
             for key in ("t_err_m", "r_err_deg"):
                 out[f"{key}_p50_p90_max"] = [
@@ -125,8 +139,9 @@ def table(summary: dict, command: str) -> str:
         f"Made by `{command}`. Right: within 1 m and 1 deg; wrong: a success outside; error percentiles over the",
         "successes (p50 / p90 / max).",
         "",
-        "| set | slice | pairs | right (success %) | wrong | refused (by reason) | t error m | yaw error deg |",
-        "| --- | --- | ---: | ---: | ---: | --- | --- | --- |",
+        "| set | slice | pairs | right (success %) | wrong | refused (by reason) | of them degenerate_pose within "
+        "1 m / 1 deg | t error m | yaw error deg |",
+        "| --- | --- | ---: | ---: | ---: | --- | ---: | --- | --- |",
     ]
     for name, s in summary.items():
         for key, b in s.items():
@@ -135,7 +150,7 @@ def table(summary: dict, command: str) -> str:
             r = " / ".join(f"{v:.2f}" for v in b.get("r_err_deg_p50_p90_max", [])) or "-"
             lines.append(
                 f"| {name} | {key} | {b['pairs']} | {b['right']} ({b['success_pct']:.1f} %) | {b['wrong']} | "
-                f"{refused} | {t} | {r} |"
+                f"{refused} | {b['degenerate_but_within_1m_1deg']} | {t} | {r} |"
             )
     return "\n".join(lines) + "\n"
 
