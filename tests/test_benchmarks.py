@@ -74,3 +74,27 @@ def test_sim_places_runs_a_place_as_the_real_run_and_ranks_the_real_place():
     summ = bench.summary(rows)
     assert summ["places"] == 4 and summ["no_prior"]["sim_places_at_least_real"] == 0.5
     assert summ["prior"]["sim_places_none_right"] == 0 and summ["no_prior"]["sim_places_none_right"] == 1
+
+
+def test_crossings_summary_counts_outcomes_and_noisy_priors_scatter_as_drawn():
+    """benchmarks/crossings.py: its summary counts right, wrong and refusals (with the right poses refused as
+    degenerate) per slice, and its prior's noise has the 2 m / 2 deg spread it claims (500 seeds)."""
+    crossings = _load(BENCHMARKS / "crossings.py")
+    row = {"d2": 1.0, "t_err_m": 0.3, "r_err_deg": 0.2, "reason": None}
+    rows = [
+        {**row, "distance_m": 55.0, "rel_yaw_deg": 80.0, "outcome": "right"},
+        {**row, "distance_m": 90.0, "rel_yaw_deg": -100.0, "outcome": "wrong", "t_err_m": 3.0},
+        {**row, "distance_m": 90.0, "rel_yaw_deg": 100.0, "outcome": "refused", "reason": "degenerate_pose"},
+        {**row, "distance_m": 60.0, "rel_yaw_deg": -70.0, "outcome": "refused", "reason": "no_box_overlap"},
+    ]
+    s = crossings.summarise(rows)
+    assert (s["all"]["right"], s["all"]["wrong"], s["all"]["success_pct"]) == (1, 1, 25.0)
+    assert s["all"]["refused"] == {"degenerate_pose": 1, "no_box_overlap": 1}
+    assert s["all"]["degenerate_but_within_1m_1deg"] == 1
+    assert (s["75-100 m"]["pairs"], s["75-100 m"]["wrong"], s["yaw < 0"]["pairs"]) == (2, 1, 2)
+    T = np.eye(4)
+    T[:2, 3] = (60.0, 20.0)
+    priors = [crossings.noisy_prior(T, seed) for seed in range(500)]
+    offsets = np.array([P[:2, 2] - (60.0, 20.0) for P in priors])
+    yaws = np.degrees([np.arctan2(P[1, 0], P[0, 0]) for P in priors])
+    assert np.allclose(offsets.std(axis=0), 2.0, rtol=0.15) and abs(np.std(yaws) - 2.0) < 0.3

@@ -186,6 +186,31 @@ def test_scenario_families_place_the_cars_as_named(family):
             assert 60.0 <= abs(dyaw) <= 120.0
 
 
+def test_crossing_family_places_the_peer_on_the_crossing_street_50_to_100_m_away():
+    """The crossing family (benchmarks/crossings.py): the ego on the main road within 30 m of the crossing, the peer
+    on a lane of the crossing street 50-100 m away, turned 60-120 deg either way relative to the ego, on the turn
+    family's world of the same seed."""
+    cfg = SimConfig(family="crossing", min_distance_m=50.0, max_distance_m=100.0)
+    signs = []
+    for seed in (1, 6, 9):  # seed 1 turned left, 6 and 9 right
+        sc = Scenario(seed, 2, None, cfg)
+        ego, peer = (sc.world.vehicles[s.vehicle] for s in sc.agents)
+        (xe, ye, he), (xp, yp, hp) = ([float(v) for v in car.pose(0.0)] for car in (ego, peer))
+        d = np.hypot(xp - xe, yp - ye)
+        dyaw = np.degrees(np.arctan2(np.sin(hp - he), np.cos(hp - he)))
+        assert 50.0 - 1.5 <= d <= 100.0 + 1.5, (seed, d)
+        assert 60.0 <= abs(dyaw) <= 120.0, (seed, dyaw)
+        assert any(ego.path is ln for ln in sc.world.roads[0].lanes())
+        cross = next(r for r in sc.world.roads[1:] if any(peer.path is ln for ln in r.lanes()))
+        centre = np.array(cross.centre.pose_at(cross.centre.length / 2)[:2])
+        assert sc.world.roads[0].centre.nearest_s(np.array([xe, ye]))[1] < 10.0  # on the main road
+        assert np.hypot(xe - centre[0], ye - centre[1]) <= 31.0  # within 30 m of the crossing
+        signs.append(np.sign(dyaw))
+    assert set(signs) == {-1.0, 1.0}  # turned either way
+    turn = generate_world(np.random.default_rng([9, 0]), family="turn")
+    np.testing.assert_array_equal(turn.static.xy, sc.world.static.xy)  # the turn family's world
+
+
 def test_reach_follows_the_datasheet_range_law():
     hdl = SENSOR_MODELS["hdl64"]
     # the two datasheet points, and the power law through them in between

@@ -145,7 +145,8 @@ def register(app: typer.Typer) -> None:
             "mixed",
             "--family",
             help="mixed: the benchmark's streets; street: one car following another on a straight residential street "
-            "(defaults 60-100 m); turn: the peer has turned into a crossing street ahead (defaults 40-70 m)",
+            "(defaults 60-100 m); turn: the peer has turned into a crossing street ahead (defaults 40-70 m); crossing: "
+            "the peer anywhere on a crossing street, the ego within 30 m of the crossing (defaults 50-100 m)",
         ),
         dair: bool = typer.Option(
             False,
@@ -188,7 +189,9 @@ def register(app: typer.Typer) -> None:
         if family not in FAMILIES:
             raise typer.BadParameter(f"--family must be one of {', '.join(FAMILIES)}, got {family!r}")
         if family != "mixed" and (min_distance, max_distance) == (4.0, 100.0):  # the flags' defaults
-            min_distance, max_distance = {"street": (60.0, 100.0), "turn": (40.0, 70.0)}[family]
+            min_distance, max_distance = {"street": (60.0, 100.0), "turn": (40.0, 70.0), "crossing": (50.0, 100.0)}[
+                family
+            ]
         if max_distance <= min_distance:
             raise typer.BadParameter("--max-distance must be larger than --min-distance")
         from ..sim.sensors import DEFAULT_FLEET, SENSOR_MODELS

@@ -44,11 +44,13 @@ class SimConfig(BaseModel):
         "from the ego's (unsynchronised LiDARs; uniform, fixed per agent)",
     )
     same_road_prob: float = Field(0.7, ge=0, le=1, description="probability that a peer drives on the ego's road")
-    family: Literal["mixed", "street", "turn"] = Field(
+    family: Literal["mixed", "street", "turn", "crossing"] = Field(
         "mixed",
         description="mixed: the benchmark's streets and placements; street: a straight residential street, every "
         "peer ahead of the ego in its lane (following); turn: every peer on a crossing street it has turned into, "
-        "beyond the crossing the ego drives towards",
+        "beyond the crossing the ego drives towards; crossing: the turn family's worlds, the ego on the main road "
+        "within 30 m of a crossing, every peer on the crossing street (either side, either lane) at the wanted "
+        "distance: relative yaw 65-115 deg either way",
     )
     vehicle_range_m: float = Field(120.0, gt=0, description="vehicles listed as ground truth within this range")
     detection: DetectionModel = DetectionModel()
@@ -211,6 +213,35 @@ def _place_turned(world: World, rng, n_agents: int, distance_m: float | None, cf
     return _numbered(world, agents)
 
 
+def _place_crossing(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimConfig) -> list[int]:
+    """The crossing family: the ego on a lane of the main road within 30 m of a crossing (before or past it), every
+    peer on a lane of the crossing street, either side of the junction and clear of it (> 10 m from the main
+    road's centre line), at the wanted distance from the ego (nearest feasible when out of reach)."""
+    k = int(rng.integers(1, len(world.roads)))
+    cross = world.roads[k]
+    centre = np.array(cross.centre.pose_at(cross.centre.length / 2)[:2])  # where the two streets meet
+    lane = world.roads[0].lanes()[int(rng.integers(len(world.roads[0].lanes())))]
+    s_c, _ = lane.nearest_s(centre)
+    s_ego = float(np.clip(s_c + rng.uniform(-30.0, 30.0), 10.0, lane.length - 10.0))
+    agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, [])]
+    ego_xy = np.array(lane.pose_at(s_ego)[:2])
+    taken: list[tuple[Path, float]] = []
+    for _ in range(n_agents - 1):
+        d = _spacing(rng, distance_m, cfg)
+        ln = cross.lanes()[int(rng.integers(len(cross.lanes())))]
+        s_x, _ = ln.nearest_s(centre)
+        ok = (np.abs(ln.s - s_x) > 10.0) & (ln.s > 10.0) & (ln.s < ln.length - 20.0)
+        for tl, ts in taken:
+            ok &= ~((tl is ln) & (np.abs(ln.s - ts) < 8.0))
+        miss = np.where(ok, np.abs(np.hypot(*(ln.xy - ego_xy).T) - d), np.inf)
+        near = np.flatnonzero(miss < 1.5)  # every feasible place at the distance: either side of the junction
+        i = int(near[int(rng.integers(len(near)))]) if len(near) else int(np.argmin(miss))
+        s = float(ln.s[i])
+        agents.append(_add_agent(world, ln, s, rng, cfg.stopped_prob, agents))
+        taken.append((ln, s))
+    return _numbered(world, agents)
+
+
 class Scenario:
     """A world with agents, ready to render frames at any time."""
 
@@ -221,9 +252,11 @@ class Scenario:
             raise ValueError(f"distance_m must be within [0, 300] m, got {distance_m}")
         self.seed = int(seed)
         self.config = cfg = config or SimConfig()
-        self.world = generate_world(np.random.default_rng([self.seed, 0]), traffic=cfg.traffic, family=cfg.family)
+        world_family = "turn" if cfg.family == "crossing" else cfg.family  # the crossing family: turn's worlds
+        self.world = generate_world(np.random.default_rng([self.seed, 0]), traffic=cfg.traffic, family=world_family)
         rng = np.random.default_rng([self.seed, 1])
-        place = {"mixed": _place, "street": _place_following, "turn": _place_turned}[cfg.family]
+        place = {"mixed": _place, "street": _place_following, "turn": _place_turned, "crossing": _place_crossing}
+        place = place[cfg.family]
         vids = place(self.world, rng, n_agents, distance_m, cfg)
         sensors = pick_sensors(rng, n_agents, cfg.fleet)
         tilt = np.radians(cfg.tilt_sigma_deg)

@@ -58,7 +58,7 @@ RESIDENTIAL_STREET_TREES = 0.25
 # its loop 7.0 / 4.2 (docs/simulation.md).
 RESIDENTIAL_SIDEWALK_M = (1.5, 2.5)
 RESIDENTIAL_BUILDING_LINE_M = (0.0, 2.5)
-FAMILIES = ("mixed", "street", "turn")
+FAMILIES = ("mixed", "street", "turn", "crossing")
 # Reflectivity at the LiDARs' 905 nm (what sensors.SensorModel.reach_m reads): green leaves reflect about half of
 # the near infrared (their NIR plateau), plaster, brick and concrete facades 0.3-0.8; bark, asphalt and dark paint
 # less. The HDL-64E datasheet's 80 % targets are "cars and foliage".
@@ -546,7 +546,8 @@ def generate_world(
     ``traffic`` in [0, 1] scales the number of parked and moving cars (None: drawn per world). ``family``:
     "mixed" (the benchmark's), "street" (a straight residential main road, one lane each way, parked cars along
     both kerbs, facades and yards on both sides: a car following another on it is the real far pairs' case) or
-    "turn" (a straight main road whose crossings meet it at 65-115 deg: for a car that has turned off ahead).
+    "turn" (a straight main road whose crossings meet it at 65-115 deg: for a car that has turned off ahead);
+    "crossing" draws the same worlds as "turn" (only the cars' placement differs, scenario.py).
     """
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")
