@@ -23,7 +23,9 @@ a pose must explain every frame, and an alias that does not persist loses its we
 With a reported pose (a GNSS-grade ``T_prior`` at the last frame), as ``align --prior`` is for one pair: each
 searched frame is searched with the prior carried to it by the odometry, a hypothesis farther from it than the
 prior's window (``prior.max_translation_m`` / ``max_yaw_deg``) is dropped, and the winner and its rivals' weights
-count the prior's density (``prior.sigma_m`` / ``sigma_deg``) beside the frames' scores.
+count the prior's density (``prior.sigma_m`` / ``sigma_deg``) beside the frames' scores. When the frames alone (no
+prior) answer successfully outside the window, the images and the report disagree: refused
+(``disagrees_with_prior``), never an alias inside the window instead.
 """
 
 from __future__ import annotations
