@@ -280,6 +280,9 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
         small_product = np.zeros(sub + (2,), dtype=np.float32)
         small_response, coarse = np.empty_like(small_product), np.empty(sub, dtype=np.float32)
         upsampled = np.empty((sub[0] * stride, sub[1] * stride), dtype=np.float32)
+    dirty = {id(product): (0, 0)}  # per product buffer: the extent (rows, cols) of the last box written
+    if decimated:
+        dirty[id(small_product)] = (0, 0)
     for o in range(cfg.n_orient) if orientations is None else orientations:
         acc.fill(0.0)
         if decimated:
@@ -289,18 +292,31 @@ def orientation_amplitudes(image: np.ndarray, cfg: MimConfig, orientations=None,
                 prod, resp, out, offset = product, response, acc, m
             else:  # amplitude on the whole small grid, interpolated onto the image below
                 prod, resp, out, offset = small_product, small_response, coarse, 0
-            box = prod[: blk.values.shape[0], : blk.values.shape[1]]
+            bh, bw = blk.values.shape[:2]
+            _clear_outside(prod, dirty, bh, bw)  # what the last box wrote beyond this one; the box is overwritten
+            box = prod[:bh, :bw]
             src = wrapped[blk.r0 : blk.r0 + box.shape[0], blk.c0 : blk.c0 + box.shape[1]]
             if blk.stride == 1:
                 cv2.multiply(src, blk.values, dst=box)  # a real filter: both parts times the same value
             else:
                 _complex_multiply(src, blk.values, box)  # the filter times its phase ramp
             cv2.idft(prod, dst=resp, flags=cv2.DFT_COMPLEX_OUTPUT)
-            box.fill(0.0)
             _add_amplitude(out, resp, offset, row[: out.shape[1]])
         if decimated:
             _add_upsampled(acc, coarse, (m - shift[0], m - shift[1]), stride, upsampled)
         yield o, acc
+
+
+def _clear_outside(prod: np.ndarray, dirty: dict, bh: int, bw: int) -> None:
+    """Zero what the previous box written into ``prod`` (its extent ``dirty[id(prod)]``) holds outside the
+    (bh, bw) box about to be written, and record the new extent: prod stays zero outside the current box without
+    clearing the box itself after every transform."""
+    dh, dw = dirty[id(prod)]
+    if dh > bh:
+        prod[bh:dh, :dw] = 0.0
+    if dw > bw:
+        prod[: min(bh, dh), bw:dw] = 0.0
+    dirty[id(prod)] = (bh, bw)
 
 
 def _add_upsampled(
