@@ -113,7 +113,7 @@ def _desc_bound(mim_p, amp_p, base, disc_off, disc_w, win_off, grid_index, cell,
             disc[i, mim_p[p]] += amp_p[p] * disc_w[j]
         row = win_off[grid_index[i]]
         for j in range(len(cell)):
-            win[i, cell[j], mim_p[b + row[j]]] += 1.0
+            win[i, cell[j], mim_p[b + row[j]]] += 1
 
 
 @njit(cache=True, nogil=True)
@@ -291,7 +291,7 @@ def descriptor_bounds(peer, cfg) -> dict:
 
     def run():
         disc = np.zeros((len(rc), no + 1))
-        win = np.zeros((len(rc), fc.grid**2, no + 1), np.float32)
+        win = np.zeros((len(rc), fc.grid**2, no + 1), np.int32)  # integer counts: no float-add chain
         run_parts(
             lambda r: _desc_bound(mim_p, amp_p, base, disc_off, disc_w, win_off, gi, cell, disc, win, *r),
             _halves(len(rc)),
