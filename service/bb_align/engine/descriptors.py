@@ -147,13 +147,16 @@ def _weighted_histograms(values, weights_image, base, offsets, weights, n_slots)
 
 @njit(cache=True, nogil=True)
 def _cell_histograms(values, base, offsets, grid_index, cell, n_cells, n_slots):
-    """(K, n_cells, n_slots) float32 counts of values[base[k] + offsets[grid_index[k], j]] per cell[j]."""
-    out = np.zeros((len(base), n_cells, n_slots), dtype=np.float32)
+    """(K, n_cells, n_slots) float32 counts of values[base[k] + offsets[grid_index[k], j]] per cell[j]. Counted in
+    int32 (an integer increment does not wait on a float add: twice as fast) and converted once: the same floats,
+    every count being exact in float32."""
+    counts = np.zeros((len(base), n_cells, n_slots), dtype=np.int32)
     for k in range(len(base)):
         row = offsets[grid_index[k]]
+        b = base[k]
         for j in range(len(cell)):
-            out[k, cell[j], values[base[k] + row[j]]] += 1.0
-    return out
+            counts[k, cell[j], values[b + row[j]]] += 1
+    return counts.astype(np.float32)
 
 
 def flip_180(desc: np.ndarray, cfg: FeatureConfig | None = None) -> np.ndarray:

@@ -42,18 +42,19 @@ def _free_map(image, min_value, bins, dist, near, n_bins, min_range_m, margin_m,
         for c in range(w):
             if image[r, c] >= min_value and dist[r, c] >= min_range_m and dist[r, c] < hits[bins[r, c]]:
                 hits[bins[r, c]] = dist[r, c]
+    # Each bin's limit once (the same floats as per pixel): free up to the nearest hit of the bin and its
+    # neighbours minus the margin, or up to open_m when none of them has a hit.
+    limit = np.empty(n_bins)
+    for b in range(n_bins):
+        stop = np.inf
+        for k in range(-spread, spread + 1):
+            stop = min(stop, hits[(b + k) % n_bins])
+        limit[b] = open_m if stop == np.inf else stop - margin_m
     out = np.zeros((h, w), np.uint8)
     for r in range(h):
         for c in range(w):
             d = dist[r, c]
-            if near[r, c] or d < min_range_m:
-                continue
-            b = bins[r, c]
-            stop = np.inf
-            for k in range(-spread, spread + 1):
-                stop = min(stop, hits[(b + k) % n_bins])
-            limit = open_m if stop == np.inf else stop - margin_m
-            if d < limit:
+            if d < limit[bins[r, c]] and d >= min_range_m and not near[r, c]:
                 out[r, c] = 1
     return out
 

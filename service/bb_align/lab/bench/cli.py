@@ -8,6 +8,8 @@ from pathlib import Path
 
 import typer
 
+DEFAULT_BOUNDS = Path("docs/stage_bounds.json")  # benchmarks/stage_bounds.py --record writes it (a checkout's docs)
+
 
 def _progress(items, label: str):
     from tqdm import tqdm
@@ -43,6 +45,12 @@ def bench(
     no_pose: bool = typer.Option(False, "--no-pose", help="service runs: frames carry no reported pose"),
     range_m: float | None = typer.Option(None, help="BV half width R in metres [config default, 80]"),
     resolution_m: float | None = typer.Option(None, help="BV cell size in metres [config default, 0.4]"),
+    bounds: Path | None = typer.Option(
+        None,
+        "--bounds",
+        help="print the hot path's stages beside these lower bounds (benchmarks/stage_bounds.py --record's JSON) "
+        "[docs/stage_bounds.json when it exists here]",
+    ),
     engine_threads: int | None = typer.Option(
         None,
         min=1,
@@ -85,6 +93,15 @@ def bench(
         if not peer_counts or min(peer_counts) < 1 or max(peer_counts) > 32:
             raise typer.BadParameter(f"--peers counts must be within 1..32, got {peers!r}")
     seconds = service_seconds or (3.0 if quick else 10.0)
+    from .markdown import load_bounds
+
+    bounds_path = bounds if bounds is not None else DEFAULT_BOUNDS
+    stage_bounds = None
+    if bounds is not None or bounds_path.is_file():
+        try:
+            stage_bounds = load_bounds(bounds_path)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--bounds") from None
 
     typer.echo("building the workload ...", err=True)
     if data is not None:
@@ -95,6 +112,7 @@ def bench(
         workload = sim_workload(config, quick=quick, progress=lambda it: _progress(it, "workload"))
     report = run_benchmark(workload, config, runs=runs, warmup=warmup, baseline_runs=baseline_runs, progress=_progress)
     report["service"] = None
+    report["bounds"] = stage_bounds
     if not no_service:
         from .throughput import ServiceBenchConfig, measure_service
 

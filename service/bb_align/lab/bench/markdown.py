@@ -21,6 +21,54 @@ def _kp(features: dict, side: str) -> str:
     return f"{kp[side]:.0f} mean, {kp.get(side + '_max', kp[side]):.0f} max"
 
 
+def load_bounds(path) -> dict:
+    """The lower bounds ``benchmarks/stage_bounds.py --record`` wrote (docs/stage_bounds.json) as
+    {"source", "hot_path_p50_ms", "stages": {stage: {"bound_ms", "best_library", "today_p50_ms"}}}; ValueError naming
+    the file and what is wrong when it is not such a file."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: not a readable JSON file ({e.__class__.__name__})") from None
+    stages = data.get("stages") if isinstance(data, dict) else None
+    if not isinstance(stages, dict) or not stages:
+        raise ValueError(f"{path}: no 'stages' table (write it with benchmarks/stage_bounds.py --record)")
+    out = {}
+    for name, row in stages.items():
+        bound = row.get("bound_ms") if isinstance(row, dict) else None
+        if not isinstance(bound, (int, float)) or not bound > 0:
+            raise ValueError(f"{path}: stages.{name}.bound_ms must be a positive number, got {bound!r}")
+        out[name] = {
+            "bound_ms": float(bound),
+            "best_library": str(row.get("best_library", "")),
+            "today_p50_ms": row.get("today_p50_ms"),
+        }
+    return {"source": str(path), "hot_path_p50_ms": data.get("hot_path_p50_ms"), "stages": out}
+
+
+def bounds_markdown(stage_p50_ms: dict[str, float], bounds: dict) -> str:
+    """The hot path's stages beside their lower bounds: stage, this run's p50, the bound, the gap (p50 / bound), the
+    tool the bound was measured with; stages without a bound are not listed."""
+    when = bounds.get("hot_path_p50_ms")
+    out = [
+        f"Hot-path stages against their lower bounds ({bounds['source']}, measured by benchmarks/stage_bounds.py"
+        + ("" if when is None else f" when the hot path took {when} ms")
+        + "):",
+        "",
+        "| stage | engine hot p50 | lower bound | gap | bound measured with |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for name, row in bounds["stages"].items():
+        if name not in stage_p50_ms:
+            continue
+        p50, bound = stage_p50_ms[name], row["bound_ms"]
+        out.append(f"| {name} | {_ms(p50)} ms | {_ms(bound)} ms | {_x(p50 / bound)} | {row['best_library']} |")
+    return "\n".join(out) + "\n"
+
+
 def report_markdown(report: dict) -> str:
     git = report.get("git") or {}
     m = report["machine"]
@@ -65,6 +113,9 @@ def report_markdown(report: dict) -> str:
                 _x(st["speedup_p50"].get(name)),
             ]
         out.append("| " + " | ".join(row) + " |")
+    if report.get("bounds"):
+        hot_p50 = {k: v["p50"] for k, v in hot["engine"].items() if isinstance(v, dict) and "p50" in v}
+        out += ["", bounds_markdown(hot_p50, report["bounds"]).rstrip("\n")]
     acc = report["accuracy"]
     out += [
         "",

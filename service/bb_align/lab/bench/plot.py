@@ -12,6 +12,31 @@ from .run import COLD, HOT
 _TITLES = {HOT: "peer frame vs cached ego frame", COLD: "cold pair (both frames prepared)"}
 
 
+def peers_curve(ax, service: dict) -> None:
+    """Peers vs throughput on ``ax``: frames offered, results and successful results per second against the
+    number of peers (a curve over the measured counts), latency p50/p99 on a second axis."""
+    runs = service["runs"]
+    peers = sorted(runs, key=int)
+    x = [int(p) for p in peers]
+    ax.plot(x, [runs[p]["offered_fps"] for p in peers], "o:", color="#7f7f7f", label="peer frames offered /s")
+    ax.plot(x, [runs[p]["results_fps"] for p in peers], "o-", color="#98df8a", label="results /s")
+    good = [runs[p]["results_fps"] * runs[p]["success_fraction"] for p in peers]
+    ax.plot(x, good, "o-", color="#2ca02c", label="successful results /s")
+    ax.set_xticks(x, [str(p) for p in x])
+    ax.set_xlabel("peers")
+    ax.set_ylabel("frames per second")
+    ax.set_ylim(bottom=0)
+    ax2 = ax.twinx()
+    ax2.plot(x, [runs[p]["latency_ms"]["p50"] for p in peers], "^-", color="#d62728", label="latency p50")
+    ax2.plot(x, [runs[p]["latency_ms"]["p99"] for p in peers], "s--", color="#d62728", label="latency p99")
+    ax2.set_ylabel("publish -> pose received (ms)")
+    ax2.set_ylim(bottom=0)
+    lines, lines2 = ax.get_legend_handles_labels(), ax2.get_legend_handles_labels()
+    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=7, loc="upper left")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"service over Zenoh: peers vs throughput, every car at {service.get('rate_hz', 10):g} Hz", fontsize=9)
+
+
 def plot_report(report: dict, path: str | Path) -> Path:
     from bb_align.io.plot import pyplot
 
@@ -42,26 +67,7 @@ def plot_report(report: dict, path: str | Path) -> Path:
         ax.grid(axis="y", alpha=0.3, which="both")
         ax.legend(fontsize=8)
     if runs:
-        ax = axes[-1]
-        peers = sorted(runs, key=int)
-        x = np.arange(len(peers))
-        offered = [runs[p]["offered_fps"] for p in peers]
-        done = [runs[p]["results_fps"] for p in peers]
-        good = [runs[p]["results_fps"] * runs[p]["success_fraction"] for p in peers]
-        ax.bar(x - 0.2, offered, 0.4, label="peer frames offered /s", color="#bbbbbb")
-        ax.bar(x + 0.2, done, 0.4, label="results /s", color="#98df8a")
-        ax.bar(x + 0.2, good, 0.4, label="successful results /s", color="#2ca02c")
-        ax.set_xticks(x, [f"{p} peer(s)" for p in peers])
-        ax.set_ylabel("frames per second")
-        ax2 = ax.twinx()
-        ax2.plot(x, [runs[p]["latency_ms"]["p50"] for p in peers], "o-", color="#d62728", label="latency p50")
-        ax2.plot(x, [runs[p]["latency_ms"]["p99"] for p in peers], "s--", color="#d62728", label="latency p99")
-        ax2.set_ylabel("publish -> pose received (ms)")
-        ax2.set_ylim(bottom=0)
-        lines = ax.get_legend_handles_labels()
-        lines2 = ax2.get_legend_handles_labels()
-        ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=7, loc="upper left")
-        ax.set_title(f"service over Zenoh, peers at {service.get('rate_hz', 10):g} Hz", fontsize=9)
+        peers_curve(axes[-1], service)
     commit = (report.get("git") or {}).get("commit") or "?"
     load = report.get("load_avg", {}).get("start", [float("nan")])[0]
     fig.suptitle(
