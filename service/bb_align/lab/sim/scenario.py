@@ -190,39 +190,36 @@ def _place_following(world: World, rng, n_agents: int, distance_m: float | None,
 def _place_turned(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimConfig) -> list[int]:
     """The turn family: the ego drives towards a crossing 5-30 m ahead; every peer has turned into the crossing
     street and drives away from it, at the wanted distance from the ego (nearest feasible when out of reach)."""
-    k = int(rng.integers(1, len(world.roads)))
-    cross = world.roads[k]
-    centre = cross.centre.pose_at(cross.centre.length / 2)[:2]  # where the crossing street meets the main road
-    lane = world.roads[0].lanes()[int(rng.integers(len(world.roads[0].lanes())))]
-    s_c, _ = lane.nearest_s(np.array(centre))
-    s_ego = float(np.clip(s_c - rng.uniform(5.0, 30.0), 10.0, lane.length - 10.0))
-    agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, [])]
-    ego_xy = np.array(lane.pose_at(s_ego)[:2])
-    taken: list[tuple[Path, float]] = []
-    for _ in range(n_agents - 1):
-        d = _spacing(rng, distance_m, cfg)
-        ln = cross.lanes()[int(rng.integers(len(cross.lanes())))]
-        s_x, _ = ln.nearest_s(np.array(centre))
-        ok = (ln.s > s_x + 8.0) & (ln.s < ln.length - 20.0)  # beyond the crossing: turned off
-        for tl, ts in taken:
-            ok &= ~((tl is ln) & (np.abs(ln.s - ts) < 8.0))
-        miss = np.where(ok, np.abs(np.hypot(*(ln.xy - ego_xy).T) - d), np.inf)
-        s = float(ln.s[int(np.argmin(miss))])
-        agents.append(_add_agent(world, ln, s, rng, cfg.stopped_prob, agents))
-        taken.append((ln, s))
-    return _numbered(world, agents)
+    return _on_crossing_street(
+        world, rng, n_agents, distance_m, cfg,
+        ego_s=lambda s_c: s_c - rng.uniform(5.0, 30.0),
+        allowed=lambda ln, s_x: (ln.s > s_x + 8.0) & (ln.s < ln.length - 20.0),  # beyond the crossing: turned off
+        either_side=False,
+    )  # fmt: skip
 
 
 def _place_crossing(world: World, rng, n_agents: int, distance_m: float | None, cfg: SimConfig) -> list[int]:
     """The crossing family: the ego on a lane of the main road within 30 m of a crossing (before or past it), every
     peer on a lane of the crossing street, either side of the junction and clear of it (> 10 m from the main
     road's centre line), at the wanted distance from the ego (nearest feasible when out of reach)."""
+    return _on_crossing_street(
+        world, rng, n_agents, distance_m, cfg,
+        ego_s=lambda s_c: s_c + rng.uniform(-30.0, 30.0),
+        allowed=lambda ln, s_x: (np.abs(ln.s - s_x) > 10.0) & (ln.s > 10.0) & (ln.s < ln.length - 20.0),
+        either_side=True,
+    )  # fmt: skip
+
+
+def _on_crossing_street(world: World, rng, n_agents, distance_m, cfg: SimConfig, ego_s, allowed, either_side: bool):
+    """The ego on a lane of the main road at ``ego_s(s of the crossing)``, every peer on a lane of a crossing street
+    where ``allowed(lane, s of the crossing)``, at the wanted distance from the ego (nearest feasible when out of
+    reach; ``either_side``: any feasible place within 1.5 m of it, drawn)."""
     k = int(rng.integers(1, len(world.roads)))
     cross = world.roads[k]
     centre = np.array(cross.centre.pose_at(cross.centre.length / 2)[:2])  # where the two streets meet
     lane = world.roads[0].lanes()[int(rng.integers(len(world.roads[0].lanes())))]
     s_c, _ = lane.nearest_s(centre)
-    s_ego = float(np.clip(s_c + rng.uniform(-30.0, 30.0), 10.0, lane.length - 10.0))
+    s_ego = float(np.clip(ego_s(s_c), 10.0, lane.length - 10.0))
     agents = [_add_agent(world, lane, s_ego, rng, cfg.stopped_prob, [])]
     ego_xy = np.array(lane.pose_at(s_ego)[:2])
     taken: list[tuple[Path, float]] = []
@@ -230,11 +227,11 @@ def _place_crossing(world: World, rng, n_agents: int, distance_m: float | None, 
         d = _spacing(rng, distance_m, cfg)
         ln = cross.lanes()[int(rng.integers(len(cross.lanes())))]
         s_x, _ = ln.nearest_s(centre)
-        ok = (np.abs(ln.s - s_x) > 10.0) & (ln.s > 10.0) & (ln.s < ln.length - 20.0)
+        ok = allowed(ln, s_x)
         for tl, ts in taken:
             ok &= ~((tl is ln) & (np.abs(ln.s - ts) < 8.0))
         miss = np.where(ok, np.abs(np.hypot(*(ln.xy - ego_xy).T) - d), np.inf)
-        near = np.flatnonzero(miss < 1.5)  # every feasible place at the distance: either side of the junction
+        near = np.flatnonzero(miss < 1.5) if either_side else []
         i = int(near[int(rng.integers(len(near)))]) if len(near) else int(np.argmin(miss))
         s = float(ln.s[i])
         agents.append(_add_agent(world, ln, s, rng, cfg.stopped_prob, agents))
