@@ -116,10 +116,15 @@ def _binary_body(model: type[BaseModel], description: str, alt: type[BaseModel] 
     }
 
 
+RETRY_AFTER_S = 1  # 429 (a car's REST allowance spent) and 503 overloaded: when to try again
+
+
 def _error(e: WireError) -> JSONResponse:
     # A body refused for its size is not read to its end: the connection is closed after the answer.
-    headers = {"connection": "close"} if e.status == 413 else None
-    return JSONResponse(e.body().model_dump(mode="json"), status_code=e.status, headers=headers)
+    headers = {"connection": "close"} if e.status == 413 else {}
+    if e.status == 429 or (e.status == 503 and e.error == "overloaded"):
+        headers["retry-after"] = str(RETRY_AFTER_S)
+    return JSONResponse(e.body().model_dump(mode="json"), status_code=e.status, headers=headers or None)
 
 
 async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
@@ -205,7 +210,9 @@ class _Doors:
             data = peer
         try:
             env, claimed = self.door.envelope(data)
-        except WireError:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
+        except WireError as e:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
+            if e.error == "overloaded":  # the signature budget does not check this signer now: refused, not loaded
+                raise
             return
         sender = Door.claimed_sender(env, claimed)
         if self.rate.empty(sender):
