@@ -8,11 +8,13 @@ when full, a request of a sender holding fewer than the one holding most pushes 
 "overloaded", ``on_pushed_out``), otherwise it is refused. ``priority`` senders go first; among the others a
 worker takes the ready one whose car has had the least of the workers' time lately (``usage``: worker-seconds
 of its stream frames, requests and cross-checks together, halving every ``half_life_s``), in order of readiness
-among equals. So both doors feed one fair schedule: a car's burst of REST requests waits behind the other cars'
-frames, and costs its own latency and refusals, not the other cars' results (issue 47: served one request per
-round-robin turn, 8 threads posting one car's frames took 54 % of the engine and the other cars kept 0.61-0.63
-of their results). A sender's frames are handled by one worker at a time, so its results come out in order; so
-are its requests (one car's burst holds one worker at most, the others stay free for the other cars).
+among equals. A car's next request also waits, although a worker is free, while another car active in the
+last ``active_s`` had less of the workers' time by more than ``fair_slack_s`` (frames are never held: they come
+at the car's own rate). So both doors feed one fair schedule: a car's burst of REST requests waits behind the
+other cars' frames, and costs its own latency and refusals, not the other cars' results (issue 47: served one
+request per round-robin turn, 8 threads posting one car's frames took 54 % of the engine and the other cars kept
+0.61-0.63 of their results). A sender's frames are handled by one worker at a time, so its results come out in
+order; so are its requests (one car's burst holds one worker at most, the others stay free for the other cars).
 
 Heavy jobs (a peer without a track: a full acquisition, ~0.3-0.5 s; a track's cross-check, keys starting with
 ``background_prefix``; whatever ``heavy(key)`` says at the moment a worker looks) take their turn in the same
@@ -73,6 +75,8 @@ class Scheduler:
         clock: Callable[[], float] = time.perf_counter,
         half_life_s: float = 2.0,
         on_pushed_out: Callable[[Job], None] | None = None,
+        active_s: float = 1.0,
+        fair_slack_s: float = 0.2,
     ):
         self.depth = depth
         self.background_prefix, self.max_background = background_prefix, max_background
@@ -88,7 +92,10 @@ class Scheduler:
         self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
         self.half_life_s, self._on_pushed_out = half_life_s, on_pushed_out
+        self.active_s, self.fair_slack_s, self.hold_tick_s = active_s, fair_slack_s, 0.02
         self._usage: dict[str, tuple[float, float]] = {}  # car -> (worker-seconds, when), halving every half_life_s
+        self._last_done: dict[str, float] = {}  # car (not a priority sender) -> when a job of it last finished
+        self._holding = False  # a request is held for fairness (get() looks again every hold_tick_s)
         self._cv = threading.Condition()
         self._streams: dict[str, deque[Job]] = {}
         self._requests: dict[str, deque[Job]] = {}  # sender -> its requests
@@ -143,9 +150,15 @@ class Scheduler:
         expired: list[Job] = []
         try:
             with self._cv:
+                deadline = None if timeout is None else time.monotonic() + timeout
                 while True:
-                    if not self._cv.wait_for(lambda: self._next_key() is not None or self._closed, timeout):
-                        return None
+                    while self._next_key() is None and not self._closed:
+                        left = None if deadline is None else deadline - time.monotonic()
+                        if left is not None and left <= 0:
+                            return None
+                        # a request held for fairness becomes free as usage decays, with no notify: look again soon
+                        tick = self.hold_tick_s if self._holding else None
+                        self._cv.wait(left if tick is None else tick if left is None else min(left, tick))
                     key = self._next_key()
                     if key is None:  # closed
                         return None
@@ -233,8 +246,25 @@ class Scheduler:
             full = self._running_background >= self._heavy_cap()
             held = self._background_held()
             ready = [k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))]
-            key = min(ready, key=lambda k: self.usage(self._owner(k)), default=None)  # first among equals
+            ready.sort(key=lambda k: self.usage(self._owner(k)))  # stable: readiness order among equals
+            self._holding = False
+            for k in ready:
+                if isinstance(k, tuple) and self._request_held(k[1]):
+                    self._holding = True
+                    continue
+                return k
+            key = None
         return key
+
+    def _request_held(self, car: str) -> bool:
+        """Whether ``car``'s next request waits although a worker is free: another car active lately (a job done
+        in the last ``active_s``) had less of the workers' time than ``car`` by more than ``fair_slack_s``. Stream
+        frames are never held (latest-only, they come at the car's own rate); a burst of requests has no such
+        bound, and run whenever no other car was ready at that instant it took a worker from cars whose next frame
+        was due a moment later (issue 47: one car's 8 REST threads kept a worker to themselves)."""
+        now, mine = self._clock(), self.usage(car)
+        others = [self.usage(c) for c, t in self._last_done.items() if c != car and now - t <= self.active_s]
+        return bool(others) and mine > min(others) + self.fair_slack_s
 
     def _background_held(self) -> bool:
         """Whether background jobs must let light ones go first: their share of the workers' time is spent and a
@@ -263,7 +293,15 @@ class Scheduler:
         (an empty queue is let go)."""
         with self._cv:
             if job.started is not None and job.sender:
-                self._charge(self._owner(job.sender), self._clock() - job.started)
+                car = self._owner(job.sender)
+                self._charge(car, self._clock() - job.started)
+                if car not in self.priority and not car.startswith("@"):
+                    self._last_done[car] = self._clock()
+                    if len(self._last_done) > 4096:  # bounded: the longest idle are forgotten
+                        for c in sorted(self._last_done, key=self._last_done.get)[: len(self._last_done) - 4096]:
+                            del self._last_done[c]
+                if self._holding:
+                    self._cv.notify_all()
             if job.heavy:
                 job.heavy = False
                 self._running_background -= 1
