@@ -485,8 +485,9 @@ def test_a_sender_that_never_passed_a_signature_check_gets_no_signed_refusal(fle
 
 def test_a_failed_checks_digest_is_paid_as_signature_work_not_from_the_doors_sleeping_share(fleet, frame_car1):
     """The digest kept of a forgery whose check failed (a pass over its 1 MB payload) is counted in
-    ``signature_cpu_s``, which the door thread leaves out of its sleeping Budget: paid there, forged 1 MB frames at
-    6 a second kept the door asleep and the cars' frames seconds late (benchmarks/door_probes.py, issue 47).
+    ``signature_cpu_s``, which the door thread leaves out of its refusal share (DoorShare): paid from the share
+    (then a sleeping one), forged 1 MB frames at 6 a second kept the door asleep and the cars' frames seconds late
+    (benchmarks/door_probes.py, issue 47).
     The digest is made to cost 30 ms of this thread's CPU: the signature work booked covers it."""
     door, _ = _door(fleet)
     _, creds = fleet

@@ -5,6 +5,8 @@ Every message the door lets through costs the gate a full check, and every messa
 that authenticated frames need; a keyless flood must therefore cost as little as possible and be stopped here.
 The door refuses only what the gate would certainly refuse, cheapest test first:
 
+0. (the Zenoh stream) while the door's share for refusals is spent (``DoorShare``), a large message under a key
+   chunk refused lately or never accepted is dropped before it is even copied out of Zenoh;
 1. not a msgpack map (one byte looked at: 1-byte garbage and most junk end here);
 2. not a Signed envelope, one this receiver has no key for, or one whose payload is not a map (a frame is one):
    read first from the envelope's top-level headers alone (``envelope_spans``: no value is copied, so a 1 MB
@@ -23,8 +25,9 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
 7. a copy of an envelope whose signature failed here lately (same key, signature, stamp, seq and payload);
 8. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC) under the door's
    ``SignatureBudget``: failed checks spend CPU-seconds from a token bucket; while it is empty only senders that
-   verified lately and failed no check lately are checked, anything else is refused (503, never a pause); then
-   the signer may sign for the key chunk it came under.
+   verified lately and failed no check lately are checked, anything else is refused (503, never a pause; decided
+   from the envelope's headers at step 2, before its payload is copied); then the signer may sign for the key
+   chunk it came under.
 
 The same checks guard the Zenoh query door (``Door.query``, its own budget) and, from step 4 on, the REST door.
 
