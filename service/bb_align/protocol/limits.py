@@ -132,6 +132,13 @@ class Limits(BaseModel):
         "average; past it 429. An empty bucket is refused before decoding or any signature check; only a verified "
         "signature spends it, so nobody spends another car's allowance",
     )
+    rest_loaders: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="REST: request bodies decoded and checked at once (in threads; the others wait, costing "
+        "nothing): the stream's frames are loaded by one gate thread, which more REST threads at once starve",
+    )
     rest_burst: float = Field(40.0, ge=1, description="REST: frames one sender may hand in at once (the bucket)")
     query_queue: int = Field(
         4,

@@ -192,6 +192,17 @@ class _Doors:
     guard: list
     rate: KeyRate
     door: Door
+    loaders: asyncio.Semaphore | None = None  # REST bodies decoded and checked at once (limits.rest_loaders)
+
+    async def load(self, fn):
+        """Run a body's decode and checks in a thread, at most ``rest_loaders`` at once (the others wait on the
+        event loop, costing nothing): the stream's frames are loaded by one gate thread, and 8 REST threads
+        loading one car's bodies at once took the GIL from it, so the other cars' frames reached the workers late
+        and were dropped (issue 47, a key holder's REST flood)."""
+        if self.loaders is None:
+            self.loaders = asyncio.Semaphore(self.settings.limits.rest_loaders)
+        async with self.loaders:
+            return await asyncio.to_thread(fn)
 
     def screen(self, data: bytes, encoding: str, request: bool) -> None:
         """What a msgpack body costs before it is decoded (authentication on): the sender it claims is out of REST
@@ -338,7 +349,7 @@ def _add_align_route(app: FastAPI, doors: _Doors) -> None:
             doors.screen(data, encoding, request=True)
             return load_align_request(data, limits, encoding, keyring=service.keyring, now=time.time())
 
-        req = await asyncio.to_thread(load)
+        req = await doors.load(load)
         doors.charge(req.peer.vehicle_id)
         future: concurrent.futures.Future = concurrent.futures.Future()
         accepted = service.submit_request(
@@ -379,7 +390,7 @@ def _add_frame_route(app: FastAPI, doors: _Doors) -> None:
             doors.screen(data, encoding, request=False)
             return load_frame(data, settings.limits, encoding, keyring=service.keyring, now=time.time())
 
-        frame = await asyncio.to_thread(load)
+        frame = await doors.load(load)
         doors.charge(frame.vehicle_id)
         if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
             raise WireError(503, "unavailable", "the service is shutting down")
