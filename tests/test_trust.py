@@ -769,4 +769,6 @@ def test_rest_limits_each_verified_sender_and_only_after_its_signature(pair, mon
     assert codes[:5] == [202] * 5 and codes.count(429) >= 4, codes  # 0.5/s: at most one more within 2 s
     refused = next(r.json() for r in car1 if r.status_code == 429)
     assert (refused["field"], refused["setting"]) == ("vehicle_id", "BBALIGN_LIMITS__REST_RATE_HZ")
+    assert {r.headers.get("retry-after") for r in car1 if r.status_code == 429} == {"1"}  # when to try again
+    assert all("retry-after" not in r.headers for r in car1 if r.status_code == 202)
     assert {r.status_code for r in forged} == {401} and car2 == [202] * 5
