@@ -345,8 +345,8 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
     assert s2.get(0) is None and [j.data for j in expired] == [bytes([2])] and s2.pending() == 0
     s2.put_frame(job("t9", 3))
     assert s2.get(0).data == bytes([3])
-    # Fair shares: four tracked peers sending continuously: each gets the same number of turns.
-    s3 = Scheduler(depth=1)
+    # Fair shares: four tracked peers sending continuously, each frame taking 10 ms: each gets the same turns.
+    s3 = Scheduler(depth=1, clock=lambda: now[0])
     served = Counter()
     for sender in ("p1", "p2", "p3", "p4"):
         s3.put_frame(job(sender, 0))
@@ -354,6 +354,7 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
         j = s3.get(0)
         served[j.sender] += 1
         s3.put_frame(job(j.sender, k % 200))  # its next frame arrived meanwhile
+        now[0] += 0.01
         s3.done(j)
     assert set(served.values()) == {10}
 
@@ -378,3 +379,45 @@ def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent(
         s.put_frame(job(sender))
     assert s.get(0).sender == "car4"  # the tracked frame goes past the waiting cross-check
     assert s.get(0).sender == "@bg:car3"  # nothing else waits: it runs anyway
+
+
+def test_a_cars_burst_of_requests_costs_its_own_latency_not_another_cars():
+    """Issue 47: 8 threads posting one car's frames to /v1/align took 54 % of the engine (one FIFO of requests,
+    one round-robin turn per request) and the other cars kept 0.61-0.63 of their results. Now requests wait per
+    car, a car's requests run one at a time, and a worker takes the ready car that had the least of the workers'
+    time lately (a fake clock: each job takes 50 ms); a full queue pushes out the burst's newest, not another
+    car's request."""
+    now = [0.0]
+    pushed_out: list[Job] = []
+    s = Scheduler(depth=1, max_requests=8, clock=lambda: now[0], on_pushed_out=pushed_out.append)
+    req = lambda sender, n: Job(sender, now[0], "rest", data=bytes([n]), reply=lambda _: None)  # noqa: E731
+    for n in range(8):  # car3's burst fills the request queues
+        assert s.put_request(req("car3", n))
+    assert s.put_request(req("car1", 100))  # full: car1's request pushes out the burst's newest ...
+    assert [j.data[0] for j in pushed_out] == [7] and not s.put_request(req("car3", 8))  # ... car3 holds the most
+    two = [s.get(0), s.get(0)]  # two workers
+    assert [(j.sender, j.data[0]) for j in two] == [("car3", 0), ("car1", 100)]  # car3's requests: one at a time
+    assert s.get(0) is None
+    now[0] += 0.05
+    for j in two:
+        s.done(j)
+    now[0] += 0.01
+    s.put_frame(Job("car2", now[0], "zenoh", data=bytes([200])))  # a car's stream frame comes in after the burst
+    order, held = [], []
+    while len(order) < 7:
+        job = s.get(0)
+        if job is None:  # a worker is free but car3's next request waits: car1, car2 had far less time lately
+            held.append(now[0])
+            now[0] += 0.1
+            continue
+        order.append((job.sender, job.data[0]))
+        now[0] += 0.05
+        s.done(job)
+    # car2's frame goes before the rest of car3's burst (car3 had its 50 ms of the workers lately, car2 none)
+    assert order == [("car2", 200)] + [("car3", n) for n in range(1, 7)]
+    # past 0.2 s more than the other cars active in the last second, car3's requests waited (held) until those
+    # cars had been idle for a second; frames are never held
+    assert held and s.usage("car3") > s.usage("car2") > 0.0
+    s.put_request(req("car3", 9))
+    s.put_frame(Job("car2", now[0], "zenoh", data=bytes([201])))
+    assert s.get(0).sender == "car2"

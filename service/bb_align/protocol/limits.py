@@ -132,6 +132,13 @@ class Limits(BaseModel):
         "average; past it 429. An empty bucket is refused before decoding or any signature check; only a verified "
         "signature spends it, so nobody spends another car's allowance",
     )
+    rest_loaders: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="REST: request bodies decoded and checked at once (in threads; the others wait, costing "
+        "nothing): the stream's frames are loaded by one gate thread, which more REST threads at once starve",
+    )
     rest_burst: float = Field(40.0, ge=1, description="REST: frames one sender may hand in at once (the bucket)")
     query_queue: int = Field(
         4,
@@ -143,9 +150,11 @@ class Limits(BaseModel):
     door_share: float = Field(
         0.02,
         gt=0,
-        description="most of one core the Zenoh door may spend on the stream messages it refuses before any "
-        "signature check (what a keyless flood of junk can take from the engine): past it the door thread waits, "
-        "and Zenoh pushes back on the senders. Signature checks are not counted here (signature_share)",
+        description="most of one core the Zenoh door may spend on the stream messages it refuses (what a keyless "
+        "flood of junk can take from the engine), a token bucket of the door thread's CPU-seconds: past it the "
+        "door drops unread large messages (door_unread_bytes) under a key chunk refused lately or never accepted "
+        "and reads the rest as they come (a flood of small junk meets waits of 1 ms at most). Signature checks "
+        "are not counted here (signature_share)",
     )
     signature_share: float = Field(
         0.05,
@@ -158,7 +167,19 @@ class Limits(BaseModel):
     signature_burst_s: float = Field(
         0.02, gt=0, le=10, description="CPU-seconds of failed signature checks a door may spend at once (the bucket)"
     )
-    door_window_s: float = Field(0.01, gt=0, description="the door's CPU share is accounted per window this long")
+    door_burst_s: float = Field(
+        0.01,
+        gt=0,
+        le=10,
+        description="CPU-seconds of refusals the Zenoh door may spend at once (door_share's bucket)",
+    )
+    door_unread_bytes: int = Field(
+        256 * 1024,
+        ge=1,
+        description="while door_share is spent, Zenoh stream messages this large or larger under a key chunk "
+        "refused lately or never accepted are dropped before they are copied out of Zenoh (copying one costs "
+        "~0.4-1.3 ms from 512 KB up); smaller ones are still read",
+    )
     intake_recent_signatures: int = Field(
         4096,
         ge=1,

@@ -116,10 +116,15 @@ def _binary_body(model: type[BaseModel], description: str, alt: type[BaseModel] 
     }
 
 
+RETRY_AFTER_S = 1  # 429 (a car's REST allowance spent) and 503 overloaded: when to try again
+
+
 def _error(e: WireError) -> JSONResponse:
     # A body refused for its size is not read to its end: the connection is closed after the answer.
-    headers = {"connection": "close"} if e.status == 413 else None
-    return JSONResponse(e.body().model_dump(mode="json"), status_code=e.status, headers=headers)
+    headers = {"connection": "close"} if e.status == 413 else {}
+    if e.status == 429 or (e.status == 503 and e.error == "overloaded"):
+        headers["retry-after"] = str(RETRY_AFTER_S)
+    return JSONResponse(e.body().model_dump(mode="json"), status_code=e.status, headers=headers or None)
 
 
 async def _read_body(request: Request, max_bytes: int) -> tuple[bytes, str]:
@@ -187,6 +192,17 @@ class _Doors:
     guard: list
     rate: KeyRate
     door: Door
+    loaders: asyncio.Semaphore | None = None  # REST bodies decoded and checked at once (limits.rest_loaders)
+
+    async def load(self, fn):
+        """Run a body's decode and checks in a thread, at most ``rest_loaders`` at once (the others wait on the
+        event loop, costing nothing): the stream's frames are loaded by one gate thread, and 8 REST threads
+        loading one car's bodies at once took the GIL from it, so the other cars' frames reached the workers late
+        and were dropped (issue 47, a key holder's REST flood)."""
+        if self.loaders is None:
+            self.loaders = asyncio.Semaphore(self.settings.limits.rest_loaders)
+        async with self.loaders:
+            return await asyncio.to_thread(fn)
 
     def screen(self, data: bytes, encoding: str, request: bool) -> None:
         """What a msgpack body costs before it is decoded (authentication on): the sender it claims is out of REST
@@ -205,7 +221,9 @@ class _Doors:
             data = peer
         try:
             env, claimed = self.door.envelope(data)
-        except WireError:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
+        except WireError as e:  # not a signed frame's shape: the loader names what is wrong (its own status and field)
+            if e.error == "overloaded":  # the signature budget does not check this signer now: refused, not loaded
+                raise
             return
         sender = Door.claimed_sender(env, claimed)
         if self.rate.empty(sender):
@@ -331,7 +349,7 @@ def _add_align_route(app: FastAPI, doors: _Doors) -> None:
             doors.screen(data, encoding, request=True)
             return load_align_request(data, limits, encoding, keyring=service.keyring, now=time.time())
 
-        req = await asyncio.to_thread(load)
+        req = await doors.load(load)
         doors.charge(req.peer.vehicle_id)
         future: concurrent.futures.Future = concurrent.futures.Future()
         accepted = service.submit_request(
@@ -372,7 +390,7 @@ def _add_frame_route(app: FastAPI, doors: _Doors) -> None:
             doors.screen(data, encoding, request=False)
             return load_frame(data, settings.limits, encoding, keyring=service.keyring, now=time.time())
 
-        frame = await asyncio.to_thread(load)
+        frame = await doors.load(load)
         doors.charge(frame.vehicle_id)
         if not await asyncio.to_thread(service.submit_frame, frame, len(data), encoding, "rest", received):
             raise WireError(503, "unavailable", "the service is shutting down")

@@ -201,7 +201,23 @@ class AlignService:
             max_wait_s=settings.max_frame_wait_s,
             background_share=settings.crosscheck_share,
             on_expired=lambda job: self._count_drop(job.sender),
+            on_pushed_out=self._pushed_out,
         )
+
+    def _pushed_out(self, job: Job) -> None:
+        """A queued request pushed out by another sender's (its sender held the most of the full request queues):
+        answered 'overloaded', so a car's burst costs its own refusals (scheduler.py)."""
+        e = WireError(
+            503,
+            "overloaded",
+            f"the request queues are full and {job.sender!r} holds the most of them; retry later",
+            "requests",
+            self.settings.max_pending_requests,
+            setting_env("max_pending_requests"),
+        )
+        e.counted = True
+        self.metrics.rejected.labels(job.door, "overloaded").inc()
+        _answer(job, e)
 
     def _acquires(self, sender: str) -> bool:
         """Whether a peer's next frame runs a full acquisition (tracking on, and the peer has no track)."""
@@ -275,6 +291,10 @@ class AlignService:
         if signer is not None:
             job.meta["signer"] = signer
         return self._to_intake(job, lane)
+
+    def door_dropped(self, sender: str, e: WireError) -> None:
+        """A stream message the Zenoh door dropped unread (its share for refusals spent, door.DoorShare)."""
+        self._door_refused(sender, "zenoh", e)
 
     def _door_refused(self, sender: str, door: str, e: WireError) -> None:
         """Count and (rate-limited) log a refusal at the door: per message a flood pays only this, so the

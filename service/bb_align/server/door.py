@@ -5,6 +5,8 @@ Every message the door lets through costs the gate a full check, and every messa
 that authenticated frames need; a keyless flood must therefore cost as little as possible and be stopped here.
 The door refuses only what the gate would certainly refuse, cheapest test first:
 
+0. (the Zenoh stream) while the door's share for refusals is spent (``DoorShare``), a large message under a key
+   chunk refused lately or never accepted is dropped before it is even copied out of Zenoh;
 1. not a msgpack map (one byte looked at: 1-byte garbage and most junk end here);
 2. not a Signed envelope, one this receiver has no key for, or one whose payload is not a map (a frame is one):
    read first from the envelope's top-level headers alone (``envelope_spans``: no value is copied, so a 1 MB
@@ -23,8 +25,9 @@ The door refuses only what the gate would certainly refuse, cheapest test first:
 7. a copy of an envelope whose signature failed here lately (same key, signature, stamp, seq and payload);
 8. the signature on the raw payload (Ed25519 with the cached certificate, or HMAC) under the door's
    ``SignatureBudget``: failed checks spend CPU-seconds from a token bucket; while it is empty only senders that
-   verified lately and failed no check lately are checked, anything else is refused (503, never a pause); then
-   the signer may sign for the key chunk it came under.
+   verified lately and failed no check lately are checked, anything else is refused (503, never a pause; decided
+   from the envelope's headers at step 2, before its payload is copied); then the signer may sign for the key
+   chunk it came under.
 
 The same checks guard the Zenoh query door (``Door.query``, its own budget) and, from step 4 on, the REST door.
 
@@ -87,28 +90,83 @@ def stamp_and_seq(payload: bytes) -> tuple[float, int] | None:
 
 
 def frame_claim(payload: bytes) -> tuple[float, int, str | None] | None:
-    """(stamp, seq, vehicle_id or None) an encoded frame claims, read without building it; None when the payload is
-    not a map holding stamp and seq as numbers."""
-    unpacker = msgpack.Unpacker(raw=False, max_buffer_size=len(payload) + 1)
-    unpacker.feed(payload)
+    """(stamp, seq, vehicle_id or None) an encoded frame claims, read from its headers without building it or
+    copying its image (``_skip`` walks over the other values; a 1 MB frame costs what a small one does); None when
+    the payload is not a map holding stamp and seq as numbers."""
     try:
-        n = unpacker.read_map_header()
+        n, i = _map_header(payload, 0)
         if n > _PAYLOAD_KEYS:
             return None
         found: dict[str, object] = {}
         for _ in range(n):
-            key = unpacker.unpack()
-            if key in ("stamp", "seq", "vehicle_id"):
-                found[key] = unpacker.unpack()
-            else:
-                unpacker.skip()
-    except Exception:  # msgpack raises several types on truncated or odd input
+            key = _scalar(payload, i) if payload[i] in _STR_HEADERS else None
+            if key is None:
+                return None
+            name, i = bytes(payload[key[0] : key[1]]), key[1]
+            end = _skip(payload, i, 0)
+            if end is None:
+                return None
+            if name in (b"stamp", b"seq", b"vehicle_id"):
+                found[name.decode()] = msgpack.unpackb(payload[i:end], raw=False)
+            i = end
+    except Exception:  # msgpack raises several types on odd input; a truncated one raises IndexError here
         return None
     stamp, seq = found.get("stamp"), found.get("seq")
     if type(stamp) not in (int, float) or type(seq) is not int:
         return None
     vid = found.get("vehicle_id")
     return float(stamp), seq, (vid if isinstance(vid, str) else None)
+
+
+_MAX_DEPTH = 8  # a frame nests a few levels (boxes, pose); deeper and frame_claim gives up (the gate decides)
+_EXT_FIXED = {0xD4: 1, 0xD5: 2, 0xD6: 4, 0xD7: 8, 0xD8: 16}  # fixext 1-16 (a type byte, then the data)
+_EXT_LENGTH = {0xC7: 1, 0xC8: 2, 0xC9: 4}  # ext 8/16/32
+
+
+def _map_header(data: bytes, i: int) -> tuple[int, int]:
+    """(entries, index after the header) of the msgpack map at ``i``; ValueError when it is not one."""
+    b = data[i]
+    if 0x80 <= b <= 0x8F:
+        return b - 0x80, i + 1
+    if b in (0xDE, 0xDF):
+        w = 2 if b == 0xDE else 4
+        return int.from_bytes(data[i + 1 : i + 1 + w], "big"), i + 1 + w
+    raise ValueError("not a map")
+
+
+def _skip(data: bytes, i: int, depth: int) -> int | None:
+    """The index after the msgpack value at ``i``, found from headers alone (nothing copied); None when it runs
+    past the end or nests deeper than ``_MAX_DEPTH``."""
+    b = data[i]
+    if 0x80 <= b <= 0x8F or 0x90 <= b <= 0x9F or b in (0xDC, 0xDD, 0xDE, 0xDF):
+        if depth >= _MAX_DEPTH:
+            return None
+        if 0x80 <= b <= 0x8F or b in (0xDE, 0xDF):
+            n, i = _map_header(data, i)
+            n *= 2
+        elif 0x90 <= b <= 0x9F:
+            n, i = b - 0x90, i + 1
+        else:
+            w = 2 if b == 0xDC else 4
+            n, i = int.from_bytes(data[i + 1 : i + 1 + w], "big"), i + 1 + w
+        if n > len(data) - i:  # each value takes a byte at least
+            return None
+        for _ in range(n):
+            i = _skip(data, i, depth + 1)
+            if i is None:
+                return None
+        return i
+    if b in _EXT_FIXED:
+        end = i + 2 + _EXT_FIXED[b]
+    elif b in _EXT_LENGTH:
+        w = _EXT_LENGTH[b]
+        end = i + 2 + w + int.from_bytes(data[i + 1 : i + 1 + w], "big")
+    else:
+        span = _scalar(data, i)
+        if span is None:
+            return None
+        end = span[1]
+    return end if end <= len(data) else None
 
 
 def request_peer(data: bytes) -> bytes | None:
@@ -222,29 +280,98 @@ class RecentSignatures:
                 self._seen.popitem(last=False)
 
 
-class Budget:
-    """At most ``share`` of one core for the door's refusals, accounted per ``window_s`` in the door thread's own
-    CPU time: once a window's share is spent the door sleeps until that CPU time is ``share`` of the time since
-    the window began (a single costly message, e.g. a signature check over a large forged envelope, is paid for
-    in full). Meanwhile Zenoh's FIFO fills and pushes back on the senders' links, so a flood is slowed at its
-    source instead of taking the engine's CPU and GIL."""
+class DoorShare:
+    """At most ``share`` of one core for what the Zenoh door refuses, without holding up the messages it accepts
+    for it: a token bucket of the door thread's CPU-seconds (``share`` a second, ``burst_s`` at once), charged for
+    every message refused (its cost outside the signature check, which has its own ``SignatureBudget``) or dropped.
 
-    def __init__(self, share: float, window_s: float, clock=time.monotonic, sleep=time.sleep):
-        self.share, self.window_s = share, window_s
+    ``admit(sender, nbytes)`` is asked before a message is copied out of Zenoh (``sender``: its key chunk, not
+    yet trusted; ``nbytes``: its size, known without a copy). While the bucket holds CPU time every message is
+    read. While it is spent, a message of ``large_bytes`` or more under a key chunk refused lately (``suspect_s``)
+    or never accepted is dropped unread, at some 15 us whatever its size; everything else is read: messages of
+    chunks accepted lately and refused in none of the last ``suspect_s``, and small messages (copied out in a few
+    us: a genuine car's frame, a replayed one, 1-byte junk). Copying out a large one is what costs (~0.4 ms for
+    512 KB, ~0.7-1.3 ms for 1 MB on a loaded VM: page faults, each block that large has its own mapping,
+    allocator.py), and a whole forged 1 MB frame ~2 ms: paid by sleeping, as the door's earlier ``Budget`` did,
+    each one slept ~110 ms at a 0.02 share while the other cars' frames waited behind it in Zenoh's FIFO (0.47 of
+    their results under a full-speed forgery, issue 47). So a keyless flood of large forgeries under car1's key
+    costs what it drops and, while it floods, only car1's own large frames.
+
+    The only waits left are short: a refusal or drop that finds the bucket ``burst_s`` in debt waits its own cost
+    over the share, at most ``max_pause_s`` (1 ms): under a flood of small junk fast enough to spend the share
+    (thousands a second) the door then reads about ``share`` of the time, Zenoh's FIFO fills and pushes back on
+    the senders' links, and a car's frame behind the FIFO's ``door_queue`` messages waits ~16 ms at most."""
+
+    def __init__(
+        self,
+        share: float,
+        burst_s: float,
+        large_bytes: int = 256 * 1024,
+        suspect_s: float = 2.0,
+        max_senders: int = 1024,
+        max_pause_s: float = 0.001,
+        clock=time.monotonic,
+        sleep=time.sleep,
+    ):
+        self.share, self.burst_s, self.large_bytes, self.suspect_s = share, burst_s, large_bytes, suspect_s
+        self.max_senders, self.max_pause_s = max_senders, max_pause_s
         self._clock, self._sleep = clock, sleep
-        self._start, self._used = clock(), 0.0
-        self.throttled_s = 0.0  # time spent sleeping (reported as a metric)
+        self._tokens, self._then = burst_s, clock()
+        self._good: OrderedDict[str, float] = OrderedDict()  # key chunk -> when a message of it was last accepted
+        self._bad: OrderedDict[str, float] = OrderedDict()  # key chunk -> when a message of it was last refused
+        self.dropped = 0  # messages dropped unread
+        self.refused_cpu_s = 0.0  # CPU time of the messages refused (read) and dropped (unread)
+        self.throttled_s = 0.0  # time spent waiting (short waits, only while the bucket is burst_s in debt)
 
-    def spend(self, cpu_s: float) -> None:
+    def _refill(self, now: float) -> None:
+        self._tokens = min(self.burst_s, self._tokens + (now - self._then) * self.share)
+        self._then = now
+
+    def admit(self, sender: str, nbytes: int) -> bool:
+        """Whether to read a message of ``nbytes`` under key chunk ``sender`` (else drop it unread)."""
         now = self._clock()
-        if now - self._start >= self.window_s:
-            self._start, self._used = now, 0.0
-        self._used += cpu_s
-        if self._used >= self.share * self.window_s:
-            pause = max(0.0, self._used / self.share - (now - self._start))
+        self._refill(now)
+        if self._tokens > 0.0 or nbytes < self.large_bytes:
+            return True
+        bad = self._bad.get(sender)
+        return sender in self._good and (bad is None or now - bad > self.suspect_s)
+
+    def spent(self, sender: str, cpu_s: float, accepted: bool) -> None:
+        """A message read: accepted (queued for the gate) or refused, at ``cpu_s`` of the door's CPU (signature
+        checks left out); only a refusal is charged."""
+        now = self._clock()
+        table = self._good if accepted else self._bad
+        table[sender] = now
+        table.move_to_end(sender)
+        while len(table) > self.max_senders:
+            table.popitem(last=False)
+        if not accepted:
+            self._charge(cpu_s)
+
+    def drop(self, cpu_s: float) -> None:
+        """A message dropped unread at ``cpu_s``."""
+        self.dropped += 1
+        self._charge(cpu_s)
+
+    def _charge(self, cpu_s: float) -> None:
+        self.refused_cpu_s += cpu_s
+        self._refill(self._clock())
+        self._tokens = max(self._tokens - cpu_s, -2.0 * self.burst_s)  # the debt is bounded: so is the catch-up
+        if self._tokens < -self.burst_s:
+            pause = min(cpu_s / self.share, self.max_pause_s)
             self._sleep(pause)
             self.throttled_s += pause
-            self._start, self._used = self._clock(), 0.0
+
+    def error(self) -> WireError:
+        return WireError(
+            503,
+            "overloaded",
+            "the door's CPU share for refusals is spent: large messages under a key that was refused lately or "
+            "never accepted are dropped unread",
+            "door",
+            self.share,
+            limit_env("door_share"),
+        )
 
 
 class KeyRate:
@@ -292,7 +419,8 @@ class SignatureBudget:
     ):
         self.share, self.burst_s, self.suspect_s, self.max_signers = share, burst_s, suspect_s, max_signers
         self._clock = clock
-        self._tokens, self._then = burst_s, clock()
+        self._tokens, self._then = burst_s, clock()  # read and refused
+        self._drop_tokens, self._drop_then = burst_s, clock()  # dropped unread
         self._good: OrderedDict[str, float] = OrderedDict()  # signer -> when it last verified
         self._bad: OrderedDict[str, float] = OrderedDict()  # claimed signer -> when a check under it last failed
         self._lock = threading.Lock()
@@ -300,7 +428,7 @@ class SignatureBudget:
         self.failed_cpu_s = 0.0
 
     def _refill(self, now: float) -> None:
-        self._tokens = min(self.burst_s, self._tokens + (now - self._then) * self.share)
+        self._tokens = min(self.burst_s, self._tokens + (now - self._then) * self.share / 2)
         self._then = now
 
     def allow(self, signer: str) -> bool:
@@ -469,8 +597,10 @@ class Door:
 
     def _refuse_by_headers(self, data: bytes) -> None:
         """Refuse from the top-level headers alone (nothing copied, whatever the size) what steps 2-3 would refuse
-        after decoding: no envelope, no key, a payload that is not a map. Anything this cannot read goes on to
-        the full decode."""
+        after decoding: no envelope, no key, a payload that is not a map; and what step 8 would refuse whatever
+        the message holds: a signer the signature budget does not check now (while a keyless flood forges a car,
+        each forgery then costs the door its header read, not two copies of its payload). Anything this cannot
+        read goes on to the full decode."""
         spans = envelope_spans(data)
         if spans is None:
             return
@@ -485,6 +615,8 @@ class Door:
                 return
             if not self.keyring.knows(kid, algorithm):
                 raise _no_key(kid, algorithm)
+            if not self.budget.allow(kid):  # it would be refused at step 8 whatever it holds: not even copied out
+                raise self.budget.error(kid)
         header, start, end = spans[b"payload"]
         if header in _BIN_HEADERS and (start == end or data[start] not in _MAP_FIRST_BYTES):
             raise _not_a_frame()

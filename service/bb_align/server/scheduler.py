@@ -1,10 +1,20 @@
-"""Work queues of the service: latest-only per sender, a bounded request queue, fair round-robin, heavy jobs capped.
+"""Work queues of the service: latest-only per sender, bounded request queues, the engine's time fair per car,
+heavy jobs capped.
 
 Stream frames (Zenoh ``frames/*``, REST ``/v1/frames``) wait in a per-sender queue of ``depth`` entries (1:
 latest only); a newer frame pushes the oldest out and the push reports it as dropped. Requests (REST
-``/v1/align``, Zenoh queries) must each be answered, so they wait in one bounded FIFO and are refused when it
-is full. Workers take senders and the request queue in round-robin order of readiness (``priority`` senders
-first); a sender's frames are handled by one worker at a time, so its results come out in order.
+``/v1/align``, Zenoh queries) must each be answered, so they wait in a FIFO per sender, ``max_requests`` in all;
+when full, a request of a sender holding fewer than the one holding most pushes out that one's newest (answered
+"overloaded", ``on_pushed_out``), otherwise it is refused. ``priority`` senders go first; among the others a
+worker takes the ready one whose car has had the least of the workers' time lately (``usage``: worker-seconds
+of its stream frames, requests and cross-checks together, halving every ``half_life_s``), in order of readiness
+among equals. A car's next request also waits, although a worker is free, while another car active in the
+last ``active_s`` had less of the workers' time by more than ``fair_slack_s`` (frames are never held: they come
+at the car's own rate). So both doors feed one fair schedule: a car's burst of REST requests waits behind the
+other cars' frames, and costs its own latency and refusals, not the other cars' results (issue 47: served one
+request per round-robin turn, 8 threads posting one car's frames took 54 % of the engine and the other cars kept
+0.61-0.63 of their results). A sender's frames are handled by one worker at a time, so its results come out in
+order; so are its requests (one car's burst holds one worker at most, the others stay free for the other cars).
 
 Heavy jobs (a peer without a track: a full acquisition, ~0.3-0.5 s; a track's cross-check, keys starting with
 ``background_prefix``; whatever ``heavy(key)`` says at the moment a worker looks) take their turn in the same
@@ -28,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-_REQUESTS = object()  # the request queue's place in the round-robin
+_REQUEST = "@request"  # a ready key (_REQUEST, sender): that sender's requests
 
 
 @dataclass
@@ -63,6 +73,10 @@ class Scheduler:
         on_expired: Callable[[Job], None] | None = None,
         background_share: float | None = None,
         clock: Callable[[], float] = time.perf_counter,
+        half_life_s: float = 2.0,
+        on_pushed_out: Callable[[Job], None] | None = None,
+        active_s: float = 1.0,
+        fair_slack_s: float = 0.2,
     ):
         self.depth = depth
         self.background_prefix, self.max_background = background_prefix, max_background
@@ -77,10 +91,16 @@ class Scheduler:
         self._bg_tokens, self._bg_then = 0.0, clock()
         self.priority = priority  # senders served before the others (cheap jobs only, or they starve the rest)
         self.max_requests = max_requests
+        self.half_life_s, self._on_pushed_out = half_life_s, on_pushed_out
+        self.active_s, self.fair_slack_s, self.hold_tick_s = active_s, fair_slack_s, 0.02
+        self._usage: dict[str, tuple[float, float]] = {}  # car -> (worker-seconds, when), halving every half_life_s
+        self._last_done: dict[str, float] = {}  # car (not a priority sender) -> when a job of it last finished
+        self._holding = False  # a request is held for fairness (get() looks again every hold_tick_s)
         self._cv = threading.Condition()
         self._streams: dict[str, deque[Job]] = {}
-        self._requests: deque[Job] = deque()
-        self._ready: deque = deque()  # senders with work and not busy, and _REQUESTS, in order of readiness
+        self._requests: dict[str, deque[Job]] = {}  # sender -> its requests
+        self._n_requests = 0
+        self._ready: deque = deque()  # senders with work and not busy, (_REQUEST, sender), in order of readiness
         self._busy: set[str] = set()
         self._closed = False
 
@@ -98,15 +118,31 @@ class Scheduler:
             return dropped
 
     def put_request(self, job: Job) -> bool:
-        """Queue a request; False when the queue is full or closed (the caller answers 'overloaded')."""
+        """Queue a request; False when the queues are full (and ``job``'s sender holds as many as any) or closed:
+        the caller answers 'overloaded'. Full, a sender holding fewer pushes out the newest request of the sender
+        holding most, handed to ``on_pushed_out`` (to be answered) after the lock is released."""
+        pushed = None
         with self._cv:
-            if self._closed or len(self._requests) >= self.max_requests:
+            if self._closed:
                 return False
-            self._requests.append(job)
-            if _REQUESTS not in self._ready:
-                self._ready.append(_REQUESTS)
+            if self._n_requests >= self.max_requests:
+                heaviest = max(self._requests, key=lambda s: len(self._requests[s]))
+                if len(self._requests[heaviest]) <= len(self._requests.get(job.sender, ())) + 1:
+                    return False
+                pushed = self._requests[heaviest].pop()
+                self._n_requests -= 1
+                if not self._requests[heaviest]:
+                    del self._requests[heaviest]
+                    if (_REQUEST, heaviest) in self._ready:
+                        self._ready.remove((_REQUEST, heaviest))
+            self._requests.setdefault(job.sender, deque()).append(job)
+            self._n_requests += 1
+            if (_REQUEST, job.sender) not in self._ready and (_REQUEST, job.sender) not in self._busy:
+                self._ready.append((_REQUEST, job.sender))
             self._cv.notify()
-            return True
+        if pushed is not None and self._on_pushed_out is not None:
+            self._on_pushed_out(pushed)
+        return True
 
     def get(self, timeout: float | None = None) -> Job | None:
         """The next job in round-robin order (heavy ones capped); None on timeout or once closed. Stream
@@ -114,9 +150,15 @@ class Scheduler:
         expired: list[Job] = []
         try:
             with self._cv:
+                deadline = None if timeout is None else time.monotonic() + timeout
                 while True:
-                    if not self._cv.wait_for(lambda: self._next_key() is not None or self._closed, timeout):
-                        return None
+                    while self._next_key() is None and not self._closed:
+                        left = None if deadline is None else deadline - time.monotonic()
+                        if left is not None and left <= 0:
+                            return None
+                        # a request held for fairness becomes free as usage decays, with no notify: look again soon
+                        tick = self.hold_tick_s if self._holding else None
+                        self._cv.wait(left if tick is None else tick if left is None else min(left, tick))
                     key = self._next_key()
                     if key is None:  # closed
                         return None
@@ -134,11 +176,13 @@ class Scheduler:
         ``_expired_job``; the sender is let go)."""
         heavy = self._is_heavy(key)  # before the job leaves its queue (a request's is the queue's first)
         self._ready.remove(key)
-        if key is _REQUESTS:
-            job = self._requests.popleft()
-            if self._requests:
-                self._ready.append(_REQUESTS)
-                self._cv.notify()
+        if isinstance(key, tuple):  # a sender's requests: one at a time, like its frames
+            queue = self._requests[key[1]]
+            job = queue.popleft()
+            self._n_requests -= 1
+            if not queue:
+                del self._requests[key[1]]
+            self._busy.add(key)
         else:
             job = self._streams[key].popleft()
             if self._too_old(job):
@@ -171,9 +215,28 @@ class Scheduler:
             return True
         if self._heavy is None:
             return False
-        if key is _REQUESTS:
-            return bool(self._requests) and self._heavy(self._requests[0].sender)
+        if isinstance(key, tuple):
+            return self._heavy(key[1])
         return self._heavy(key)
+
+    def _owner(self, key) -> str:
+        """The car whose share of the workers' time a ready key (or a job's sender) spends."""
+        if isinstance(key, tuple):
+            return key[1]
+        if self._background(key):
+            return key[len(self.background_prefix) :]
+        return key
+
+    def usage(self, car: str) -> float:
+        """Worker-seconds ``car``'s jobs took lately (each halving every ``half_life_s``)."""
+        spent, then = self._usage.get(car, (0.0, 0.0))
+        return spent * 0.5 ** ((self._clock() - then) / self.half_life_s)
+
+    def _charge(self, car: str, seconds: float) -> None:
+        self._usage[car] = (self.usage(car) + seconds, self._clock())
+        if len(self._usage) > 4096:  # bounded: the cars that used least lately are forgotten (they start at 0)
+            for c in sorted(self._usage, key=self.usage)[: len(self._usage) - 4096]:
+                del self._usage[c]
 
     def _next_key(self):
         """The ready key to serve next: a priority sender, else the first in readiness order that may run now (a
@@ -182,11 +245,26 @@ class Scheduler:
         if key is None:
             full = self._running_background >= self._heavy_cap()
             held = self._background_held()
-            key = next(
-                (k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))),
-                None,
-            )
+            ready = [k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))]
+            ready.sort(key=lambda k: self.usage(self._owner(k)))  # stable: readiness order among equals
+            self._holding = False
+            for k in ready:
+                if isinstance(k, tuple) and self._request_held(k[1]):
+                    self._holding = True
+                    continue
+                return k
+            key = None
         return key
+
+    def _request_held(self, car: str) -> bool:
+        """Whether ``car``'s next request waits although a worker is free: another car active lately (a job done
+        in the last ``active_s``) had less of the workers' time than ``car`` by more than ``fair_slack_s``. Stream
+        frames are never held (latest-only, they come at the car's own rate); a burst of requests has no such
+        bound, and run whenever no other car was ready at that instant it took a worker from cars whose next frame
+        was due a moment later (issue 47: one car's 8 REST threads kept a worker to themselves)."""
+        now, mine = self._clock(), self.usage(car)
+        others = [self.usage(c) for c, t in self._last_done.items() if c != car and now - t <= self.active_s]
+        return bool(others) and mine > min(others) + self.fair_slack_s
 
     def _background_held(self) -> bool:
         """Whether background jobs must let light ones go first: their share of the workers' time is spent and a
@@ -211,8 +289,19 @@ class Scheduler:
         return self.max_background
 
     def done(self, job: Job) -> None:
-        """A worker finished a job; its sender may be scheduled again (an empty queue is let go)."""
+        """A worker finished a job; its car is charged the time it took and its sender may be scheduled again
+        (an empty queue is let go)."""
         with self._cv:
+            if job.started is not None and job.sender:
+                car = self._owner(job.sender)
+                self._charge(car, self._clock() - job.started)
+                if car not in self.priority and not car.startswith("@"):
+                    self._last_done[car] = self._clock()
+                    if len(self._last_done) > 4096:  # bounded: the longest idle are forgotten
+                        for c in sorted(self._last_done, key=self._last_done.get)[: len(self._last_done) - 4096]:
+                            del self._last_done[c]
+                if self._holding:
+                    self._cv.notify_all()
             if job.heavy:
                 job.heavy = False
                 self._running_background -= 1
@@ -221,6 +310,11 @@ class Scheduler:
                     self._bg_tokens -= self._clock() - job.started
                 self._cv.notify()  # a heavy job held back may run now
             if job.reply is not None:
+                key = (_REQUEST, job.sender)
+                self._busy.discard(key)
+                if self._requests.get(job.sender) and key not in self._ready:
+                    self._ready.append(key)
+                    self._cv.notify()
                 return
             self._busy.discard(job.sender)
             if self._streams.get(job.sender):
@@ -254,7 +348,7 @@ class Scheduler:
 
     def pending(self) -> int:
         with self._cv:
-            return len(self._requests) + sum(len(q) for q in self._streams.values())
+            return self._n_requests + sum(len(q) for q in self._streams.values())
 
     def close(self, drain: bool = False) -> list[Job]:
         """Refuse new work. ``drain``: workers still get what is queued (then None); otherwise the queues are
@@ -264,8 +358,9 @@ class Scheduler:
             if drain:
                 self._cv.notify_all()
                 return []
-            left = list(self._requests) + [j for q in self._streams.values() for j in q]
+            left = [j for q in self._requests.values() for j in q] + [j for q in self._streams.values() for j in q]
             self._requests.clear()
+            self._n_requests = 0
             self._streams.clear()
             self._ready.clear()
             self._cv.notify_all()

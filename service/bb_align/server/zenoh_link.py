@@ -3,10 +3,11 @@
 - subscriber ``<prefix>/frames/*``: every car's frames; the key's last chunk is the sender's vehicle id (the ego
   id's frames fill the ego cache, all others are aligned). Samples wait in Zenoh's own bounded FIFO
   (``limits.door_queue``; pushing into it needs no Python) for one door thread, which checks them
-  (bb_align.server.door) within a CPU budget for what it refuses (``limits.door_share`` of a core): past it the
-  thread sleeps, the FIFO fills and Zenoh pushes back on the senders' links, so junk is slowed at its source and
-  can take no more than that share from the engine. A Python callback per sample could not be bounded: each one
-  takes the GIL;
+  (bb_align.server.door) within a CPU share for what it refuses (``limits.door_share`` of a core, door.DoorShare):
+  past it, large messages under key chunks refused lately or never accepted are dropped unread and the rest read
+  as they come, so junk can take no more than that share from the engine and a forged 1 MB frame never holds up
+  the cars' frames (a flood of small junk fast enough to spend the share meets waits of 1 ms at most, and Zenoh's
+  push-back on the senders' links). A Python callback per sample could not be bounded: each one takes the GIL;
 - Zenoh's receive threads: a sample waiting for a place in the full FIFO holds the receive thread of its
   session's link (that is the push-back); Zenoh has 2 by default, so two flooding sessions left no thread to read
   the cars' links (issue 31, F7: measured, docs/security.md, Floods). The service takes at most
@@ -39,7 +40,7 @@ import zenoh
 from bb_align.protocol import ErrorBody, Refusal, Result, WireError, align_key, frames_key, pack, poses_key
 
 from .core import AlignService, Unavailable
-from .door import Budget
+from .door import DoorShare
 from .settings import Settings
 
 log = logging.getLogger("bb_align.zenoh")
@@ -76,11 +77,12 @@ class ZenohLink:
         self.service.publishers.append(self.publish)
         fifo = zenoh.handlers.FifoChannel(limits.door_queue)
         self._subscriber = self.session.declare_subscriber(frames_key(self.prefix, "*"), fifo)
-        budget = Budget(limits.door_share, limits.door_window_s)
-        self.service.metrics.door_throttled.set_function(lambda: budget.throttled_s)
+        share = DoorShare(limits.door_share, limits.door_burst_s, limits.door_unread_bytes)
+        self.door_share = share
+        self.service.metrics.door_throttled.set_function(lambda: share.throttled_s)
         self._door = threading.Thread(
             target=self._door_loop,
-            args=(self._subscriber.handler, budget, lambda: self.service.door.signature_cpu_s),
+            args=(self._subscriber.handler, share, lambda: self.service.door.signature_cpu_s),
             name="bbalign-door",
             daemon=True,
         )
@@ -104,7 +106,7 @@ class ZenohLink:
                 entity.undeclare()  # closes the FIFO: the door thread's recv ends
         self._subscriber = self._queryable = None
         if self._door is not None:
-            self._door.join(5.0 + self.settings.limits.door_window_s)
+            self._door.join(5.0)
             self._door = None
         if self._query_thread is not None:
             self._query_thread.join(5.0)
@@ -120,18 +122,16 @@ class ZenohLink:
             session.close()
 
     # ---- the door thread and the query callback (enqueue only) ----------------------------------------------
-    def _door_loop(self, fifo, budget: Budget, signature_cpu=lambda: 0.0) -> None:
+    def _door_loop(self, fifo, share: DoorShare, signature_cpu=lambda: 0.0) -> None:
         """Take samples from Zenoh's FIFO one at a time (waiting in recv releases the GIL) and account the CPU time
-        (this thread's own) spent on each one refused against the budget at once: junk is what must not take the
-        engine's CPU; a frame that passes costs what the fleet's own traffic costs. Paying per message, a costly
-        refusal's pause comes before the next message is taken, so the FIFO drains evenly: paid per batch, 16
-        large junk messages bought one long pause (0.2 s), after which a car's frames of two sweeps came out back
-        to back and the older was dropped (issue 31, F7). (The batch loop also lost the sample it took last when
-        a batch was full: the "unexplained" losses of 1 in 300 to 5 000 frames under a flood.) Ends when the
-        subscriber is undeclared. The signature checks are left out of this budget: they have their own
-        (door.SignatureBudget), which refuses what it cannot pay for instead of pausing the door (issue 47: a 4 ms
-        check of a forged 1 MB envelope paid from a 0.02 share paused the door 200 ms, and the cars' frames
-        waiting behind it came out late and were dropped)."""
+        (this thread's own, signature checks left out: they have their own ``SignatureBudget``) of each one refused
+        against the door's share (``DoorShare``), which refuses and never pauses the door for it: once the share
+        is spent, a message under a key chunk refused lately or never accepted is dropped before it is even copied
+        out of Zenoh, and every other is read as it comes. Paid by sleeping instead (the door's earlier
+        ``Budget``), each forged 1 MB frame (~2 ms: its copy out of Zenoh, its envelope decoded) slept ~110 ms at a
+        0.02 share, and the other cars' frames waited behind it in Zenoh's FIFO: 0.47 of their results under a
+        full-speed forgery (issue 47). One message at a time, never a batch (issue 31, F7: a batch bought one long
+        pause and lost the sample taken last). Ends when the subscriber is undeclared."""
         name_os_thread("bbalign-door")
         while True:
             try:
@@ -139,16 +139,19 @@ class ZenohLink:
             except zenoh.ZError:  # undeclared: the FIFO is closed
                 return
             t0, sig0 = time.thread_time(), signature_cpu()
+            sender = str(sample.key_expr).rsplit("/", 1)[-1]
+            if not share.admit(sender, len(sample.payload)):
+                self.service.door_dropped(sender, share.error())
+                share.drop(time.thread_time() - t0)
+                continue
             try:
-                queued = self._on_frame(sample)
+                queued = self._on_frame(sender, sample)
             except Exception:  # a bug must not end the door; the message is lost, and logged
                 log.exception("the Zenoh door failed on a message")
                 queued = False
-            if not queued:  # signature checks have their own budget, which refuses and never waits
-                budget.spend(max(0.0, time.thread_time() - t0 - (signature_cpu() - sig0)))
+            share.spent(sender, max(0.0, time.thread_time() - t0 - (signature_cpu() - sig0)), queued)
 
-    def _on_frame(self, sample: zenoh.Sample) -> bool:
-        sender = str(sample.key_expr).rsplit("/", 1)[-1]
+    def _on_frame(self, sender: str, sample: zenoh.Sample) -> bool:
         if len(sample.payload) > self.settings.limits.max_message_bytes:  # refused before it is even copied
             self.service.metrics.rejected.labels("zenoh", "too_large").inc()
             return False
