@@ -280,6 +280,28 @@ class RecentSignatures:
                 self._seen.popitem(last=False)
 
 
+class _RecentVerdicts:
+    """Senders (key chunks, claimed signers) by when one of their messages last passed and last failed, each table
+    bounded (the least recent out): a sender is trusted when it passed lately and failed in none of the last
+    ``suspect_s``. What both door buckets let through once they are spent."""
+
+    def __init__(self, suspect_s: float, max_senders: int):
+        self.suspect_s, self.max_senders = suspect_s, max_senders
+        self._good: OrderedDict[str, float] = OrderedDict()  # sender -> when a message of it last passed
+        self._bad: OrderedDict[str, float] = OrderedDict()  # sender -> when a message of it last failed
+
+    def trusted(self, sender: str, now: float) -> bool:
+        bad = self._bad.get(sender)
+        return sender in self._good and (bad is None or now - bad > self.suspect_s)
+
+    def note(self, sender: str, passed: bool, now: float) -> None:
+        table = self._good if passed else self._bad
+        table[sender] = now
+        table.move_to_end(sender)
+        while len(table) > self.max_senders:
+            table.popitem(last=False)
+
+
 class DoorShare:
     """At most ``share`` of one core for what the Zenoh door refuses, without holding up the messages it accepts
     for it: a token bucket of the door thread's CPU-seconds (``share`` a second, ``burst_s`` at once), charged for
@@ -314,11 +336,10 @@ class DoorShare:
         sleep=time.sleep,
     ):
         self.share, self.burst_s, self.large_bytes, self.suspect_s = share, burst_s, large_bytes, suspect_s
-        self.max_senders, self.max_pause_s = max_senders, max_pause_s
+        self.max_pause_s = max_pause_s
         self._clock, self._sleep = clock, sleep
         self._tokens, self._then = burst_s, clock()
-        self._good: OrderedDict[str, float] = OrderedDict()  # key chunk -> when a message of it was last accepted
-        self._bad: OrderedDict[str, float] = OrderedDict()  # key chunk -> when a message of it was last refused
+        self._verdicts = _RecentVerdicts(suspect_s, max_senders)  # key chunks: last accepted, last refused
         self.dropped = 0  # messages dropped unread
         self.refused_cpu_s = 0.0  # CPU time of the messages refused (read) and dropped (unread)
         self.throttled_s = 0.0  # time spent waiting (short waits, only while the bucket is burst_s in debt)
@@ -333,18 +354,12 @@ class DoorShare:
         self._refill(now)
         if self._tokens > 0.0 or nbytes < self.large_bytes:
             return True
-        bad = self._bad.get(sender)
-        return sender in self._good and (bad is None or now - bad > self.suspect_s)
+        return self._verdicts.trusted(sender, now)
 
     def spent(self, sender: str, cpu_s: float, accepted: bool) -> None:
         """A message read: accepted (queued for the gate) or refused, at ``cpu_s`` of the door's CPU (signature
         checks left out); only a refusal is charged."""
-        now = self._clock()
-        table = self._good if accepted else self._bad
-        table[sender] = now
-        table.move_to_end(sender)
-        while len(table) > self.max_senders:
-            table.popitem(last=False)
+        self._verdicts.note(sender, accepted, self._clock())
         if not accepted:
             self._charge(cpu_s)
 
@@ -419,10 +434,8 @@ class SignatureBudget:
     ):
         self.share, self.burst_s, self.suspect_s, self.max_signers = share, burst_s, suspect_s, max_signers
         self._clock = clock
-        self._tokens, self._then = burst_s, clock()  # read and refused
-        self._drop_tokens, self._drop_then = burst_s, clock()  # dropped unread
-        self._good: OrderedDict[str, float] = OrderedDict()  # signer -> when it last verified
-        self._bad: OrderedDict[str, float] = OrderedDict()  # claimed signer -> when a check under it last failed
+        self._tokens, self._then = burst_s, clock()
+        self._verdicts = _RecentVerdicts(suspect_s, max_signers)  # signers: last verified, last failed a check
         self._lock = threading.Lock()
         self.refused = 0
         self.failed_cpu_s = 0.0
@@ -437,8 +450,7 @@ class SignatureBudget:
             self._refill(now)
             if self._tokens > 0.0:
                 return True
-            bad = self._bad.get(signer)
-            ok = signer in self._good and (bad is None or now - bad > self.suspect_s)
+            ok = self._verdicts.trusted(signer, now)
             if not ok:
                 self.refused += 1
             return ok
@@ -446,11 +458,7 @@ class SignatureBudget:
     def spent(self, signer: str, cpu_s: float, verified: bool) -> None:
         now = self._clock()
         with self._lock:
-            table = self._good if verified else self._bad
-            table[signer] = now
-            table.move_to_end(signer)
-            while len(table) > self.max_signers:
-                table.popitem(last=False)
+            self._verdicts.note(signer, verified, now)
             if not verified:
                 self._refill(now)
                 self._tokens -= cpu_s
