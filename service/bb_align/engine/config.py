@@ -616,22 +616,43 @@ class TrackConfig(_Frozen):
         1.6, gt=0, description="... and at least this far, metres (a near frame's landscape costs half the full one)"
     )
     evidence_window_s: float = Field(
-        1.0,
+        5.0,
         gt=0,
         le=10,
         description="with odometry, the frames of the last this many seconds whose own measurements agree are fused "
-        "into the stream's evidence (engine.evidence), the answer of a tracked frame",
+        "into the stream's evidence (engine.evidence), the answer of a tracked frame; an older frame's covariance "
+        "grows by the odometry's drift since",
     )
-    evidence_max_frames: int = Field(10, ge=1, le=100, description="... and at most this many frames")
+    evidence_max_frames: int = Field(50, ge=1, le=100, description="... and at most this many frames")
     evidence_correlation: float = Field(
         0.6,
         ge=0,
         le=1,
-        description="what two frames' errors share in the stream's evidence (the same buildings, the same aliasing): "
-        "the mean product of their errors in units of their own covariances; n frames count as n / (1 + rho (n - 1)) "
-        "independent ones. 0.6: the largest measured on the real runs and the simulated sweeps of seed 101, rounded "
-        "up (real KITTI 00 run 73-80 m: 0.52 in yaw); checked on the held-out sweeps of seed 7373 "
-        "(benchmarks/evidence_correlation.py, docs/tracking.md)",
+        description="what two frames' errors share in the stream's evidence while both cars stay within "
+        "evidence_same_place_m (the same buildings, the same aliasing): the mean product of their errors in units "
+        "of their own covariances; n such frames count as n / (1 + rho (n - 1)) independent ones. 0.6: the largest "
+        "measured on the real runs (all within 9 m) and the simulated sweeps of seed 101, rounded up (real KITTI 00 "
+        "run 73-80 m: 0.52 in yaw); checked on the held-out sweeps (benchmarks/evidence_correlation.py, "
+        "docs/tracking.md)",
+    )
+    evidence_correlation_far: float | None = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description="... what they share once the cars have moved on and the images see other structure: the "
+        "shared part decays from evidence_correlation to this over evidence_decorrelation_m beyond "
+        "evidence_same_place_m (None: evidence_correlation wherever the cars go). 0.4: the largest product of a "
+        "sequence's frames 20 m or more apart on seed 101, 0.32, rounded up (held out: 0.15); the real runs never "
+        "move that far",
+    )
+    evidence_same_place_m: float = Field(
+        10.0,
+        ge=0,
+        description="frames taken while both cars stay within this of where they were share evidence_correlation "
+        "(metres, the larger of the two cars' moves by their odometry; the real runs, 0-9 m, lie within it)",
+    )
+    evidence_decorrelation_m: float = Field(
+        10.0, gt=0, description="... beyond it, the shared part decays over this many metres"
     )
     evidence_agreement: float = Field(
         0.1,

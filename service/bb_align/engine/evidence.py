@@ -28,20 +28,59 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import log_left, se2
+from .geometry import se2
 
 _FLOOR = np.diag([1e-12, 1e-9, 1e-9])  # keeps the spread invertible when every error is shared (rho 1, no drift)
 
 
 @dataclass(frozen=True)
+class SharedError:
+    """What two frames' errors share (their whitened errors' cross moment, ``rho``) by how far the cars moved
+    between them: ``near`` while both stay within ``same_place_m`` (metres, the larger of the two cars' moves),
+    decaying over ``decay_m`` towards ``far`` as the structure both images see is replaced."""
+
+    near: float
+    far: float | None = None  # None: ``near`` wherever the cars go
+    same_place_m: float = 0.0
+    decay_m: float = 1.0
+
+    def rho(self, moved_m: np.ndarray) -> np.ndarray:
+        if self.far is None:
+            return np.full_like(moved_m, self.near, dtype=float)
+        beyond = np.maximum(0.0, moved_m - self.same_place_m) / self.decay_m
+        return self.far + (self.near - self.far) * np.exp(-beyond)
+
+    def matrix(self, places: list[np.ndarray | None]) -> np.ndarray:
+        """(n, n) correlations of frames taken at ``places`` ((2, 2): each car's position in its own odometry
+        frame; None: unknown, taken as the same place), 1 on the diagonal, projected onto the PSD cone (a
+        correlation by moved distance need not be one)."""
+        n = len(places)
+        if self.far is None or any(p is None for p in places):
+            moved = np.zeros((n, n))
+        else:
+            xy = np.asarray(places, dtype=float)  # (n, 2 cars, 2)
+            moved = np.linalg.norm(xy[:, None] - xy[None, :], axis=-1).max(axis=-1)
+        R = self.rho(moved)
+        np.fill_diagonal(R, 1.0)
+        try:
+            np.linalg.cholesky(R)
+            return R
+        except np.linalg.LinAlgError:
+            vals, vecs = np.linalg.eigh(R)
+            return (vecs * np.maximum(vals, 0.0)) @ vecs.T
+
+
+@dataclass(frozen=True)
 class OffsetSample:
-    """One frame's own measurement of the odometry offset X (3x3) with the covariance of X's left increments, and
-    the rate (per second) at which its covariance grows with age (the two odometries' drift at that frame)."""
+    """One frame's own measurement of the odometry offset X (3x3) with the covariance of X's left increments, the
+    rate (per second) at which its covariance grows with age (the two odometries' drift at that frame), and where
+    the two cars were (``places``: (2, 2), the ego's and the peer's position in its own odometry frame, metres)."""
 
     stamp: float
     X: np.ndarray
     covariance: np.ndarray
     drift_per_s: np.ndarray
+    places: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -51,14 +90,26 @@ class FusedOffset:
     frames: int  # how many frames the fusion holds
 
 
+def _log_left_all(Xs: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(n, 3) left increments (yaw wrapped, tx, ty) of each (3x3) of ``Xs`` about ``ref``: ``log_left`` at once."""
+    rel = Xs @ np.linalg.inv(ref)
+    return np.stack([np.arctan2(rel[:, 1, 0], rel[:, 0, 0]), rel[:, 0, 2], rel[:, 1, 2]], axis=1)
+
+
 class StreamEvidence:
     """The last frames' measurements of the offset, at most ``max_frames`` and ``window_s`` old (see the module)."""
 
     def __init__(
-        self, window_s: float, max_frames: int, correlation: float, gate_chi2: float, agreement: float | None = None
+        self,
+        window_s: float,
+        max_frames: int,
+        correlation: float | SharedError,
+        gate_chi2: float,
+        agreement: float | None = None,
     ):
-        self.window_s, self.correlation, self.gate_chi2 = window_s, correlation, gate_chi2
-        self.agreement = 1.0 - correlation if agreement is None else agreement
+        self.shared = correlation if isinstance(correlation, SharedError) else SharedError(float(correlation))
+        self.window_s, self.gate_chi2 = window_s, gate_chi2
+        self.agreement = 1.0 - self.shared.near if agreement is None else agreement
         self.samples: deque[OffsetSample] = deque(maxlen=max_frames)
 
     def clear(self) -> None:
@@ -74,22 +125,43 @@ class StreamEvidence:
             self.samples.popleft()
         if not self.samples:
             return None
-        ref = self.samples[-1].X  # left increments about the newest frame's offset
-        info, vec, kept = np.zeros((3, 3)), np.zeros(3), 0
-        for i, s in enumerate(reversed(self.samples)):
-            d = log_left(s.X, ref)
-            drift = s.drift_per_s * max(0.0, stamp - s.stamp)
-            cov = s.covariance + drift
-            w = np.linalg.inv(cov)
-            if kept:
-                # Against the newer frames' fusion: errors shared by all frames cancel in the difference, so frames
-                # must agree within a share of their covariances (and the drift between them).
-                mean, fused_cov = np.linalg.solve(info, vec), np.linalg.inv(info)
-                spread = self.agreement * (s.covariance + fused_cov) + drift + _FLOOR
-                if float((d - mean) @ np.linalg.solve(spread, d - mean)) > self.gate_chi2:
-                    for _ in range(len(self.samples) - i):
-                        self.samples.popleft()
-                    break
-            info, vec, kept = info + w, vec + w @ d, kept + 1
-        cov = np.linalg.inv(info) * (1.0 + self.correlation * (kept - 1))
-        return FusedOffset(se2(*np.linalg.solve(info, vec)) @ ref, 0.5 * (cov + cov.T), kept)
+        newest = list(reversed(self.samples))
+        ref = newest[0].X  # left increments about the newest frame's offset
+        d = _log_left_all(np.array([f.X for f in newest]), ref)
+        age = np.maximum(0.0, stamp - np.array([f.stamp for f in newest]))
+        own = np.array([f.covariance for f in newest])
+        drift = np.array([f.drift_per_s for f in newest]) * age[:, None, None]
+        covs = own + drift
+        W = np.linalg.inv(covs)
+        info = np.cumsum(W, axis=0)  # info[k]: frames 0..k (newest first)
+        vec = np.cumsum((W @ d[..., None])[..., 0], axis=0)
+        kept = len(newest)
+        if kept > 1:
+            # Each frame against the fusion of the newer ones: errors shared by all frames cancel in the difference,
+            # so frames must agree within a share of their covariances (and the drift between them).
+            fused_cov = np.linalg.inv(info[:-1])
+            r = d[1:] - (fused_cov @ vec[:-1, :, None])[..., 0]
+            spread = self.agreement * (own[1:] + fused_cov) + drift[1:] + _FLOOR
+            d2 = np.einsum("ni,ni->n", r, np.linalg.solve(spread, r[..., None])[..., 0])
+            apart = np.flatnonzero(d2 > self.gate_chi2)
+            if len(apart):
+                kept = int(apart[0]) + 1
+                for _ in range(len(newest) - kept):
+                    self.samples.popleft()
+        P = np.linalg.inv(info[kept - 1])
+        cov = self._shared_covariance(P, covs[:kept], [f.places for f in newest[:kept]])
+        return FusedOffset(se2(*(P @ vec[kept - 1])) @ ref, cov, kept)
+
+    def _shared_covariance(self, P: np.ndarray, covs: np.ndarray, places: list) -> np.ndarray:
+        """The information-weighted fusion's covariance when frame i's and j's errors share rho_ij (module doc),
+        never finer than the independent fusion ``P``."""
+        S = np.linalg.cholesky(covs)
+        A = P @ (np.linalg.inv(covs) @ S)  # (n, 3, 3): P W_i S_i
+        RA = np.tensordot(self.shared.matrix(places), A, axes=(1, 0))  # sum_j rho_ij A_j
+        M = A.transpose(1, 0, 2).reshape(3, -1) @ RA.transpose(1, 0, 2).reshape(3, -1).T  # sum_i A_i RA_i^T
+        # In P's whitened coordinates, no direction may be finer than P itself (rho >= 0 adds, never removes).
+        L = np.linalg.cholesky(P)
+        Li = np.linalg.inv(L)
+        vals, vecs = np.linalg.eigh(Li @ (0.5 * (M + M.T)) @ Li.T)
+        cov = L @ ((vecs * np.maximum(vals, 1.0)) @ vecs.T) @ L.T
+        return 0.5 * (cov + cov.T)

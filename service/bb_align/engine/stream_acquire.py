@@ -42,7 +42,7 @@ from .frame import PreparedFrame
 from .geometry import distinct_pose, ground_se2, log_left, pose_error, se2_params
 from .landscape import GaussianPrior
 from .result import AlignResult
-from .tracker import adjoint, odometry_drift, offset_sample
+from .tracker import adjoint, odometry_drift, offset_sample, shared_error
 from .verdict import FailureReason
 
 
@@ -227,7 +227,7 @@ class StreamAcquirer:
     def _stream(self, frames: list[StreamFrame]) -> StreamEvidence:
         tc = self.cfg.track
         span = frames[-1].stamp - frames[0].stamp
-        return StreamEvidence(span + 1e-6, len(frames), tc.evidence_correlation, tc.gate_chi2, tc.evidence_agreement)
+        return StreamEvidence(span + 1e-6, len(frames), shared_error(tc), tc.gate_chi2, tc.evidence_agreement)
 
     # ---- 3. rivals -----------------------------------------------------------------------------------------------
     def _rivals(self, best: _Explained, others: list[_Explained], weigh) -> list[tuple[float, _Explained]]:

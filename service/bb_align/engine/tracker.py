@@ -31,7 +31,7 @@ import numpy as np
 
 from .config import AnswerRule, TrackConfig
 from .covariance import fuse_poses, mahalanobis2, params_covariance, probability_within
-from .evidence import OffsetSample, StreamEvidence
+from .evidence import OffsetSample, SharedError, StreamEvidence
 from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
@@ -109,10 +109,20 @@ def offset_sample(
     stamp: float, T: np.ndarray, cov: np.ndarray, O_e: np.ndarray, O_p: np.ndarray, q: np.ndarray
 ) -> OffsetSample:
     """One frame's own measurement of T_ego_peer (covariance of its left increments) as a measurement of the
-    odometry offset X = O_e T O_p^-1, its covariance growing with age by both cars' drift ``q`` (per second)."""
+    odometry offset X = O_e T O_p^-1, its covariance growing with age by both cars' drift ``q`` (per second), taken
+    where the two cars' odometries put them (what decides what its error shares with other frames')."""
     A, Ad_T = adjoint(O_e), adjoint(T)  # left increments of T_ego_peer -> of X
     drift = A @ (q + Ad_T @ q @ Ad_T.T) @ A.T
-    return OffsetSample(stamp, O_e @ T @ np.linalg.inv(O_p), A @ cov @ A.T, drift)
+    places = np.array([O_e[:2, 2], O_p[:2, 2]], dtype=float)
+    return OffsetSample(stamp, O_e @ T @ np.linalg.inv(O_p), A @ cov @ A.T, drift, places)
+
+
+def shared_error(cfg: TrackConfig) -> SharedError:
+    """What the stream's frames share, from the track's settings (engine.evidence.SharedError): never more once the
+    cars have moved on than in one place."""
+    far = cfg.evidence_correlation_far
+    far = None if far is None else min(far, cfg.evidence_correlation)
+    return SharedError(cfg.evidence_correlation, far, cfg.evidence_same_place_m, cfg.evidence_decorrelation_m)
 
 
 def odometry_jump(cfg: TrackConfig, dt: float, steps) -> str | None:
@@ -145,7 +155,7 @@ class PeerTrack:
         c = self.cfg
         # With odometry, the answer is the stream's evidence: the recent frames' own measurements fused.
         self.stream = StreamEvidence(
-            c.evidence_window_s, c.evidence_max_frames, c.evidence_correlation, c.gate_chi2, c.evidence_agreement
+            c.evidence_window_s, c.evidence_max_frames, shared_error(c), c.gate_chi2, c.evidence_agreement
         )
         self.state = TrackState.acquiring
         self.X: np.ndarray | None = None  # 3x3: T_egoodom_peerodom, or T_ego_peer without odometry
