@@ -67,3 +67,15 @@ def test_written_sweep_carries_odometry_and_gnss(tmp_path):
     assert t < 0.05 and r < 0.05
     moved = np.hypot(*(true[2][:2, 3] - true[0][:2, 3]))
     assert 1.0 < moved < 6.0  # 0.2 s of a peer at 10-30 m/s
+
+
+def test_crossing_sweeps_only_when_asked(tmp_path):
+    """`bb-align sim --sweep --family crossing`: every sequence a crossing; an unknown kind is refused by name."""
+    from bb_align.lab.sim.sweep import write_sweeps
+
+    names = write_sweeps(tmp_path, 2, 2, seed=3, workers=1, progress=False, kinds=("crossing",))
+    assert [n.rsplit("_", 1)[1] for n in names] == ["crossing", "crossing"]
+    y = yaml.safe_load((tmp_path / names[0] / "1" / "000000.yaml").read_text())
+    assert y["sweep"] == "crossing"
+    with pytest.raises(ValueError, match="kinds must be among"):
+        write_sweeps(tmp_path, 1, 2, kinds=("sideways",))

@@ -133,7 +133,8 @@ def register(app: typer.Typer) -> None:
             False,
             "--sweep",
             help="two-car sequences whose spacing sweeps ~5-120 m (receding, approaching, overtaking, oncoming, "
-            "crossing) with odometry and GNSS poses in each yaml, for `bb-align track` (--frames: e.g. 150)",
+            "crossing, in turn; with --family crossing: crossings only) with odometry and GNSS poses in each yaml, "
+            "for `bb-align track` (--frames: e.g. 150)",
         ),
         pair: bool = typer.Option(
             False,
@@ -176,11 +177,14 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"wrote {scenarios} V2I scenes x {frames} frame(s) in the DAIR-V2X-C layout to {base}")
             return
         if sweep:
-            from ..sim.sweep import write_sweeps
+            from ..sim.sweep import SWEEP_KINDS, write_sweeps
 
             if frames < 2:
                 raise typer.BadParameter("--sweep needs --frames of 2 or more (e.g. 150: 15 s)")
-            names = write_sweeps(out_dir, scenarios, frames, seed=seed, workers=workers)
+            if family not in ("mixed", "crossing"):
+                raise typer.BadParameter(f"--sweep takes --family mixed or crossing, got {family!r}")
+            kinds = ("crossing",) if family == "crossing" else SWEEP_KINDS
+            names = write_sweeps(out_dir, scenarios, frames, seed=seed, workers=workers, kinds=kinds)
             typer.echo(f"wrote {len(names)} swept sequences x {frames} frames x 2 agents to {out_dir}")
             return
 

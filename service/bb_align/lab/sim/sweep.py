@@ -164,11 +164,17 @@ class PoseSensors:
 
 
 def write_sweep(
-    root: str | Path, seed: int, index: int, frames: int, dt: float = 0.1, cfg: SweepConfig | None = None
+    root: str | Path,
+    seed: int,
+    index: int,
+    frames: int,
+    dt: float = 0.1,
+    cfg: SweepConfig | None = None,
+    kinds: tuple[str, ...] = SWEEP_KINDS,
 ) -> str:
-    """Simulate and write swept scenario ``index``; returns its directory name."""
+    """Simulate and write swept scenario ``index`` (its kind ``kinds[index]``, in turn); returns its directory name."""
     cfg = cfg or SweepConfig()
-    kind = SWEEP_KINDS[index % len(SWEEP_KINDS)]
+    kind = kinds[index % len(kinds)]
     sc = sweep_scenario(scenario_seed(seed, index), kind, cfg.duration_s, cfg)
     sensors = {a: PoseSensors(np.random.default_rng([seed, index, 23, i]), cfg, dt) for i, a in enumerate(sc.agent_ids)}
 
@@ -188,12 +194,17 @@ def write_sweeps(
     cfg: SweepConfig | None = None,
     workers: int | None = None,
     progress: bool = True,
+    kinds: tuple[str, ...] = SWEEP_KINDS,
 ) -> list[str]:
-    """``n_scenarios`` swept sequences of ``frames`` frames into ``root`` (deterministic for ``seed``)."""
+    """``n_scenarios`` swept sequences of ``frames`` frames into ``root`` (deterministic for ``seed``), of
+    ``kinds`` in turn."""
     if n_scenarios < 1 or frames < 2:
         raise ValueError(f"need n_scenarios >= 1 and frames >= 2, got {n_scenarios}, {frames}")
+    unknown = [k for k in kinds if k not in SWEEP_KINDS]
+    if unknown or not kinds:
+        raise ValueError(f"kinds must be among {SWEEP_KINDS}, got {kinds!r}")
     Path(root).mkdir(parents=True, exist_ok=True)
-    args = [(str(root), seed, i, frames, dt, cfg) for i in range(n_scenarios)]
+    args = [(str(root), seed, i, frames, dt, cfg, tuple(kinds)) for i in range(n_scenarios)]
     return run_pool(_write_sweep_star, args, workers, "simulating sweeps", "sequence", progress)
 
 
