@@ -421,3 +421,37 @@ def test_a_cars_burst_of_requests_costs_its_own_latency_not_another_cars():
     s.put_request(req("car3", 9))
     s.put_frame(Job("car2", now[0], "zenoh", data=bytes([201])))
     assert s.get(0).sender == "car2"
+
+
+def test_a_car_is_charged_the_cpu_its_jobs_used_engine_threads_included():
+    """Issue 47: an acquisition keeps both cores busy (its parallel parts run on the engine's pool) while a tracked
+    frame mostly uses one, so wall time undercharges the car whose every request is an acquisition. A job's
+    ``cpu_s`` (what the worker measured) is charged instead of its wall time; ``metered`` counts the pool parts'
+    CPU beside the calling thread's, checked against each part's own thread CPU."""
+    import time as _time
+
+    from bb_align.engine.parallel import metered, run_parts
+
+    now = [0.0]
+    s = Scheduler(clock=lambda: now[0], half_life_s=1e9)
+    s.put_frame(Job("car1", 0.0, "zenoh", data=b"x"))
+    job = s.get(0)
+    now[0] += 0.05  # 50 ms of wall time ...
+    job.cpu_s = 0.09  # ... in which the job used 90 ms of CPU on two threads
+    s.done(job)
+    assert abs(s.usage("car1") - 0.09) < 1e-12
+
+    own: list[float] = []
+
+    def busy(_):
+        t0 = _time.thread_time()
+        while _time.thread_time() - t0 < 0.03:
+            pass
+        own.append(_time.thread_time() - t0)
+
+    with metered() as cpu:
+        run_parts(busy, [0, 1])
+    assert len(own) == 2 and cpu.seconds >= sum(own) - 1e-3  # the caller waited; its parts did the work
+    with metered() as idle:
+        _time.sleep(0.03)
+    assert idle.seconds < 0.01  # waiting is not use

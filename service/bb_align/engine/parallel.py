@@ -1,10 +1,15 @@
 """The engine's few parallel sections share small thread pools (OpenCV and numpy release the GIL in the
-heavy calls: inverse DFTs, gathers, histograms)."""
+heavy calls: inverse DFTs, gathers, histograms). ``metered`` counts the CPU a call costs, its parts on the pools
+included: a caller that shares the machine fairly (the service's scheduler) charges a job what it used, not its
+wall time (an acquisition keeps two cores busy, a tracked frame mostly one)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from functools import lru_cache
 from typing import TypeVar
 
@@ -23,8 +28,49 @@ def contiguous(items: Sequence[T], parts: int) -> list[Sequence[T]]:
     return [items[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
+class CpuMeter:
+    """CPU seconds of the thread that opened it (``metered``) and of the pool parts it ran, since it opened."""
+
+    def __init__(self):
+        self._start, self._parts, self._lock = time.thread_time(), 0.0, threading.Lock()
+
+    def add(self, seconds: float) -> None:
+        with self._lock:
+            self._parts += seconds
+
+    @property
+    def seconds(self) -> float:
+        with self._lock:
+            return time.thread_time() - self._start + self._parts
+
+
+_local = threading.local()
+
+
+@contextmanager
+def metered() -> Iterator[CpuMeter]:
+    """Count the CPU this thread spends inside the block, with the pool parts it runs (``run_parts``)."""
+    meter, outer = CpuMeter(), getattr(_local, "meter", None)
+    _local.meter = meter
+    try:
+        yield meter
+    finally:
+        _local.meter = outer
+
+
 def run_parts(fn: Callable[[T], R], parts: Sequence[T]) -> list[R]:
     """fn over each part, in order; on a shared pool when there is more than one part."""
     if len(parts) <= 1:
         return [fn(p) for p in parts]
-    return list(_pool(len(parts)).map(fn, parts))
+    meter = getattr(_local, "meter", None)
+    if meter is None:
+        return list(_pool(len(parts)).map(fn, parts))
+
+    def counted(part: T) -> R:
+        t0 = time.thread_time()
+        try:
+            return fn(part)
+        finally:
+            meter.add(time.thread_time() - t0)
+
+    return list(_pool(len(parts)).map(counted, parts))

@@ -30,6 +30,7 @@ from enum import Enum
 import numpy as np
 
 from bb_align.engine.frame import PreparedFrame
+from bb_align.engine.parallel import metered
 from bb_align.engine.pipeline import Aligner
 from bb_align.engine.result import AlignResult
 from bb_align.protocol import (
@@ -597,7 +598,9 @@ class AlignService:
             if job is None:
                 return
             try:
-                self._handle(job)
+                with metered() as cpu:  # charged to the car: an acquisition keeps both cores busy
+                    self._handle(job)
+                job.cpu_s = cpu.seconds
             finally:  # only after the answer left: the sender's next frame cannot overtake it
                 self.scheduler.done(job)
 

@@ -6,8 +6,9 @@ latest only); a newer frame pushes the oldest out and the push reports it as dro
 ``/v1/align``, Zenoh queries) must each be answered, so they wait in a FIFO per sender, ``max_requests`` in all;
 when full, a request of a sender holding fewer than the one holding most pushes out that one's newest (answered
 "overloaded", ``on_pushed_out``), otherwise it is refused. ``priority`` senders go first; among the others a
-worker takes the ready one whose car has had the least of the workers' time lately (``usage``: worker-seconds
-of its stream frames, requests and cross-checks together, halving every ``half_life_s``), in order of readiness
+worker takes the ready one whose car has had the least of the workers' time lately (``usage``: the CPU seconds
+of its stream frames, requests and cross-checks together, their engine threads included, as the worker measured
+them (``Job.cpu_s``; else the job's wall time), halving every ``half_life_s``), in order of readiness
 among equals. A car's next request also waits, although a worker is free, while another car active in the
 last ``active_s`` had less of the workers' time by more than ``fair_slack_s`` (frames are never held: they come
 at the car's own rate). So both doors feed one fair schedule: a car's burst of REST requests waits behind the
@@ -56,6 +57,7 @@ class Job:
     meta: dict = field(default_factory=dict)
     heavy: bool = False  # taken as a heavy job (counted against max_background until done)
     started: float | None = None  # when a worker took it (background jobs: charged to background_share)
+    cpu_s: float | None = None  # the CPU it used, its engine threads included (charged instead of its wall time)
 
 
 class Scheduler:
@@ -289,12 +291,12 @@ class Scheduler:
         return self.max_background
 
     def done(self, job: Job) -> None:
-        """A worker finished a job; its car is charged the time it took and its sender may be scheduled again
-        (an empty queue is let go)."""
+        """A worker finished a job; its car is charged what it used (``cpu_s``, else the time it took) and its
+        sender may be scheduled again (an empty queue is let go)."""
         with self._cv:
             if job.started is not None and job.sender:
                 car = self._owner(job.sender)
-                self._charge(car, self._clock() - job.started)
+                self._charge(car, job.cpu_s if job.cpu_s is not None else self._clock() - job.started)
                 if car not in self.priority and not car.startswith("@"):
                     self._last_done[car] = self._clock()
                     if len(self._last_done) > 4096:  # bounded: the longest idle are forgotten
