@@ -32,7 +32,7 @@ import numpy as np
 import typer
 
 from bb_align.engine.config import TrackConfig
-from bb_align.engine.evidence import OffsetSample, SharedError, StreamEvidence
+from bb_align.engine.evidence import OffsetSample, SharedError, StreamEvidence, moved_m
 from bb_align.engine.geometry import log_left, se2
 from bb_align.engine.tracker import shared_error
 from bb_align.lab.recording import RECORD_HELP, output_path
@@ -87,12 +87,6 @@ def places(r: dict) -> np.ndarray | None:
     return None if odo is None else np.array([odo[0][1:], odo[1][1:]], dtype=float)
 
 
-def moved_m(a: dict, b: dict) -> float:
-    """The larger of the two cars' moves between two frames (0 without odometry: one place)."""
-    pa, pb = places(a), places(b)
-    return 0.0 if pa is None or pb is None else float(np.linalg.norm(pa - pb, axis=1).max())
-
-
 def moments(segs: list[list[dict]], window_s: float, lo_m: float = 0.0, hi_m: float = np.inf):
     """Per axis (yaw, x, y): the mean product of the whitened errors of frame pairs at most window_s apart whose
     cars moved between lo_m and hi_m (metres) between them, the number of such pairs, and the mean square of a
@@ -101,12 +95,13 @@ def moments(segs: list[list[dict]], window_s: float, lo_m: float = 0.0, hi_m: fl
     for seg in segs:
         w = [whitened(r) for r in seg]
         t = [r["stamp"] for r in seg]
+        moved = moved_m([places(r) for r in seg])  # as the stream counts it (0 without odometry: one place)
         squares, frames = squares + sum(x**2 for x in w), frames + len(w)
         for i in range(len(seg)):
             for j in range(i + 1, len(seg)):
                 if t[j] - t[i] > window_s:
                     break
-                if lo_m <= moved_m(seg[i], seg[j]) <= hi_m:
+                if lo_m <= moved[i, j] <= hi_m:
                     prods, pairs = prods + w[i] * w[j], pairs + 1
     return (prods / max(pairs, 1)).tolist(), pairs, (squares / max(frames, 1)).tolist()
 

@@ -33,6 +33,15 @@ from .geometry import se2
 _FLOOR = np.diag([1e-12, 1e-9, 1e-9])  # keeps the spread invertible when every error is shared (rho 1, no drift)
 
 
+def moved_m(places: list[np.ndarray | None]) -> np.ndarray:
+    """(n, n): how far the cars moved between frames i and j taken at ``places`` ((2, 2) each: each car's position
+    in its own odometry frame), the larger of the two cars' moves; 0 (one place) when any place is unknown."""
+    if any(p is None for p in places):
+        return np.zeros((len(places),) * 2)
+    xy = np.asarray(places, dtype=float)  # (n, 2 cars, 2)
+    return np.linalg.norm(xy[:, None] - xy[None, :], axis=-1).max(axis=-1)
+
+
 @dataclass(frozen=True)
 class SharedError:
     """What two frames' errors share (their whitened errors' cross moment, ``rho``) by how far the cars moved
@@ -54,13 +63,7 @@ class SharedError:
         """(n, n) correlations of frames taken at ``places`` ((2, 2): each car's position in its own odometry
         frame; None: unknown, taken as the same place), 1 on the diagonal, projected onto the PSD cone (a
         correlation by moved distance need not be one)."""
-        n = len(places)
-        if self.far is None or any(p is None for p in places):
-            moved = np.zeros((n, n))
-        else:
-            xy = np.asarray(places, dtype=float)  # (n, 2 cars, 2)
-            moved = np.linalg.norm(xy[:, None] - xy[None, :], axis=-1).max(axis=-1)
-        R = self.rho(moved)
+        R = self.rho(moved_m(places))
         np.fill_diagonal(R, 1.0)
         try:
             np.linalg.cholesky(R)
