@@ -50,10 +50,23 @@ def _pair(world_xy: np.ndarray, T_ego_peer: np.ndarray):
 
 
 def test_score_kernel_matches_plain_numpy():
-    ego, pts = _pair(_street(None), se2(np.radians(3.0), 4.0, 1.0))
+    walls_at_edges = [_segment((-90, y), (90, y)) for y in (-39.5, 39.5)] + [
+        _segment((x, -90), (x, 90)) for x in (-39.5, 39.5)
+    ]
+    ego, pts = _pair(np.concatenate([_street(None), *walls_at_edges]), se2(np.radians(3.0), 4.0, 1.0))
+    T = se2(np.radians(2.5), 3.6, 1.2)
+    # and points whose grid of offsets runs partly off the fields, at every edge and corner (each point's block of
+    # offsets is clipped to the fields)
+    edge = np.linspace(RANGE - 0.7, RANGE + 0.7, 15) + 0.037  # off the cell boundaries: no ties in floor()
+    across = np.linspace(-30.0, 30.0, 15) + 0.013
+    at_edges_ego = np.concatenate(
+        [np.column_stack([across, edge]), np.column_stack([across, -edge]), np.column_stack([edge, across])]
+        + [np.column_stack([-edge, across]), np.column_stack([edge, edge]), np.column_stack([-edge, edge[::-1]])]
+    )
+    T_peer_ego = np.linalg.inv(T)
+    pts = np.vstack([pts, at_edges_ego @ T_peer_ego[:2, :2].T + T_peer_ego[:2, 2]])
     field = likelihood_field(ego, CFG.sigma_m, CFG.step_m)
     wide = likelihood_field(ego, CFG.wide_sigma_m, CFG.step_m)
-    T = se2(np.radians(2.5), 3.6, 1.2)
     yaws = np.radians([-0.3, 0.0, 0.4])
     scores = score_grid((field, wide), ego, pts, T, yaws, 2, CFG.step_m)
     yaw0, tx, ty = se2_params(T)

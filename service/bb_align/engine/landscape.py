@@ -77,39 +77,46 @@ def likelihood_field(ego: BevCloud, sigma_m: float, step_m: float) -> np.ndarray
 
 @njit(cache=True, nogil=True)
 def _score_grid(fields, pts, yaws, n_off, cx, cy, range_m, step_m, out):
-    """out[k, a, b] = the sum of the narrow field (``fields[..., 0]``) over the sum of the wide one (``[..., 1]``)
-    at ``pts`` rotated by yaws[k] and moved to (cx + (a - n_off) step_m, cy + (b - n_off) step_m); a point off the
-    fields counts in neither. Point by point, each adding its (2 n_off + 1)^2 block of both fields (interleaved: one
-    cache line serves both), where pose by pose every point would be a cache miss; each sum still runs over the
-    points in order, so the result is the same to the bit."""
-    h_img, w_img = fields.shape[0], fields.shape[1]
+    """out[k, a, b] = the sum of the narrow field over the sum of the wide one at ``pts`` rotated by yaws[k] and
+    moved to (cx + (a - n_off) step_m, cy + (b - n_off) step_m); a point off the fields counts in neither.
+    ``fields``: ``_layout``'s (H, 2 W), the columns reversed and the two fields interleaved, so that one point's
+    (2 n_off + 1) column offsets in a row are one contiguous run of both fields, added to one contiguous run of the
+    sums (a loop the compiler turns into vector adds). Point by point, each adding its block, where pose by pose
+    every point would be a cache miss; each sum still runs over the points in order: the same to the bit."""
+    h_img, w_img = fields.shape[0], fields.shape[1] // 2
     n = len(pts)
     size = 2 * n_off + 1
-    total = np.empty((size, size))
-    norm = np.empty((size, size))
+    sums = np.empty((size, 2 * size))  # [a, 2 b]: narrow, [a, 2 b + 1]: wide
     for k in range(len(yaws)):
         c, s = np.cos(yaws[k]), np.sin(yaws[k])
-        total[:] = 0.0
-        norm[:] = 0.0
+        sums[:] = 0.0
         for i in range(n):
             x = c * pts[i, 0] - s * pts[i, 1] + cx
             y = s * pts[i, 0] + c * pts[i, 1] + cy
             r0 = int(np.floor((range_m - x) / step_m)) + n_off  # the row at offset a is r0 - a
-            q0 = int(np.floor((range_m - y) / step_m)) + n_off
+            q0 = int(np.floor((range_m - y) / step_m)) + n_off  # the column at offset b is q0 - b
             a_lo, a_hi = max(0, r0 - h_img + 1), min(size, r0 + 1)
             b_lo, b_hi = max(0, q0 - w_img + 1), min(size, q0 + 1)
+            if b_hi <= b_lo:
+                continue
+            first = 2 * (w_img - 1 - q0 + b_lo)  # reversed column of offset b_lo, interleaved
+            width = 2 * (b_hi - b_lo)
             for a in range(a_lo, a_hi):
-                r = r0 - a
-                for b in range(b_lo, b_hi):
-                    total[a, b] += fields[r, q0 - b, 0]
-                    norm[a, b] += fields[r, q0 - b, 1]
+                src = fields[r0 - a, first : first + width]
+                dst = sums[a, 2 * b_lo : 2 * b_hi]
+                for j in range(width):  # slices: no index wrap-around, so the loop vectorises
+                    dst[j] += src[j]
         for a in range(size):
             for b in range(size):
-                out[k, a, b] = total[a, b] / norm[a, b] if norm[a, b] > 0 else 0.0
+                norm = sums[a, 2 * b + 1]
+                out[k, a, b] = sums[a, 2 * b] / norm if norm > 0 else 0.0
 
 
-def _stack(narrow: np.ndarray, wide: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(np.stack([narrow, wide], axis=-1), dtype=np.float32)
+def _layout(narrow: np.ndarray, wide: np.ndarray) -> np.ndarray:
+    """The two fields as ``_score_grid`` reads them: (H, 2 W) float32, columns reversed, narrow and wide
+    interleaved per cell."""
+    both = np.stack([narrow, wide], axis=-1)[:, ::-1, :]
+    return np.ascontiguousarray(both, dtype=np.float32).reshape(narrow.shape[0], 2 * narrow.shape[1])
 
 
 def score_grid(
@@ -122,13 +129,13 @@ def score_grid(
     step_m: float,
 ) -> np.ndarray:
     """S over the grid of poses (yaw of T + yaws[k], translation of T + (a, b) step_m for a, b in -n_off..n_off);
-    ``fields``: the narrow and the wide likelihood field at ``step_m`` cells, stacked (H, W, 2) as ``Fields``
-    keeps them, or a pair. The yaws are cut into parts scored in parallel. Rotation is about the peer's sensor (T's
+    ``fields``: the narrow and the wide likelihood field at ``step_m`` cells as ``Fields`` keeps them (``_layout``),
+    or a pair (H, W) each. The yaws are cut into parts scored in parallel. Rotation is about the peer's sensor (T's
     own parameters)."""
     yaw0, tx, ty = se2_params(T)
     pts = np.ascontiguousarray(pts_peer, dtype=np.float64)
     size = 2 * n_off + 1
-    stacked = fields if isinstance(fields, np.ndarray) else _stack(*fields)
+    stacked = fields if isinstance(fields, np.ndarray) else _layout(*fields)
 
     def part(ks: np.ndarray) -> np.ndarray:
         out = np.zeros((len(ks), size, size))
@@ -225,13 +232,13 @@ def _inside(ego: BevCloud, pts_peer: np.ndarray, poses: list[np.ndarray], margin
 class Fields:
     """The ego image's likelihood field at the coarse and the fine grid's cells (built once per ego frame)."""
 
-    coarse: np.ndarray  # (H, W, 2) float32: narrow, wide
+    coarse: np.ndarray  # (H, 2 W) float32: narrow and wide as _score_grid reads them (_layout)
     fine: np.ndarray
 
     @classmethod
     def of(cls, ego: BevCloud, cfg: LandscapeConfig) -> Fields:
         def pair(step: float) -> np.ndarray:
-            return _stack(likelihood_field(ego, cfg.sigma_m, step), likelihood_field(ego, cfg.wide_sigma_m, step))
+            return _layout(likelihood_field(ego, cfg.sigma_m, step), likelihood_field(ego, cfg.wide_sigma_m, step))
 
         return cls(pair(2 * cfg.step_m), pair(cfg.step_m))
 
