@@ -381,6 +381,24 @@ def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent(
     assert s.get(0).sender == "@bg:car3"  # nothing else waits: it runs anyway
 
 
+def test_a_cross_check_is_charged_its_cpu_not_its_wall_time():
+    """A cross-check runs its acquisition on both cores: 0.2 s of wall time may be 0.35 s of CPU. The share is
+    of the workers' CPU, so it is charged what the worker measured (``Job.cpu_s``)."""
+    now = [0.0]
+    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
+                  clock=lambda: now[0])  # fmt: skip
+    job = lambda sender: Job(sender, now[0], "test")  # noqa: E731
+    now[0] = 1.0  # a full bucket: 0.5 worker-seconds
+    s.put_frame(job("@bg:car1"))
+    bg = s.get(0)
+    now[0] += 0.2  # 0.2 s of wall time would leave 0.3 in the bucket ...
+    bg.cpu_s = 0.55  # ... but it used 0.55 s of CPU: spent
+    s.done(bg)
+    for sender in ("@bg:car3", "car4"):
+        s.put_frame(job(sender))
+    assert s.get(0).sender == "car4"  # the tracked frame goes first: the share is spent
+
+
 def test_a_cars_burst_of_requests_costs_its_own_latency_not_another_cars():
     """Issue 47: 8 threads posting one car's frames to /v1/align took 54 % of the engine (one FIFO of requests,
     one round-robin turn per request) and the other cars kept 0.61-0.63 of their results. Now requests wait per

@@ -65,14 +65,22 @@ class GaussianPrior:
         return -0.5 * ((d[:, 0] / np.radians(self.sigma_deg)) ** 2 + (d[:, 1] ** 2 + d[:, 2] ** 2) / self.sigma_m**2)
 
 
+def _exp_field(ego: BevCloud, sigma_m: float) -> np.ndarray:
+    """(H, W) float32 at the ego image's pixels: exp(-d^2 / 2 sigma^2) of the distance d to the nearest lit pixel."""
+    d = ego.clearance.astype(np.float64) * ego.resolution_m
+    return np.exp(-0.5 * (d / sigma_m) ** 2).astype(np.float32)
+
+
+def _cells(field: np.ndarray, range_m: float, step_m: float) -> np.ndarray:
+    n = int(round(2 * range_m / step_m))
+    return cv2.resize(field, (n, n), interpolation=cv2.INTER_LINEAR)
+
+
 def likelihood_field(ego: BevCloud, sigma_m: float, step_m: float) -> np.ndarray:
     """(H', W') float32 on a grid of ``step_m`` cells over the ego image (bilinear from its pixel centres):
     exp(-d^2 / 2 sigma^2) of the distance d to the nearest ego lit pixel. The grid's translations are whole cells
     of it, so scoring a pose is one look-up per point."""
-    d = ego.clearance.astype(np.float64) * ego.resolution_m
-    field = np.exp(-0.5 * (d / sigma_m) ** 2).astype(np.float32)
-    n = int(round(2 * ego.range_m / step_m))
-    return cv2.resize(field, (n, n), interpolation=cv2.INTER_LINEAR)
+    return _cells(_exp_field(ego, sigma_m), ego.range_m, step_m)
 
 
 @njit(cache=True, nogil=True)
@@ -114,9 +122,9 @@ def _score_grid(fields, pts, yaws, n_off, cx, cy, range_m, step_m, out):
 
 def _layout(narrow: np.ndarray, wide: np.ndarray) -> np.ndarray:
     """The two fields as ``_score_grid`` reads them: (H, 2 W) float32, columns reversed, narrow and wide
-    interleaved per cell."""
-    both = np.stack([narrow, wide], axis=-1)[:, ::-1, :]
-    return np.ascontiguousarray(both, dtype=np.float32).reshape(narrow.shape[0], 2 * narrow.shape[1])
+    interleaved per cell (OpenCV's merge and flip: a copy each, where numpy's stack and reversed view cost 4x)."""
+    both = cv2.flip(cv2.merge([np.asarray(narrow, np.float32), np.asarray(wide, np.float32)]), 1)
+    return both.reshape(narrow.shape[0], 2 * narrow.shape[1])
 
 
 def score_grid(
@@ -237,10 +245,12 @@ class Fields:
 
     @classmethod
     def of(cls, ego: BevCloud, cfg: LandscapeConfig) -> Fields:
-        def pair(step: float) -> np.ndarray:
-            return _layout(likelihood_field(ego, cfg.sigma_m, step), likelihood_field(ego, cfg.wide_sigma_m, step))
+        narrow, wide = _exp_field(ego, cfg.sigma_m), _exp_field(ego, cfg.wide_sigma_m)  # once for both grids
 
-        return cls(pair(2 * cfg.step_m), pair(cfg.step_m))
+        def cells(step: float) -> np.ndarray:
+            return _layout(_cells(narrow, ego.range_m, step), _cells(wide, ego.range_m, step))
+
+        return cls(cells(2 * cfg.step_m), cells(cfg.step_m))
 
 
 @dataclass

@@ -33,7 +33,7 @@ import numpy as np
 import typer
 
 from .harness import ServiceProcess, fleet_credentials, free_port, make_credentials, simulated_cars, start_service
-from .soak_attacks import ATTACKS, Sender, expected_errors
+from .soak_attacks import ATTACKS, REFUSED_AT_DECODE, Sender, expected_errors
 from .soak_phases import (
     UNVERIFIED,
     FloodPhase,
@@ -48,6 +48,7 @@ from .soak_phases import (
     percentiles,
     quiesce,
     refusal_notices,
+    refused_at_decode,
     results_by_phase,
     run_odd_shapes,
     start_flood,
@@ -75,13 +76,15 @@ def start_soak_service(workers: int, log_dir: Path, keys_dir: Path, timeout_s: f
     return start_service(settings, None, log_dir, timeout_s)
 
 
-def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, n_peers) -> tuple[dict, dict]:
-    """(report parts, checks) of the warm-up and attack phases, from the counters read after they drained."""
-    sent, valid_per_peer, signed_attacks = Counter(), Counter(), Counter()
+def _attack_report(
+    snap: Snapshot, traffic: Traffic, results, latency, signers, n_peers, decode_refused: set[tuple[str, int]]
+) -> tuple[dict, dict]:
+    sent, valid_per_peer, signed_attacks, decoded = Counter(), Counter(), Counter(), Counter()
     for phase in ATTACK_PHASES:
         sent.update(traffic.sent[phase])
         valid_per_peer.update(traffic.valid_per_peer[phase])
         signed_attacks.update(traffic.signed_attacks[phase])
+        decoded.update(traffic.decoded[phase])
     got = Counter()
     for phase in ATTACK_PHASES:
         got.update(results.get(phase, Counter()))
@@ -89,11 +92,16 @@ def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, 
     rejected = label_values(metrics, "bbalign_frames_rejected_total", "error")
     dropped = label_values(metrics, "bbalign_frames_dropped_total", "peer")
     attacks_sent = sum(sent[k] for k in ATTACKS)
+    # Frames the gate admits as the car's own (valid ones, and REFUSED_AT_DECODE attacks), and the attacks it refuses.
+    gate_attacks_sent = attacks_sent - sum(decoded.values())
+    refused_decoding = len(decode_refused & traffic.decoded_keys)
     errors = expected_errors(signers)
-    expected = Counter(errors[k] for k in ATTACKS for _ in range(sent[k]))
+    expected = Counter(errors[k] for k in ATTACKS if k not in REFUSED_AT_DECODE for _ in range(sent[k]))
+    expected.update(errors[k] for k in REFUSED_AT_DECODE for _ in range(refused_decoding))
     per_peer = {
         vid: {
             "valid_sent": valid_per_peer[vid],
+            "admitted_sent": valid_per_peer[vid] + decoded[vid],
             "signed_attacks_sent": signed_attacks[vid],
             "accepted": p["frames_accepted"],
             "results": p["results"],
@@ -106,7 +114,7 @@ def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, 
     }
     # A full intake lane (the gate stalled) pushes out messages signed by a car: its valid frames or its signed
     # attacks; the rest of the attacks are refused (or, unsigned, dropped in the unverified lane).
-    attacks_dropped = sum(v["intake_dropped"] - (v["valid_sent"] - v["accepted"]) for v in per_peer.values())
+    attacks_dropped = sum(v["intake_dropped"] - (v["admitted_sent"] - v["accepted"]) for v in per_peer.values())
     attacks_dropped += dropped.get(UNVERIFIED, 0.0)
     refused = sum(rejected.values())
     checks = {
@@ -114,15 +122,18 @@ def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, 
             v["accepted"] == v["results"] + v["dropped"] for v in per_peer.values()
         ),
         "every_valid_frame_accepted_or_dropped_at_intake": all(
-            v["valid_sent"] <= v["accepted"] + v["intake_dropped"] <= v["valid_sent"] + v["signed_attacks_sent"]
+            v["admitted_sent"] <= v["accepted"] + v["intake_dropped"] <= v["valid_sent"] + v["signed_attacks_sent"]
             for v in per_peer.values()
         ),
         "every_result_received": all(v["results"] == v["results_received"] for v in per_peer.values()),
         "every_attack_refused_with_the_right_error": all(
             rejected.get(e, 0) >= n - attacks_dropped for e, n in expected.items()
         ),
-        "no_valid_frame_refused": refused + attacks_dropped == attacks_sent
-        and all(v["accepted"] <= v["valid_sent"] for v in per_peer.values()),
+        # refused at the gate or, REFUSED_AT_DECODE, by a worker (only those frames: decode_refused); such an
+        # attack replaced unread is a dropped frame of its car, as any replaced frame
+        "no_valid_frame_refused": refused - refused_decoding + attacks_dropped == gate_attacks_sent
+        and decode_refused <= traffic.decoded_keys
+        and all(v["accepted"] <= v["admitted_sent"] for v in per_peer.values()),
         "peers_tracked_bounded": metrics.get("bbalign_peers_tracked", 1e9) <= n_peers + 1,
     }
     report = {
@@ -138,6 +149,8 @@ def _attack_report(snap: Snapshot, traffic: Traffic, results, latency, signers, 
             "rejected": rejected,
             "rejected_total": refused,
             "attacks_dropped_at_intake": attacks_dropped,
+            "refused_at_decode": refused_decoding,
+            "not_decoded": sum(decoded.values()) - refused_decoding,
             "dropped": dropped,
             "results_produced": sum(p["results"] for p in peers.values()),
             "results_received": sum(got.values()),
@@ -261,7 +274,9 @@ def run_soak(
     with arrivals.lock:
         items = list(arrivals.items)
     results, latency, outcomes = results_by_phase(items, traffic.sent_at)
-    report, checks = _attack_report(snaps["attacks"], traffic, results, latency, signers, n_peers)
+    report, checks = _attack_report(
+        snaps["attacks"], traffic, results, latency, signers, n_peers, refused_at_decode(items)
+    )
     report["service"]["outcomes"] = dict(sum((outcomes[p] for p in ATTACK_PHASES), Counter()))
     notices = refusal_notices(items)
     report["service"]["refusal_notices"] = dict(notices)

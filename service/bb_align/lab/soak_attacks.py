@@ -31,6 +31,10 @@ EXPECTED_ERROR = {
     "oversized": "too_large",
 }
 SIGNED_BY_THE_CAR = ("replay", "nan_box", "png_bomb", "spoofed_id")  # attacks with the car's own genuine signature
+# Signed, well-formed frames whose fault shows only when a worker decodes them (the PNG's image data is inflated
+# then, not at the gate): admitted as the car's latest frame, then refused with a failed result (invalid_frame),
+# or replaced unread by the car's next frame (counted as dropped, as any replaced frame).
+REFUSED_AT_DECODE = ("png_bomb",)
 Key = Credential | str  # a vehicle's Ed25519 credential, or an HMAC secret (the fleet key)
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from .flood import FloodConfig, FloodProcess
-from .soak_attacks import ATTACKS, SIGNED_BY_THE_CAR, Sender
+from .soak_attacks import ATTACKS, REFUSED_AT_DECODE, SIGNED_BY_THE_CAR, Sender
 
 UNVERIFIED = "(unverified)"  # the service's label of drops before the gate knew the sender
 LANES = ("ego", "signed", "unverified")
@@ -110,6 +110,8 @@ class Traffic:
         self.sent: dict[str, Counter] = defaultdict(Counter)  # phase -> kind -> messages
         self.valid_per_peer: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> valid frames
         self.signed_attacks: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> attacks it signed
+        self.decoded: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> REFUSED_AT_DECODE sent
+        self.decoded_keys: set[tuple[str, int]] = set()  # their (vehicle id, seq)
         self.oversized_every_s = 5.0
         self._last_oversized = -1e9
 
@@ -164,6 +166,10 @@ class Traffic:
                 self.sent[phase][kind] += 1
                 if kind in SIGNED_BY_THE_CAR:
                     self.signed_attacks[phase][vid] += 1
+                if kind in REFUSED_AT_DECODE:  # admitted as the car's frame: its answer is a result
+                    self.sent_at[(vid, k)] = (time.perf_counter(), phase)
+                    self.decoded[phase][vid] += 1
+                    self.decoded_keys.add((vid, k))
                 continue
             self.pubs[vid].publish(self.sender.valid(frame, stamp, k))
             self.sent_at[(vid, k)] = (time.perf_counter(), phase)
@@ -602,6 +608,18 @@ def results_by_phase(items: list[tuple[float, bytes]], sent_at: dict) -> tuple[d
         latency[sent[1]].append((t_recv - sent[0]) * 1e3)
         outcomes[sent[1]]["success" if r.success else r.reason] += 1
     return counts, latency, outcomes
+
+
+def refused_at_decode(items: list[tuple[float, bytes]]) -> set[tuple[str, int]]:
+    """(vehicle id, seq) of the frames answered ``invalid_frame``: refused when a worker decoded them."""
+    from bb_align.protocol import Refusal, load_answer
+
+    out = set()
+    for _, data in items:
+        r = load_answer(data)
+        if not isinstance(r, Refusal) and r.reason == "invalid_frame":
+            out.add((r.peer_id, r.peer_seq))
+    return out
 
 
 def refusal_notices(items: list[tuple[float, bytes]]) -> Counter:

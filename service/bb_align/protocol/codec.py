@@ -156,7 +156,13 @@ def _precheck(obj: dict, limits: Limits, f) -> None:
 
 
 def _frame_from(
-    obj: Any, limits: Limits, encoding: str, keyring: Keyring | None, now: float | None, where: str = ""
+    obj: Any,
+    limits: Limits,
+    encoding: str,
+    keyring: Keyring | None,
+    now: float | None,
+    where: str = "",
+    inflate_png: bool = True,
 ) -> Frame:
     """A decoded map (a Frame, or a Signed envelope holding one) -> a checked Frame."""
     f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
@@ -186,7 +192,7 @@ def _frame_from(
         )
     _precheck(obj, limits, f)
     frame: Frame = _model(Frame, obj, where)
-    validate_frame(frame, limits, where, now=now)
+    validate_frame(frame, limits, where, now=now, inflate_png=inflate_png)
     if signer is not None:
         try:
             keyring.authorize(signer, frame.vehicle_id)
@@ -219,13 +225,21 @@ def peek_signed(data: bytes, limits: Limits) -> Signed | None:
 
 
 def load_frame(
-    data: bytes, limits: Limits, encoding: str = MSGPACK, *, keyring: Keyring | None = None, now: float | None = None
+    data: bytes,
+    limits: Limits,
+    encoding: str = MSGPACK,
+    *,
+    keyring: Keyring | None = None,
+    now: float | None = None,
+    inflate_png: bool = True,
 ) -> Frame:
     """Untrusted bytes (a Frame or a Signed frame) -> a checked Frame (raises WireError, nothing else).
 
     ``keyring``: verify signatures (and refuse unsigned frames when it requires them); ``now``: the receiver's
-    clock (time.time()) for the stamp window; without it only the absolute stamp range is checked."""
-    return _frame_from(_unpack(data, encoding, limits), limits, encoding, keyring, now)
+    clock (time.time()) for the stamp window; without it only the absolute stamp range is checked.
+    ``inflate_png=False``: the PNG's image data is not inflated here but when the frame is decoded
+    (``Frame.bev_image``), for a receiver that may replace the frame unread (``check_png``)."""
+    return _frame_from(_unpack(data, encoding, limits), limits, encoding, keyring, now, inflate_png=inflate_png)
 
 
 def load_align_request(

@@ -13,9 +13,12 @@ from .models import Frame
 from .png import check_png
 
 
-def validate_frame(frame: Frame, limits: Limits, where: str = "", now: float | None = None) -> None:
+def validate_frame(
+    frame: Frame, limits: Limits, where: str = "", now: float | None = None, *, inflate_png: bool = True
+) -> None:
     """Check a decoded Frame against the limits (raises WireError). The PNG is checked chunk by chunk and its
-    image data inflated under a bound; OpenCV decodes nothing here.
+    image data inflated under a bound (``inflate_png=False``: left to ``Frame.bev_image``, see ``check_png``);
+    OpenCV decodes nothing here.
 
     Field-level rules (types, ranges, finite numbers, id format, schema version) are already enforced by the
     models; this adds the limits that depend on settings, on the receiver's clock and on the image content."""
@@ -60,7 +63,7 @@ def validate_frame(frame: Frame, limits: Limits, where: str = "", now: float | N
                 limits.max_resampled_px,
                 limit_env("max_resampled_px"),
             )
-    check_png(frame.png, n, limits, f("png"))
+    check_png(frame.png, n, limits, f("png"), inflate=inflate_png)
     _check_boxes(frame, limits, f)
     for field_name in ("pose", "odometry"):
         pose = getattr(frame, field_name)

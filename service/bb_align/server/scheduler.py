@@ -271,7 +271,9 @@ class Scheduler:
     def _background_held(self) -> bool:
         """Whether background jobs must let light ones go first: their share of the workers' time is spent and a
         light job is waiting. Their number grows with the tracks (a cross-check per track every few seconds, each
-        ~0.3 s); unbounded, 16 peers' cross-checks took a whole worker from the tracked frames (issue 47)."""
+        ~0.3 s); unbounded, 16 peers' cross-checks took a whole worker from the tracked frames (issue 47). A job
+        is charged its CPU (``Job.cpu_s``) as a car is: a cross-check keeps both cores busy for much of its wall
+        time, and charged wall time the share let cross-checks take about half again as much CPU."""
         if self.background_share is None:
             return False
         now = self._clock()
@@ -308,8 +310,8 @@ class Scheduler:
                 job.heavy = False
                 self._running_background -= 1
                 if self.background_share is not None and self._background(job.sender) and job.started is not None:
-                    self._background_held()  # refill up to now, then charge the job's time
-                    self._bg_tokens -= self._clock() - job.started
+                    self._background_held()  # refill up to now, then charge what the job used
+                    self._bg_tokens -= job.cpu_s if job.cpu_s is not None else self._clock() - job.started
                 self._cv.notify()  # a heavy job held back may run now
             if job.reply is not None:
                 key = (_REQUEST, job.sender)

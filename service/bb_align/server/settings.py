@@ -231,13 +231,14 @@ class Settings(BaseSettings):
         "as a job of its own; the peer's frames are tracked meanwhile instead of waiting behind it (and dropped)",
     )
     crosscheck_share: float | None = Field(
-        0.25,
+        0.1,
         gt=0,
         le=1,
         description="cross-checks beside tracks (one per track every track.crosscheck_s, each a full acquisition) "
-        "use at most this share of all workers' time while tracked frames are waiting (any amount when none "
-        "are): their number grows with the tracks, and unbounded they took a worker from 16 peers' results; "
-        "None: no bound",
+        "use at most this share of the workers' CPU (workers x this, in cores, their engine threads counted) while "
+        "tracked frames are waiting (any amount when none are): their number grows with the tracks, and unbounded "
+        "they took a worker from 16 peers' results (0.1: 16 peers deliver what 4 do, each track cross-checked "
+        "about every 11-13 s at 16 peers, every 5-6 s at 4; docs/performance.md); None: no bound",
     )
     max_frame_wait_s: float | None = Field(
         None,

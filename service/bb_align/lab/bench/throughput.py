@@ -189,6 +189,7 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
             time.sleep(0.05)
         sub.undeclare()
         peers_status = svc.get("/v1/peers")
+        crosschecks = _engine_runs(svc, "crosscheck")
         memory = svc.memory_mb()
     finally:
         for s in senders:
@@ -255,9 +256,27 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
         "r_err_median_deg": float(np.median([e[1] for e in errors])) if errors else None,
         "service_cpu_cores": cores,
+        # the tracks' cross-checks (full acquisitions beside the tracks) over warm-up and window, and how often
+        # each track got one on average
+        "crosschecks": crosschecks,
+        "crosscheck_every_s_per_track": (n_peers * n_ticks * period / crosschecks) if crosschecks else None,
         "service_memory": memory,
         "sustained": sustained,
     }
+
+
+def _engine_runs(svc: ServiceProcess, step: str) -> int | None:
+    """How many times the service ran an engine step (its /metrics ``bbalign_engine_seconds_count``)."""
+    import httpx
+
+    try:
+        text = httpx.get(svc.rest + "/metrics", timeout=10).text
+    except httpx.HTTPError:
+        return None
+    for line in text.splitlines():
+        if line.startswith(f'bbalign_engine_seconds_count{{step="{step}"}}'):
+            return int(float(line.rsplit(" ", 1)[1]))
+    return 0
 
 
 def _keys(items):
