@@ -359,15 +359,20 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
     assert set(served.values()) == {10}
 
 
+def _cross_check_schedule():
+    """A scheduler with a background share of 0.25 on 2 workers, its bucket full (0.5 worker-seconds, fake clock)."""
+    now = [0.0]
+    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
+                  clock=lambda: now[0])  # fmt: skip
+    now[0] = 1.0  # the bucket fills over the first second
+    return s, now, lambda sender: Job(sender, now[0], "test")
+
+
 def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent():
     """Cross-checks (one per track every few seconds, each a full acquisition) grow with the tracks: unbounded, 16
     peers' cross-checks took a worker from the tracked frames. Past ``background_share`` of the workers' time they
     let waiting tracked frames go first; with nothing else waiting they still run (fake clock, no timing)."""
-    now = [0.0]
-    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
-                  clock=lambda: now[0])  # fmt: skip
-    job = lambda sender: Job(sender, now[0], "test")  # noqa: E731
-    now[0] = 1.0  # a full bucket: 0.5 worker-seconds
+    s, now, job = _cross_check_schedule()
     s.put_frame(job("@bg:car1"))
     s.put_frame(job("car2"))
     bg = s.get(0)
@@ -384,11 +389,7 @@ def test_cross_checks_yield_to_waiting_tracked_frames_once_their_share_is_spent(
 def test_a_cross_check_is_charged_its_cpu_not_its_wall_time():
     """A cross-check runs its acquisition on both cores: 0.2 s of wall time may be 0.35 s of CPU. The share is
     of the workers' CPU, so it is charged what the worker measured (``Job.cpu_s``)."""
-    now = [0.0]
-    s = Scheduler(depth=1, background_prefix="@bg:", max_background=1, workers=2, background_share=0.25,
-                  clock=lambda: now[0])  # fmt: skip
-    job = lambda sender: Job(sender, now[0], "test")  # noqa: E731
-    now[0] = 1.0  # a full bucket: 0.5 worker-seconds
+    s, now, job = _cross_check_schedule()
     s.put_frame(job("@bg:car1"))
     bg = s.get(0)
     now[0] += 0.2  # 0.2 s of wall time would leave 0.3 in the bucket ...
