@@ -122,7 +122,7 @@ def _score_grid(fields, pts, yaws, n_off, cx, cy, range_m, step_m, out):
 
 def _layout(narrow: np.ndarray, wide: np.ndarray) -> np.ndarray:
     """The two fields as ``_score_grid`` reads them: (H, 2 W) float32, columns reversed, narrow and wide
-    interleaved per cell (OpenCV's merge and flip: a copy each, where numpy's stack and reversed view cost 4x)."""
+    interleaved per cell (OpenCV's merge and flip: one copy each, cheaper than numpy's stack and reversed copy)."""
     both = cv2.flip(cv2.merge([np.asarray(narrow, np.float32), np.asarray(wide, np.float32)]), 1)
     return both.reshape(narrow.shape[0], 2 * narrow.shape[1])
 

@@ -16,12 +16,10 @@ from .png import check_png
 def validate_frame(
     frame: Frame, limits: Limits, where: str = "", now: float | None = None, *, inflate_png: bool = True
 ) -> None:
-    """Check a decoded Frame against the limits (raises WireError). The PNG is checked chunk by chunk and its
-    image data inflated under a bound (``inflate_png=False``: left to ``Frame.bev_image``, see ``check_png``);
-    OpenCV decodes nothing here.
-
-    Field-level rules (types, ranges, finite numbers, id format, schema version) are already enforced by the
-    models; this adds the limits that depend on settings, on the receiver's clock and on the image content."""
+    """Check a decoded Frame against the limits (raises WireError): the PNG chunk by chunk, its image data inflated
+    under a bound (``inflate_png=False``: left to ``Frame.bev_image``, ``check_png``), OpenCV decoding nothing.
+    Field rules (types, ranges, finite numbers, ids, schema version) are the models'; this adds the limits that
+    depend on settings, on the receiver's clock and on the image content."""
     f = lambda name: f"{where}.{name}" if where else name  # noqa: E731
     if frame.stamp > limits.max_stamp_s:
         raise invalid(

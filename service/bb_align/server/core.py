@@ -440,16 +440,9 @@ class AlignService:
             try:
                 if "refused" in job.meta:
                     raise job.meta["refused"]
-                # A stream frame's PNG data is inflated when a worker decodes it: most of a busy car's frames are
-                # replaced by its next one unread, and the check was most of what the gate spent on each.
-                job.frame = load_frame(
-                    job.data,
-                    limits,
-                    job.encoding,
-                    keyring=self.keyring,
-                    now=time.time(),
-                    inflate_png=job.reply is not None,
-                )
+                # a stream frame's PNG data is inflated by the worker: a busy car's frames are mostly replaced unread
+                checks = dict(keyring=self.keyring, now=time.time(), inflate_png=job.reply is not None)
+                job.frame = load_frame(job.data, limits, job.encoding, **checks)
                 job.data = None
                 if job.reply is None:
                     if job.frame.vehicle_id != job.sender:
