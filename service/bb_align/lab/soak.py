@@ -48,7 +48,6 @@ from .soak_phases import (
     percentiles,
     quiesce,
     refusal_notices,
-    refused_at_decode,
     results_by_phase,
     run_odd_shapes,
     start_flood,
@@ -79,12 +78,14 @@ def start_soak_service(workers: int, log_dir: Path, keys_dir: Path, timeout_s: f
 def _attack_report(
     snap: Snapshot, traffic: Traffic, results, latency, signers, n_peers, decode_refused: set[tuple[str, int]]
 ) -> tuple[dict, dict]:
-    sent, valid_per_peer, signed_attacks, decoded = Counter(), Counter(), Counter(), Counter()
+    """(report parts, checks) of the warm-up and attack phases, from the counters read after they drained.
+    ``decode_refused``: the (vehicle id, seq) of frames a worker refused when decoding them."""
+    sent, valid_per_peer, signed_attacks = Counter(), Counter(), Counter()
     for phase in ATTACK_PHASES:
         sent.update(traffic.sent[phase])
         valid_per_peer.update(traffic.valid_per_peer[phase])
         signed_attacks.update(traffic.signed_attacks[phase])
-        decoded.update(traffic.decoded[phase])
+    decoded = Counter(vid for vid, k in traffic.decoded_keys if traffic.sent_at[(vid, k)][1] in ATTACK_PHASES)
     got = Counter()
     for phase in ATTACK_PHASES:
         got.update(results.get(phase, Counter()))
@@ -273,10 +274,8 @@ def run_soak(
 
     with arrivals.lock:
         items = list(arrivals.items)
-    results, latency, outcomes = results_by_phase(items, traffic.sent_at)
-    report, checks = _attack_report(
-        snaps["attacks"], traffic, results, latency, signers, n_peers, refused_at_decode(items)
-    )
+    results, latency, outcomes, decode_refused = results_by_phase(items, traffic.sent_at)
+    report, checks = _attack_report(snaps["attacks"], traffic, results, latency, signers, n_peers, decode_refused)
     report["service"]["outcomes"] = dict(sum((outcomes[p] for p in ATTACK_PHASES), Counter()))
     notices = refusal_notices(items)
     report["service"]["refusal_notices"] = dict(notices)

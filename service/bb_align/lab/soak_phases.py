@@ -110,8 +110,7 @@ class Traffic:
         self.sent: dict[str, Counter] = defaultdict(Counter)  # phase -> kind -> messages
         self.valid_per_peer: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> valid frames
         self.signed_attacks: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> attacks it signed
-        self.decoded: dict[str, Counter] = defaultdict(Counter)  # phase -> vehicle id -> REFUSED_AT_DECODE sent
-        self.decoded_keys: set[tuple[str, int]] = set()  # their (vehicle id, seq)
+        self.decoded_keys: set[tuple[str, int]] = set()  # (vehicle id, seq) of the REFUSED_AT_DECODE attacks sent
         self.oversized_every_s = 5.0
         self._last_oversized = -1e9
 
@@ -168,7 +167,6 @@ class Traffic:
                     self.signed_attacks[phase][vid] += 1
                 if kind in REFUSED_AT_DECODE:  # admitted as the car's frame: its answer is a result
                     self.sent_at[(vid, k)] = (time.perf_counter(), phase)
-                    self.decoded[phase][vid] += 1
                     self.decoded_keys.add((vid, k))
                 continue
             self.pubs[vid].publish(self.sender.valid(frame, stamp, k))
@@ -589,14 +587,18 @@ def run_odd_shapes(target, traffic: Traffic, cfg: OddShapesPhase, *, progress: b
     }
 
 
-def results_by_phase(items: list[tuple[float, bytes]], sent_at: dict) -> tuple[dict[str, Counter], dict, dict]:
+def results_by_phase(
+    items: list[tuple[float, bytes]], sent_at: dict
+) -> tuple[dict[str, Counter], dict, dict, set[tuple[str, int]]]:
     """Results received, per phase of the frame they answer: per peer, latencies (ms) and outcomes (success or
-    the failure reason)."""
+    the failure reason); and the (vehicle id, seq) of the frames answered ``invalid_frame`` (refused when a worker
+    decoded them)."""
     from bb_align.protocol import Refusal, load_answer
 
     counts: dict[str, Counter] = defaultdict(Counter)
     latency: dict[str, list[float]] = defaultdict(list)
     outcomes: dict[str, Counter] = defaultdict(Counter)
+    refused_decoding: set[tuple[str, int]] = set()
     for t_recv, data in items:
         r = load_answer(data)
         if isinstance(r, Refusal):  # a refusal told to the sender of a signed frame: see refusal_notices
@@ -607,19 +609,9 @@ def results_by_phase(items: list[tuple[float, bytes]], sent_at: dict) -> tuple[d
         counts[sent[1]][r.peer_id] += 1
         latency[sent[1]].append((t_recv - sent[0]) * 1e3)
         outcomes[sent[1]]["success" if r.success else r.reason] += 1
-    return counts, latency, outcomes
-
-
-def refused_at_decode(items: list[tuple[float, bytes]]) -> set[tuple[str, int]]:
-    """(vehicle id, seq) of the frames answered ``invalid_frame``: refused when a worker decoded them."""
-    from bb_align.protocol import Refusal, load_answer
-
-    out = set()
-    for _, data in items:
-        r = load_answer(data)
-        if not isinstance(r, Refusal) and r.reason == "invalid_frame":
-            out.add((r.peer_id, r.peer_seq))
-    return out
+        if r.reason == "invalid_frame":
+            refused_decoding.add((r.peer_id, r.peer_seq))
+    return counts, latency, outcomes, refused_decoding
 
 
 def refusal_notices(items: list[tuple[float, bytes]]) -> Counter:

@@ -269,14 +269,12 @@ def _engine_runs(svc: ServiceProcess, step: str) -> int | None:
     """How many times the service ran an engine step (its /metrics ``bbalign_engine_seconds_count``)."""
     import httpx
 
+    from ..soak_phases import metric_sum, read_metrics
+
     try:
-        text = httpx.get(svc.rest + "/metrics", timeout=10).text
+        return int(metric_sum(read_metrics(svc.rest), "bbalign_engine_seconds_count", step=step))
     except httpx.HTTPError:
         return None
-    for line in text.splitlines():
-        if line.startswith(f'bbalign_engine_seconds_count{{step="{step}"}}'):
-            return int(float(line.rsplit(" ", 1)[1]))
-    return 0
 
 
 def _keys(items):
