@@ -4,8 +4,9 @@
 
 One `bb-align serve` child process (the vehicle profile with Ed25519 credentials made by ``bb-align keys`` for
 the ego and three cars, 2 workers, loopback only) for the whole run. The ego, car1 and car2 publish signed frames
-at 10 Hz (stream_flood.py's Streams: car1 with the client's publisher, car2 with a plain put); a keyless session
-hears every answer on ``poses/ego/*``. car3 holds a credential but does not stream (an absent car). Each probe:
+at 10 Hz (car1 with the client's publisher, car2 with a plain put), driving smoothly with odometry as the product
+expects of a stream (``--no-odometry``: none, the tracks' weak case); a keyless session hears every answer on
+``poses/ego/*``. car3 holds a credential but does not stream (an absent car). Each probe:
 a baseline window, the attack for one window, then a window right after it (``--seconds`` each); a window's
 results are those for the genuine frames sent in it (matched by car, stamp and seq) heard by 2 s after its end.
 
@@ -72,30 +73,45 @@ class Listener:
 
 
 class Streams:
-    """The ego, car1 and car2 at 10 Hz (skipping a tick, never bursting, when late); ``sent`` (car, stamp, seq)."""
+    """The ego, car1 and car2 at 10 Hz (skipping a tick, never bursting, when late); ``sent`` (car, stamp, seq).
 
-    def __init__(self, frames, ego, car1, car2_session, creds):
-        self.frames, self.ego, self.car1, self.car2, self.creds = frames, ego, car1, car2_session, creds
+    The cars drive as the product expects of a stream: the frames replayed forwards then backwards (smooth motion,
+    never a jump back to the first frame, which made every car re-acquire every 2 s) with their odometry (the
+    true pose; ``odometry=False``: none, the track predicts from its own motion). Each frame's image is rasterised
+    once; a tick re-stamps and signs it (the cars stand for other machines: the benchmark's own CPU stays small)."""
+
+    def __init__(self, frames, ego, car1, car2_session, creds, odometry: bool = True):
+        from bb_align.protocol import Pose
+        from bb_align_client.encode import make_frame
+        from service_support import RANGE_M
+
+        self.ego, self.car1, self.car2, self.creds = ego, car1, car2_session, creds
+        self.images = []  # per frame index: {car: wire Frame, stamp and seq set per tick}
+        for _, e, p in frames:
+            made = {}
+            for vid, c in (("ego", e), *((car, p) for car in CARS)):
+                odo = Pose.from_matrix(c.T_world_sensor) if odometry else None
+                made[vid] = make_frame(c.points, c.boxes, vehicle_id=vid, stamp=0.0, odometry=odo, range_m=RANGE_M)
+            self.images.append(made)
         self.sent: set[tuple[str, float, int]] = set()
         self.on_air: deque[tuple[str, bytes]] = deque(maxlen=80)  # the cars' last signed frames, as sent
         self.seq = 0
 
     def run(self, seconds: float) -> tuple[float, float]:
-        from bb_align_client import encode_frame, sign_frame
-        from service_support import RANGE_M
+        from bb_align.lab.bench.throughput import loop_index
+        from bb_align.protocol import pack
+        from bb_align_client import sign_frame
 
         t0, w0, tick = time.monotonic(), time.time(), 0
         while time.monotonic() - t0 < seconds:
             if time.monotonic() - (t0 + tick * 0.1) > 0.05:
                 tick += 1
                 continue
-            _, e, p = self.frames[self.seq % len(self.frames)]
-            t = time.time()
-            enc = lambda c, vid, t=t: encode_frame(  # noqa: E731
-                c.points, c.boxes, vehicle_id=vid, stamp=t, seq=self.seq, range_m=RANGE_M
-            )
-            signed = {c: sign_frame(enc(p, c), self.creds[c]) for c in CARS}
-            signed["ego"] = sign_frame(enc(e, "ego"), self.creds["ego"])
+            made, t = self.images[loop_index(self.seq, len(self.images))], time.time()
+            signed = {
+                c: sign_frame(pack(f.model_copy(update={"stamp": t, "seq": self.seq})), self.creds[c])
+                for c, f in made.items()
+            }
             self.ego.publish(signed["ego"])
             self.car1.publish(signed["car1"])  # signed bytes are published as they are
             self.car2.put("bbalign/frames/car2", signed["car2"])
@@ -343,6 +359,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seconds", type=float, default=10.0, help="each window (baseline, attack, after)")
     ap.add_argument("--probes", default=",".join(PROBES))
+    ap.add_argument("--no-odometry", action="store_true", help="the cars send no odometry (tracks predict alone)")
     ap.add_argument("--record", action="store_true", help="write docs/security_probes_round3.{json,png}")
     a = ap.parse_args()
     probes = a.probes.split(",")
@@ -385,7 +402,7 @@ def main() -> None:
                 listener = Listener()
                 sub = air.declare_subscriber("bbalign/poses/ego/*", listener.on_sample)
                 assert ego.wait_for_subscriber(10) and car1.wait_for_subscriber(10)
-                streams = Streams(frames, ego, car1, car2, creds)
+                streams = Streams(frames, ego, car1, car2, creds, odometry=not a.no_odometry)
                 ctx = {"svc": svc, "streams": streams, "listener": listener, "frames": frames, "creds": creds}
                 ctx["keys"] = keys
                 streams.run(8.0)  # warm-up: tracks acquired
