@@ -59,12 +59,12 @@ def metered() -> Iterator[CpuMeter]:
 
 
 def run_parts(fn: Callable[[T], R], parts: Sequence[T]) -> list[R]:
-    """fn over each part, in order; on a shared pool when there is more than one part."""
+    """fn over each part, in order: the first on the calling thread, the others on a shared pool. The pool is
+    shared by every caller (the service's workers): a caller that only waited for its parts sat idle while they
+    queued behind another caller's, and at 8 peers the workers used 1.6 of the 2 cores with frames waiting."""
     if len(parts) <= 1:
         return [fn(p) for p in parts]
     meter = getattr(_local, "meter", None)
-    if meter is None:
-        return list(_pool(len(parts)).map(fn, parts))
 
     def counted(part: T) -> R:
         t0 = time.thread_time()
@@ -73,4 +73,7 @@ def run_parts(fn: Callable[[T], R], parts: Sequence[T]) -> list[R]:
         finally:
             meter.add(time.thread_time() - t0)
 
-    return list(_pool(len(parts)).map(counted, parts))
+    pool = _pool(len(parts))
+    futures = [pool.submit(fn if meter is None else counted, p) for p in parts[1:]]
+    first = fn(parts[0])  # counted by the caller's own thread time
+    return [first, *(f.result() for f in futures)]

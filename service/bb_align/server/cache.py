@@ -37,12 +37,17 @@ class EgoEntry:
         """Whether another thread is computing the features right now (whoever asks would wait for it)."""
         return self._prepared is None and self._lock.locked()
 
-    def features(self, prepare: Callable[[EgoEntry], PreparedFrame]) -> PreparedFrame:
-        """The entry's features, computed by the first caller; concurrent callers wait for that result."""
-        with self._lock:
+    def features(self, prepare: Callable[[EgoEntry], PreparedFrame], wait: bool = True) -> PreparedFrame | None:
+        """The entry's features, computed by the first caller; concurrent callers wait for that result, or with
+        ``wait=False`` return None at once (another thread is computing them)."""
+        if not self._lock.acquire(blocking=wait):
+            return None
+        try:
             if self._prepared is None:
                 self._prepared = prepare(self)
             return self._prepared
+        finally:
+            self._lock.release()
 
 
 class EgoCache:

@@ -626,8 +626,8 @@ class AlignService:
             self._publish(outcome)
 
     def _run(self, job: Job) -> Result | None:
-        if job.task == "ego_features":
-            job.meta["entry"].features(self._prepare_entry)
+        if job.task == "ego_features":  # a worker already computing them for a peer frame is not waited for
+            job.meta["entry"].features(self._prepare_entry, wait=False)
             return None
         if job.task == "crosscheck":
             self._crosscheck(**job.meta)
