@@ -75,8 +75,9 @@ class Listener:
 class Streams:
     """The ego, car1 and car2 at 10 Hz (skipping a tick, never bursting, when late); ``sent`` (car, stamp, seq).
 
-    The cars drive as the product expects of a stream: the frames replayed forwards then backwards (smooth motion,
-    never a jump back to the first frame, which made every car re-acquire every 2 s) with their odometry (the
+    The cars drive as the product expects of a stream: the frames replayed forwards then backwards, each car stopping
+    and turning round as a car can (never a jump back to the first frame, which made every car re-acquire every
+    2 s; lab.harness.to_and_fro_times) with their odometry (the
     true pose; ``odometry=False``: none, the track predicts from its own motion). Each frame's image is rasterised
     once; a tick re-stamps and signs it (the cars stand for other machines: the benchmark's own CPU stays small)."""
 
@@ -396,9 +397,10 @@ def main() -> None:
                 ZenohPeer("ego", connect=ep, key=creds["ego"], verify_answers=False) as ego,
                 ZenohPeer("car1", connect=ep, key=creds["car1"], verify_answers=False) as car1,
             ):
+                from bb_align.lab.harness import to_and_fro_times
                 from service_support import moving_pair
 
-                frames = moving_pair(20)
+                frames = moving_pair(20, times=to_and_fro_times(20, 0.1, speed_m_s=10.0))
                 listener = Listener()
                 sub = air.declare_subscriber("bbalign/poses/ego/*", listener.on_sample)
                 assert ego.wait_for_subscriber(10) and car1.wait_for_subscriber(10)

@@ -25,7 +25,7 @@ def main(
     peers: int = typer.Option(8, min=1, max=16),
     rate_hz: float = typer.Option(10.0, min=1, max=20),
     kill_at: float = typer.Option(0.6, min=0.05, max=0.95, help="kill -9 the service at this share of the run"),
-    frames: int = typer.Option(40, min=2, max=400, help="simulated frames per car (replayed back and forth)"),
+    frames: int = typer.Option(80, min=2, max=400, help="simulated frames per car (replayed back and forth)"),
     seed: int = typer.Option(404),
     workers: int = typer.Option(2, min=1, max=16),
     json_out: Path | None = typer.Option(None, "--json"),

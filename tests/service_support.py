@@ -87,16 +87,18 @@ def _frame(world, T_world_sensor: np.ndarray, seed: int, height: float) -> CarFr
     return CarFrame(pts, transform_boxes(T2, boxes_w), T_world_sensor)
 
 
-def moving_pair(n_frames: int, dt: float = 0.1, seed: int = 0) -> list[tuple[float, CarFrame, CarFrame]]:
-    """(stamp, ego, peer) per frame: two cars driving through the synthetic street, the peer ~18 m ahead and
-    turned by ~17 deg. T_ego_peer truth: inv(ego.T_world_sensor) @ peer.T_world_sensor."""
+def moving_pair(n_frames: int, dt: float = 0.1, seed: int = 0, times=None) -> list[tuple[float, CarFrame, CarFrame]]:
+    """(stamp, ego, peer) per frame: two cars driving through the synthetic street (8 and 10 m/s), the peer ~18 m
+    ahead and turned by ~17 deg. ``times``: the street's time of each frame (default k * dt; a replay forwards then
+    backwards takes bb_align.lab.harness.to_and_fro_times). T_ego_peer truth: inv(ego.T_world_sensor) @
+    peer.T_world_sensor."""
     world = synthetic_world(seed=seed)
     out = []
     for k in range(n_frames):
-        t = k * dt
-        T_we = se3_from_se2(se2(0.02 * k, 8.0 * t, 0.3 * t))
-        T_wp = se3_from_se2(se2(0.3 + 0.03 * k, 18.0 + 10.0 * t, 3.0 - 1.0 * t))
-        out.append((t, _frame(world, T_we, 2 * k, 1.8), _frame(world, T_wp, 2 * k + 1, 1.5)))
+        t = k * dt if times is None else float(times[k])
+        T_we = se3_from_se2(se2(0.2 * t, 8.0 * t, 0.3 * t))
+        T_wp = se3_from_se2(se2(0.3 + 0.3 * t, 18.0 + 10.0 * t, 3.0 - 1.0 * t))
+        out.append((k * dt, _frame(world, T_we, 2 * k, 1.8), _frame(world, T_wp, 2 * k + 1, 1.5)))
     return out
 
 

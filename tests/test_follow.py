@@ -80,9 +80,12 @@ def test_a_two_second_silence_is_survived(sequence):
     for f in frames[:10]:
         _step(follower, aligner, f)
     assert frames[30]["stamp"] - frames[9]["stamp"] >= 2.0
-    for f in frames[30:36]:
+    for k, f in enumerate(frames[30:36]):
         r, _, _ = _step(follower, aligner, f)
-        assert r.source == "tracking" and r.success and r.track_event is None, (r.source, r.track_event)
+        # the first frame after the silence is confirmed by the full method (over 2 s the odometry check cannot
+        # vouch for the cars' odometry): it agrees, the track goes on
+        assert r.source == ("acquisition" if k == 0 else "tracking") and r.success, (r.source, r.track_event)
+        assert r.track_event is None, r.track_event
         assert pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
 
 

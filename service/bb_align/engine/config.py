@@ -592,6 +592,28 @@ class TrackConfig(_Frozen):
         70.0, gt=0, description="an odometry step faster than this is a jump (relocalisation, reset): track lost"
     )
     max_odometry_yaw_rate_deg_s: float = Field(90.0, gt=0, description="likewise for its yaw rate")
+    max_odometry_accel_m_s2: float | None = Field(
+        10.0,
+        gt=0,
+        description="an odometry step off the car's recent motion (speed and yaw rate continued) by more than this "
+        "acceleration allows (plus odometry_step_noise_m) is a jump: about 1 g, what a road car's tyres give at most "
+        "(engine.odometry; real 10 Hz poses stay under half the bound, docs/tracking.md). None: no such check (a "
+        "replay that turns its cars round in one frame)",
+    )
+    max_odometry_yaw_accel_deg_s2: float = Field(
+        120.0, gt=0, description="likewise for the change of its yaw rate, deg/s^2"
+    )
+    odometry_step_noise_m: float = Field(
+        0.25, ge=0, description="what an odometry step may be off its motion without any acceleration, metres"
+    )
+    odometry_step_noise_deg: float = Field(1.0, ge=0, description="... and degrees")
+    max_unchecked_jump_m: float = Field(
+        1.6,
+        gt=0,
+        description="after a gap so long that the odometry check could take a relocalisation larger than this for "
+        "motion (at 10 Hz: about 0.5 s without a frame), the track is confirmed by the full method before it answers "
+        "(dropped when that fails or disagrees): a refinement reaches landscape_min_half_width_m, not farther",
+    )
     max_gap_s: float = Field(5.0, gt=0, description="a peer silent longer than this loses its track")
     support_ratio: float = Field(
         0.5,

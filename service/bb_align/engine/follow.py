@@ -29,10 +29,11 @@ from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2, worst_sigma_m
+from .odometry import OdometryWatch
 from .pipeline import Aligner
 from .result import AlignResult
 from .stream_acquire import StreamFrame
-from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine, odometry_jump
+from .tracker import OUT_OF_ORDER, Evidence, Measurement, PeerTrack, TrackAnswer, combine
 from .verdict import CAP_STAGE1_FAILED, FailureReason
 
 
@@ -65,6 +66,7 @@ class Follower:
         # The last second of frames with odometry: a first acquisition that one frame cannot give is tried on them
         # together (Aligner.align_stream), at most every stream.every_s.
         self.recent: deque[StreamFrame] = deque(maxlen=aligner.config.stream.frames)
+        self.recent_odometry = OdometryWatch(self.cfg)  # an odometry jump starts that memory afresh
         self.last_stream_try: float | None = None
 
     def step(
@@ -80,11 +82,13 @@ class Follower:
         roll: float = 0.0,
         pitch: float = 0.0,
         crosscheck: bool = True,
+        ego_stamp: float | None = None,
     ) -> AlignResult:
         """One peer frame at ``stamp`` (s) against the ego frame of (about) that time. ``O_ego`` / ``O_peer``: the
         two cars' odometry poses (4x4 or 3x3; both or neither). ``T_prior``: a reported T_ego_peer (e.g. from GNSS)
         that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants.
-        ``crosscheck=False``: the periodic cross-check is left to the caller (see the module's docstring)."""
+        ``crosscheck=False``: the periodic cross-check is left to the caller (see the module's docstring).
+        ``ego_stamp``: the ego frame's own stamp, when it is not ``stamp`` (the time of its odometry pose)."""
         runs: list[AlignResult] = []
         self.last_boxes = Measurement(False)
         with_odometry = O_ego is not None and O_peer is not None
@@ -118,29 +122,30 @@ class Follower:
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])
 
-        self._remember(StreamFrame(ego, peer, O_ego, O_peer, stamp) if with_odometry else None)
+        ego_stamp = stamp if ego_stamp is None else ego_stamp
+        self._remember(StreamFrame(ego, peer, O_ego, O_peer, stamp) if with_odometry else None, ego_stamp)
         t0 = time.perf_counter()
         answer = self.track.step(
-            stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer), crosscheck=crosscheck
+            stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer), crosscheck=crosscheck, ego_stamp=ego_stamp
         )
         r = self._result(answer, runs, (time.perf_counter() - t0) * 1e3, tz, roll, pitch)
         if acquired_ms:
             r.timings_ms["acquire"] = sum(acquired_ms)
         return r
 
-    def _remember(self, frame: StreamFrame | None) -> None:
+    def _remember(self, frame: StreamFrame | None, ego_stamp: float) -> None:
         """Keep the frame for a stream acquisition; a frame without odometry, older than the stream's window or after
-        an odometry step no car drives (a relocalisation) starts the memory afresh."""
+        an odometry step no car makes (a relocalisation) starts the memory afresh."""
         if frame is None:
             self.recent.clear()
+            self.recent_odometry.clear()
             return
         frame = StreamFrame(frame.ego, frame.peer, ground_pose(frame.O_ego), ground_pose(frame.O_peer), frame.stamp)
-        if self.recent:
-            last = self.recent[-1]
-            dt = frame.stamp - last.stamp
-            steps = (("ego", last.O_ego, frame.O_ego), ("peer", last.O_peer, frame.O_peer))
-            if dt <= 0 or odometry_jump(self.cfg, dt, steps):
-                self.recent.clear()
+        poses = {"ego": (ego_stamp, frame.O_ego), "peer": (frame.stamp, frame.O_peer)}
+        jump = self.recent_odometry.check(poses)
+        self.recent_odometry.record(poses, jump[0] if jump else None)
+        if self.recent and (frame.stamp <= self.recent[-1].stamp or jump):
+            self.recent.clear()
         self.recent.append(frame)
         window = self.aligner.config.stream.window_s
         while self.recent and frame.stamp - self.recent[0].stamp > window:

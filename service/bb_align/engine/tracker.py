@@ -32,7 +32,8 @@ import numpy as np
 from .config import AnswerRule, TrackConfig
 from .covariance import fuse_poses, mahalanobis2, params_covariance, probability_within
 from .evidence import OffsetSample, SharedError, StreamEvidence
-from .geometry import log_left, se2, se2_params, worst_sigma_m, wrap_angle
+from .geometry import log_left, se2, worst_sigma_m
+from .odometry import OdometryWatch
 
 OUT_OF_ORDER = "frame older than the track: ignored"  # the event of a frame that came after a newer one
 
@@ -125,17 +126,6 @@ def shared_error(cfg: TrackConfig) -> SharedError:
     return SharedError(cfg.evidence_correlation, far, cfg.evidence_same_place_m, cfg.evidence_decorrelation_m)
 
 
-def odometry_jump(cfg: TrackConfig, dt: float, steps) -> str | None:
-    """Why an odometry step of ``dt`` seconds cannot be a car's motion (a relocalisation or reset), if so: ``steps``
-    is (car, pose before, pose now) per car, 3x3 odometry poses."""
-    for car, O0, O1 in steps:
-        yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
-        speed, rate = np.hypot(tx, ty) / dt, abs(np.degrees(wrap_angle(yaw))) / dt
-        if speed > cfg.max_odometry_speed_m_s or rate > cfg.max_odometry_yaw_rate_deg_s:
-            return f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt:.2f} s)"
-    return None
-
-
 def kalman_step(P: np.ndarray, H: np.ndarray, R: np.ndarray, nu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """One Kalman update for innovation ``nu`` (covariance R) of a state with covariance P seen through H: the
     innovation's squared Mahalanobis distance, the state increment and the updated covariance (symmetrised)."""
@@ -171,7 +161,7 @@ class PeerTrack:
         self.last_fused: float | None = None
         self.epoch = 0  # counts tracks: a cross-check run beside the track applies only to the track it checked
         self.pending_event: str | None = None  # a state change made between frames, said with the next answer
-        self.odometry_seen: tuple[float, np.ndarray, np.ndarray] | None = None  # the last frame's (stamp, O_e, O_p)
+        self.odometry = OdometryWatch(self.cfg)  # each car's recent odometry poses: is its next step motion?
 
     # ---- the frame step ----------------------------------------------------------------------------------------
     def step(
@@ -182,26 +172,34 @@ class PeerTrack:
         O_ego: np.ndarray | None = None,
         O_peer: np.ndarray | None = None,
         crosscheck: bool = True,
+        ego_stamp: float | None = None,
     ) -> TrackAnswer:
         """One peer frame at ``stamp`` (s). ``measure(T_pred)`` refines from a predicted T_ego_peer (3x3);
         ``acquire(T_prior or None)`` runs the full method. ``O_ego`` / ``O_peer``: 3x3 odometry poses of the
-        two frames (both or neither). ``crosscheck=False``: no periodic cross-check in this step (the caller runs
+        two frames (both or neither); ``ego_stamp``: the ego frame's own stamp when not ``stamp`` (its odometry's
+        time). ``crosscheck=False``: no periodic cross-check in this step (the caller runs
         it beside the track, see ``begin_crosscheck``); one forced by the track's uncertainty still runs."""
         odometry = O_ego is not None and O_peer is not None
         O_e = np.asarray(O_ego, float) if odometry else np.eye(3)
         O_p = np.asarray(O_peer, float) if odometry else np.eye(3)
         event, self.pending_event = self.pending_event, None
+        poses = {"ego": (stamp if ego_stamp is None else ego_stamp, O_e), "peer": (stamp, O_p)}
+        jump = self.odometry.check(poses) if odometry else None
+        unchecked_m = self.odometry.unchecked_m(poses) if odometry else 0.0
         if self.X is not None and odometry != self.with_odometry:
             event = self._drop("odometry appeared or disappeared")
         elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
             event = self._drop(f"the stream restarted {self.stamp - stamp:.1f} s earlier")
         elif self.X is not None and stamp < self.stamp:
             return self._answer(stamp, "none", False, None, None, OUT_OF_ORDER)
-        elif self.X is not None and odometry and (jump := self._odometry_jump(stamp, O_e, O_p)):
-            event = self._drop(jump)
+        elif self.X is not None and jump:
+            event = self._drop(jump[1])
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
             event = self._drop(f"no frame for {stamp - self.stamp:.1f} s (max_gap_s {self.cfg.max_gap_s:g})")
-        self.odometry_seen = (stamp, O_e, O_p) if odometry else None
+        if odometry:
+            self.odometry.record(poses, jump[0] if jump else None)
+        else:
+            self.odometry.clear()
         if self.X is None:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
 
@@ -212,13 +210,22 @@ class PeerTrack:
         # A track no frame has confirmed for max_rejects frames is checked by the full method (at most every
         # reacquire_s: an acquisition costs ~0.3 s).
         unsupported = self.misses >= self.cfg.max_rejects and stamp - self.last_acquired >= self.cfg.reacquire_s
-        if sigma > self.cfg.max_sigma_m or periodic or unsupported:
+        # After a long gap the odometry check could have missed a relocalisation too large for the refinement to
+        # find its way back from (it would settle on an alias next to the stale prediction).
+        blind = unchecked_m > self.cfg.max_unchecked_jump_m
+        if sigma > self.cfg.max_sigma_m or periodic or unsupported or blind:
             # The full method: fused when it agrees, a fresh track when it does not; when it fails, the refinement
-            # below still tries to hold the track.
+            # below still tries to hold the track, unless the odometry went unchecked.
             self.last_acquired = stamp
             m = acquire(T_pred)
             if m.ok:
                 return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "acquisition", crosscheck=True)
+            if blind:
+                event = self._drop(
+                    f"an odometry step the check could not tell from a relocalisation of {unchecked_m:.1f} m, and "
+                    f"the full method did not confirm the track ({m.reason})"
+                )
+                return self._answer(stamp, "none", False, None, None, event, None, m.reason)
         m = measure(T_pred)
         ev = m.evidence if m.ok else None
         if ev is not None and (d2 := self._disagreement(ev, T_pred, P_T)) > self.cfg.gate_chi2:
@@ -420,13 +427,6 @@ class PeerTrack:
         if m.evidence is not None:
             T, cov, why = self._evidence_answer(stamp, m.evidence, O_e, O_p)
         return self._answer(stamp, "acquisition", why is None, T, cov, event, None, why)
-
-    def _odometry_jump(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray) -> str | None:
-        """Why a car's odometry step since the last frame cannot be motion (a relocalisation or reset), if so."""
-        if self.odometry_seen is None:
-            return None
-        t0, O_e0, O_p0 = self.odometry_seen
-        return odometry_jump(self.cfg, max(stamp - t0, 1e-3), (("ego", O_e0, O_e), ("peer", O_p0, O_p)))
 
     # ---- bookkeeping -------------------------------------------------------------------------------------------
     def _keep(self, stamp: float, X: np.ndarray, P: np.ndarray) -> None:

@@ -208,6 +208,22 @@ class CarStream:
     cloud: tuple[np.ndarray, np.ndarray] | None = None  # (points, boxes) of the first frame, to re-encode it
 
 
+REPLAY_ACCEL_M_S2 = 6.0  # the replays' cars brake and start like a car in traffic, well inside engine.odometry's 1 g
+
+
+def to_and_fro_times(n: int, dt: float, speed_m_s: float, accel_m_s2: float = REPLAY_ACCEL_M_S2) -> np.ndarray:
+    """Simulation times of ``n`` frames shown ``dt`` apart, for a replay forwards then backwards (0 1 .. n-1 n-2 ..):
+    the world's clock runs at rate f (1 - cos) / 2 over the n frames, so every car stops at both ends and turns
+    round as a car can (a replay at the simulation's pace would reverse a 10 m/s car in one frame: a jump to the
+    service's odometry check). f keeps a car of ``speed_m_s`` within ``accel_m_s2``."""
+    if n <= 1:
+        return np.zeros(max(n, 0))
+    span = (n - 1) * dt
+    f = min(1.0, accel_m_s2 * span / (np.pi * max(speed_m_s, 1e-6)))
+    t = np.arange(n) * dt
+    return f / 2.0 * (t - span / (2.0 * np.pi) * np.sin(2.0 * np.pi * t / span))
+
+
 def simulated_cars(
     n_peers: int,
     n_frames: int,
@@ -220,13 +236,17 @@ def simulated_cars(
     reported_pose: Callable[[np.ndarray, int, int], np.ndarray | None] | None = None,
     progress: Callable[[Iterable, str], Iterable] | None = None,
 ) -> list[CarStream]:
-    """The ego first (``ego_id``), then peers ``car1``..``carN``: ``n_frames`` consecutive simulated frames each.
-    ``reported_pose(T_world_sensor, car, frame)`` gives the pose a frame carries (default: the true pose)."""
+    """The ego first (``ego_id``), then peers ``car1``..``carN``: ``n_frames`` simulated frames each, made to be
+    replayed forwards then backwards at ``dt`` (``to_and_fro_times``). ``reported_pose(T_world_sensor, car, frame)``
+    gives the pose a frame carries (default: the true pose)."""
     from bb_align_client.encode import make_frame
 
-    from .sim import simulate_sequence
+    from .sim import Scenario
 
-    seq = simulate_sequence(seed, n_frames=n_frames, n_agents=1 + n_peers, dt=dt, config=sim_config)
+    scenario = Scenario(seed, 1 + n_peers, None, sim_config)
+    fastest = max(scenario.world.vehicles[a.vehicle].speed for a in scenario.agents)
+    times = to_and_fro_times(n_frames, dt, fastest)
+    seq = [scenario.frame(k, dt, stamp=t) for k, t in enumerate(times)]
     ids = [ego_id] + [f"car{i}" for i in range(1, n_peers + 1)]
     items = list(enumerate(ids))
     cars = []

@@ -745,6 +745,7 @@ class AlignService:
                 roll=roll,
                 pitch=pitch,
                 crosscheck=not aside,
+                ego_stamp=ego_frame.stamp,
             )
             epoch = track.follower.begin_crosscheck(peer.stamp) if aside else None
         if epoch is not None:  # a job of its own: the peer's next frames are tracked meanwhile, not queued behind

@@ -273,8 +273,9 @@ class Scenario:
     def agent_ids(self) -> list[str]:
         return [str(i) for i in range(len(self.agents))]
 
-    def frame(self, index: int, dt: float = 0.1) -> SimFrame:
-        stamp = index * dt
+    def frame(self, index: int, dt: float = 0.1, stamp: float | None = None) -> SimFrame:
+        """Frame ``index`` (its noise's seed) at simulation time ``stamp`` (s; default index * dt)."""
+        stamp = index * dt if stamp is None else float(stamp)
         cfg = self.config
         w = self.world
         agents: dict[str, SimAgent] = {}

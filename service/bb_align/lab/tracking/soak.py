@@ -4,12 +4,13 @@ truth.
 
 The service runs as ``bb-align serve`` runs (a child process, the vehicle profile: frames signed with a fresh
 fleet key, stamps checked against its clock) on free loopback ports. The ego and ``peers`` cars (bb_align.lab.sim
-scenes, 10-40 m apart) replay their simulated frames forwards then backwards (smooth motion, no jump back to the
-first frame), stamped with the time their tick was due, each frame carrying the car's reported pose (GNSS noise)
-and its odometry (the true pose seen from the car's own odometry origin). ``jumps`` re-anchor one car's odometry
-by 1-7 m at a given second (a relocalisation; bb_align.lab.tracking.faults). At ``kill_at`` of the run the service
-is killed with SIGKILL (only the process this harness started, by its id) and started again on the same ports
-while the cars keep publishing; Zenoh reconnects the cars by itself.
+scenes, 10-40 m apart) replay their simulated frames forwards then backwards (bb_align.lab.harness.to_and_fro_times:
+each car stops and turns round as a car can, no jump back to the first frame), stamped with the time their tick was
+due, each frame carrying the car's reported pose (GNSS noise) and its odometry (the true pose seen from the car's
+own odometry origin). ``jumps`` re-anchor one car's odometry by 1-7 m at a given second (a relocalisation;
+bb_align.lab.tracking.faults). At ``kill_at`` of the run the service is killed with SIGKILL (only the process this
+harness started, by its id) and started again on the same ports while the cars keep publishing; Zenoh reconnects
+the cars by itself.
 
 Measured: every successful answer against the truth of the exact ego and peer frames it used (wrong: off by more
 than 1 m or 1 deg), answered and dropped per peer, latency publish -> result, the service's RSS and CPU and the
@@ -66,7 +67,13 @@ class TrackSoakConfig(BaseModel):
     seconds: float = Field(1800.0, gt=0, le=7200, description="publishing time")
     kill_at: float | None = Field(0.6, gt=0, lt=1, description="SIGKILL the service at this share of the run")
     jumps: list[SoakJump] | None = Field(None, description="None: default_jumps(seconds)")
-    frames: int = Field(40, ge=2, le=400, description="simulated frames per car, replayed forwards then backwards")
+    frames: int = Field(
+        80,
+        ge=2,
+        le=400,
+        description="simulated frames per car, replayed forwards then backwards: 80 let the cars stop and turn round "
+        "at 6 m/s^2 and still drive about 4 s of the scene (its distances spread as 40 frames at its own pace did)",
+    )
     seed: int = 404
     min_distance_m: float = Field(10.0, ge=0)
     max_distance_m: float = Field(40.0, gt=0)
@@ -349,6 +356,7 @@ def run_track_soak(
     cars = _cached(
         cache,
         (
+            "to-and-fro",  # the frames' times (harness.to_and_fro_times): cars cached before it are not reused
             cfg.peers,
             cfg.frames,
             cfg.seed,

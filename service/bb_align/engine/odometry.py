@@ -1,0 +1,99 @@
+"""Is an odometry step a car's motion? A relocalisation or reset moves a car's odometry pose by metres in one frame
+while its frames say nothing of it; a track predicting from it would refine from a stale pose.
+
+Two bounds, per car. Against the car's recent motion (its last two poses): the step must be the recent twist
+(speed and yaw rate, an arc) continued, within what an acceleration a car's tyres allow (about 1 g) and the
+odometry's own step noise can change; a relocalisation of a few metres breaks it whatever the car's speed. With
+one earlier pose only: no faster than any road car drives or turns.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
+
+from .config import TrackConfig
+from .geometry import se2_exp, se2_log, se2_params, wrap_angle
+
+Pose = tuple[float, np.ndarray]  # (stamp s of the car's own frame, its 3x3 odometry pose)
+
+
+def odometry_jump(cfg: TrackConfig, seen: Sequence[Pose], now: Pose, car: str = "car") -> str | None:
+    """Why one car's odometry pose ``now`` cannot follow from its earlier frames' ``seen`` (oldest first; the last
+    two are used) by the car's motion, if so: a relocalisation or reset. Times are the car's own frames' stamps."""
+    if not seen or now[0] <= seen[-1][0]:
+        return None
+    (t0, O0), (t1, O1) = seen[-1], now
+    dt1 = t1 - t0
+    yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
+    speed, rate = np.hypot(tx, ty) / dt1, abs(np.degrees(wrap_angle(yaw))) / dt1
+    if speed > cfg.max_odometry_speed_m_s or rate > cfg.max_odometry_yaw_rate_deg_s:
+        return f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt1:.2f} s)"
+    if len(seen) < 2 or cfg.max_odometry_accel_m_s2 is None:
+        return None
+    off_m, off_deg, bound_m, bound_deg = motion_residual(cfg, seen[-2], seen[-1], now)
+    if off_m > bound_m or off_deg > bound_deg:
+        return (
+            f"the {car}'s odometry jumped ({off_m:.1f} m, {off_deg:.1f} deg off its motion in {dt1:.2f} s; a car "
+            f"accelerates {bound_m:.2f} m, {bound_deg:.1f} deg at most)"
+        )
+    return None
+
+
+class OdometryWatch:
+    """Each car's last two odometry poses, each at its own frame's stamp: is the cars' next pose their motion?
+
+    A car's frame seen again (the ego frame of the last peer frame, paired once more) adds nothing; a jump, a frame
+    older than the last or a stream without odometry starts that car's motion afresh."""
+
+    def __init__(self, cfg: TrackConfig):
+        self.cfg = cfg
+        self.seen: dict[str, deque[Pose]] = {}
+
+    def check(self, poses: dict[str, Pose]) -> tuple[str, str] | None:
+        """(car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump; nothing is recorded."""
+        for car, now in poses.items():
+            if why := odometry_jump(self.cfg, self.seen.get(car, ()), now, car):
+                return car, why
+        return None
+
+    def unchecked_m(self, poses: dict[str, Pose]) -> float:
+        """The largest relocalisation (m) this step's check could take for motion: after a long gap the acceleration
+        a car may have used grows with its square (0 with less than two earlier poses: the speed check only)."""
+        out = 0.0
+        for car, now in poses.items():
+            seen = self.seen.get(car, ())
+            if len(seen) >= 2 and now[0] > seen[-1][0] and self.cfg.max_odometry_accel_m_s2 is not None:
+                out = max(out, motion_residual(self.cfg, seen[-2], seen[-1], now)[2])
+        return out
+
+    def record(self, poses: dict[str, Pose], jumped: str | None = None) -> None:
+        """Keep ``poses`` as the cars' latest; the car that ``jumped`` starts its motion afresh."""
+        for car, (stamp, O) in poses.items():
+            seen = self.seen.setdefault(car, deque(maxlen=2))
+            if seen and stamp == seen[-1][0]:
+                continue
+            if car == jumped or (seen and stamp < seen[-1][0]):
+                seen.clear()
+            seen.append((stamp, np.asarray(O, float)))
+
+    def clear(self) -> None:
+        self.seen.clear()
+
+
+def motion_residual(cfg: TrackConfig, before: tuple, prev: tuple, now: tuple) -> tuple[float, float, float, float]:
+    """One car's step prev -> now against the twist of before -> prev continued (each a (stamp, 3x3 pose)): its
+    residual (m, deg) and what the bounded acceleration (over the two steps' mid-times) and the step noise allow."""
+    (tb, Ob), (t0, O0), (t1, O1) = before, prev, now
+    dt0, dt1 = max(t0 - tb, 1e-3), max(t1 - t0, 1e-3)
+    twist = se2_log(np.linalg.inv(Ob) @ O0) / dt0
+    yaw, rx, ry = se2_params(np.linalg.inv(se2_exp(twist * dt1)) @ np.linalg.inv(O0) @ O1)
+    reach = dt1 * (dt0 + dt1) / 2.0  # the change of the mean velocity between the two steps, per unit acceleration
+    return (
+        float(np.hypot(rx, ry)),
+        abs(float(np.degrees(wrap_angle(yaw)))),
+        cfg.max_odometry_accel_m_s2 * reach + cfg.odometry_step_noise_m,
+        cfg.max_odometry_yaw_accel_deg_s2 * reach + cfg.odometry_step_noise_deg,
+    )
