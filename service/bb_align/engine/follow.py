@@ -87,12 +87,10 @@ class Follower:
         """One peer frame at ``stamp`` (s) against the ego frame of (about) that time. ``O_ego`` / ``O_peer``: the
         two cars' odometry poses (4x4 or 3x3; both or neither). ``T_prior``: a reported T_ego_peer (e.g. from GNSS)
         that gates an acquisition's matches, as ``Aligner.align`` does. tz, roll, pitch: Eq. 1's constants.
-        ``crosscheck=False``: the periodic cross-check is left to the caller (see the module's docstring).
-        ``ego_stamp``: the ego frame's own stamp, when it is not ``stamp`` (the time of its odometry pose)."""
+        ``crosscheck=False``: cross-check left to the caller; ``ego_stamp``: the ego frame's, if not ``stamp``."""
         runs: list[AlignResult] = []
-        self.last_boxes = Measurement(False)
+        self.last_boxes, c = Measurement(False), self.cfg
         with_odometry = O_ego is not None and O_peer is not None
-        c = self.cfg
         inflation = c.measurement_inflation if with_odometry else c.measurement_inflation_without_odometry
         acquired_ms: list[float] = []
 
@@ -122,9 +120,8 @@ class Follower:
             acquired_ms.append((time.perf_counter() - t) * 1e3)  # with the frames' features, when computed now
             return as_measurement(runs[-1])
 
-        ego_stamp = stamp if ego_stamp is None else ego_stamp
+        ego_stamp, t0 = stamp if ego_stamp is None else ego_stamp, time.perf_counter()
         self._remember(StreamFrame(ego, peer, O_ego, O_peer, stamp) if with_odometry else None, ego_stamp)
-        t0 = time.perf_counter()
         answer = self.track.step(
             stamp, measure, acquire, ground_pose(O_ego), ground_pose(O_peer), crosscheck=crosscheck, ego_stamp=ego_stamp
         )

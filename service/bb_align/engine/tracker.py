@@ -175,17 +175,15 @@ class PeerTrack:
         ego_stamp: float | None = None,
     ) -> TrackAnswer:
         """One peer frame at ``stamp`` (s). ``measure(T_pred)`` refines from a predicted T_ego_peer (3x3);
-        ``acquire(T_prior or None)`` runs the full method. ``O_ego`` / ``O_peer``: 3x3 odometry poses of the
-        two frames (both or neither); ``ego_stamp``: the ego frame's own stamp when not ``stamp`` (its odometry's
-        time). ``crosscheck=False``: no periodic cross-check in this step (the caller runs
-        it beside the track, see ``begin_crosscheck``); one forced by the track's uncertainty still runs."""
+        ``acquire(T_prior or None)`` runs the full method. ``O_ego`` / ``O_peer``: 3x3 odometry poses of the two
+        frames (both or neither), the ego's at ``ego_stamp`` if given. ``crosscheck=False``: no periodic cross-check
+        here (``begin_crosscheck``); one forced by the track's uncertainty still runs."""
         odometry = O_ego is not None and O_peer is not None
         O_e = np.asarray(O_ego, float) if odometry else np.eye(3)
         O_p = np.asarray(O_peer, float) if odometry else np.eye(3)
         event, self.pending_event = self.pending_event, None
         poses = {"ego": (stamp if ego_stamp is None else ego_stamp, O_e), "peer": (stamp, O_p)}
-        jump = self.odometry.check(poses) if odometry else None
-        unchecked_m = self.odometry.unchecked_m(poses) if odometry else 0.0
+        jump, unchecked_m = (self.odometry.check(poses), self.odometry.unchecked_m(poses)) if odometry else (None, 0)
         if self.X is not None and odometry != self.with_odometry:
             event = self._drop("odometry appeared or disappeared")
         elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
@@ -196,36 +194,22 @@ class PeerTrack:
             event = self._drop(jump[1])
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
             event = self._drop(f"no frame for {stamp - self.stamp:.1f} s (max_gap_s {self.cfg.max_gap_s:g})")
-        if odometry:
-            self.odometry.record(poses, jump[0] if jump else None)
-        else:
-            self.odometry.clear()
+        self.odometry.record(poses, jump[0] if jump else None) if odometry else self.odometry.clear()
         if self.X is None:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
 
         X, P, T_pred, H = self._predict(stamp - self.stamp, O_e, O_p)
-        P_T = H @ P @ H.T
-        sigma = worst_sigma_m(P_T)
-        periodic = crosscheck and self.crosscheck_due(stamp)
-        # A track no frame has confirmed for max_rejects frames is checked by the full method (at most every
-        # reacquire_s: an acquisition costs ~0.3 s).
+        sigma, periodic = worst_sigma_m(P_T := H @ P @ H.T), crosscheck and self.crosscheck_due(stamp)
+        # Unconfirmed for max_rejects frames (at most every reacquire_s: ~0.3 s each), or a gap so long the odometry
+        # check could miss a relocalisation the refinement cannot find its way back from: the full method.
         unsupported = self.misses >= self.cfg.max_rejects and stamp - self.last_acquired >= self.cfg.reacquire_s
-        # After a long gap the odometry check could have missed a relocalisation too large for the refinement to
-        # find its way back from (it would settle on an alias next to the stale prediction).
         blind = unchecked_m > self.cfg.max_unchecked_jump_m
         if sigma > self.cfg.max_sigma_m or periodic or unsupported or blind:
-            # The full method: fused when it agrees, a fresh track when it does not; when it fails, the refinement
-            # below still tries to hold the track, unless the odometry went unchecked.
+            # fused when it agrees, a fresh track when not; when it fails the refinement below tries (unless blind)
             self.last_acquired = stamp
             m = acquire(T_pred)
-            if m.ok:
-                return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "acquisition", crosscheck=True)
-            if blind:
-                event = self._drop(
-                    f"an odometry step the check could not tell from a relocalisation of {unchecked_m:.1f} m, and "
-                    f"the full method did not confirm the track ({m.reason})"
-                )
-                return self._answer(stamp, "none", False, None, None, event, None, m.reason)
+            if m.ok or blind:
+                return self._full_method(stamp, m, X, P, T_pred, H, O_e, O_p, unchecked_m)
         m = measure(T_pred)
         ev = m.evidence if m.ok else None
         if ev is not None and (d2 := self._disagreement(ev, T_pred, P_T)) > self.cfg.gate_chi2:
@@ -240,6 +224,17 @@ class PeerTrack:
             self.misses += 1
             return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False)
         return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
+
+    def _full_method(self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, unchecked_m: float) -> TrackAnswer:
+        """The full method's answer within a track: fused or a fresh track; failed after unchecked odometry, the
+        track is dropped."""
+        if m.ok:
+            return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "acquisition", crosscheck=True)
+        event = self._drop(
+            f"an odometry step the check could not tell from a relocalisation of {unchecked_m:.1f} m, and the full "
+            f"method did not confirm the track ({m.reason})"
+        )
+        return self._answer(stamp, "none", False, None, None, event, None, m.reason)
 
     def _disagreement(self, ev: Evidence, T_pred: np.ndarray, P_T: np.ndarray) -> float:
         """Squared Mahalanobis distance of this frame's own evidence to the prediction, under the evidence's own
