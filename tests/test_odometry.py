@@ -101,7 +101,7 @@ def test_each_car_is_checked_at_its_own_frames_times():
         watch, jumps = OdometryWatch(TrackConfig()), []
         for k, e in enumerate(paired):
             poses = {"ego": ((e if with_ego_stamps else k) * DT, ego[e]), "peer": (k * DT, peer[k])}
-            jump = watch.check(poses)
+            jump, _ = watch.check(poses)
             jumps += [k] if jump else []
             watch.record(poses, jump[0] if jump else None)
         assert (jumps == []) == with_ego_stamps, jumps
@@ -110,7 +110,7 @@ def test_each_car_is_checked_at_its_own_frames_times():
     for k, e in enumerate(paired):
         O_e = se2(0.0, 4.0, 4.0) @ ego[e] if e >= 30 else ego[e]
         poses = {"ego": (e * DT, O_e), "peer": (k * DT, peer[k])}
-        if (jump := watch.check(poses)) and seen_at is None:
+        if (jump := watch.check(poses)[0]) and seen_at is None:
             seen_at = (k, jump)
         watch.record(poses, jump[0] if jump else None)
     assert seen_at[0] == next(k for k, e in enumerate(paired) if e >= 30) and seen_at[1][0] == "ego", seen_at

@@ -29,7 +29,6 @@ from .config import TrackConfig
 from .covariance import left_covariance, params_covariance, probability_within
 from .frame import PreparedFrame
 from .geometry import ground_se2, pose_error, se3_from_se2, worst_sigma_m
-from .odometry import OdometryWatch
 from .pipeline import Aligner
 from .result import AlignResult
 from .stream_acquire import StreamFrame
@@ -66,7 +65,6 @@ class Follower:
         # The last second of frames with odometry: a first acquisition that one frame cannot give is tried on them
         # together (Aligner.align_stream), at most every stream.every_s.
         self.recent: deque[StreamFrame] = deque(maxlen=aligner.config.stream.frames)
-        self.recent_odometry = OdometryWatch(self.cfg)  # an odometry jump starts that memory afresh
         self.last_stream_try: float | None = None
 
     def step(
@@ -135,12 +133,10 @@ class Follower:
         an odometry step no car makes (a relocalisation) starts the memory afresh."""
         if frame is None:
             self.recent.clear()
-            self.recent_odometry.clear()
             return
         frame = StreamFrame(frame.ego, frame.peer, ground_pose(frame.O_ego), ground_pose(frame.O_peer), frame.stamp)
-        poses = {"ego": (ego_stamp, frame.O_ego), "peer": (frame.stamp, frame.O_peer)}
-        jump = self.recent_odometry.check(poses)
-        self.recent_odometry.record(poses, jump[0] if jump else None)
+        # the track's own view of the cars' motion (it records this frame in its step, next)
+        jump, _ = self.track.odometry.check({"ego": (ego_stamp, frame.O_ego), "peer": (frame.stamp, frame.O_peer)})
         if self.recent and (frame.stamp <= self.recent[-1].stamp or jump):
             self.recent.clear()
         self.recent.append(frame)

@@ -23,23 +23,30 @@ Pose = tuple[float, np.ndarray]  # (stamp s of the car's own frame, its 3x3 odom
 def odometry_jump(cfg: TrackConfig, seen: Sequence[Pose], now: Pose, car: str = "car") -> str | None:
     """Why one car's odometry pose ``now`` cannot follow from its earlier frames' ``seen`` (oldest first; the last
     two are used) by the car's motion, if so: a relocalisation or reset. Times are the car's own frames' stamps."""
+    return judge_step(cfg, seen, now, car)[0]
+
+
+def judge_step(cfg: TrackConfig, seen: Sequence[Pose], now: Pose, car: str = "car") -> tuple[str | None, float]:
+    """``odometry_jump``'s verdict, and the largest relocalisation (m) the step's check could take for motion (0
+    when only the speed check ran: less than two earlier poses, or the acceleration check off)."""
     if not seen or now[0] <= seen[-1][0]:
-        return None
+        return None, 0.0
     (t0, O0), (t1, O1) = seen[-1], now
     dt1 = t1 - t0
     yaw, tx, ty = se2_params(np.linalg.inv(O0) @ O1)
     speed, rate = np.hypot(tx, ty) / dt1, abs(np.degrees(wrap_angle(yaw))) / dt1
     if speed > cfg.max_odometry_speed_m_s or rate > cfg.max_odometry_yaw_rate_deg_s:
-        return f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt1:.2f} s)"
+        return f"the {car}'s odometry jumped ({np.hypot(tx, ty):.1f} m, {np.degrees(yaw):.1f} deg in {dt1:.2f} s)", 0.0
     if len(seen) < 2 or cfg.max_odometry_accel_m_s2 is None:
-        return None
+        return None, 0.0
     off_m, off_deg, bound_m, bound_deg = motion_residual(cfg, seen[-2], seen[-1], now)
     if off_m > bound_m or off_deg > bound_deg:
-        return (
+        why = (
             f"the {car}'s odometry jumped ({off_m:.1f} m, {off_deg:.1f} deg off its motion in {dt1:.2f} s; a car "
             f"accelerates {bound_m:.2f} m, {bound_deg:.1f} deg at most)"
         )
-    return None
+        return why, bound_m
+    return None, bound_m
 
 
 class OdometryWatch:
@@ -52,25 +59,24 @@ class OdometryWatch:
         self.cfg = cfg
         self.seen: dict[str, deque[Pose]] = {}
 
-    def check(self, poses: dict[str, Pose]) -> tuple[str, str] | None:
-        """(car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump; nothing is recorded."""
+    def check(self, poses: dict[str, Pose]) -> tuple[tuple[str, str] | None, float]:
+        """((car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump, else None; the largest
+        relocalisation (m) the check could have taken for motion: after a long gap the acceleration a car may have
+        used grows with its square). Nothing is recorded."""
+        unchecked_m = 0.0
         for car, now in poses.items():
-            if why := odometry_jump(self.cfg, self.seen.get(car, ()), now, car):
-                return car, why
-        return None
+            why, bound_m = judge_step(self.cfg, self.seen.get(car, ()), now, car)
+            if why:
+                return (car, why), bound_m
+            unchecked_m = max(unchecked_m, bound_m)
+        return None, unchecked_m
 
-    def unchecked_m(self, poses: dict[str, Pose]) -> float:
-        """The largest relocalisation (m) this step's check could take for motion: after a long gap the acceleration
-        a car may have used grows with its square (0 with less than two earlier poses: the speed check only)."""
-        out = 0.0
-        for car, now in poses.items():
-            seen = self.seen.get(car, ())
-            if len(seen) >= 2 and now[0] > seen[-1][0] and self.cfg.max_odometry_accel_m_s2 is not None:
-                out = max(out, motion_residual(self.cfg, seen[-2], seen[-1], now)[2])
-        return out
-
-    def record(self, poses: dict[str, Pose], jumped: str | None = None) -> None:
-        """Keep ``poses`` as the cars' latest; the car that ``jumped`` starts its motion afresh."""
+    def record(self, poses: dict[str, Pose] | None, jumped: str | None = None) -> None:
+        """Keep ``poses`` as the cars' latest; the car that ``jumped`` starts its motion afresh; None (a frame
+        without odometry): every car does."""
+        if poses is None:
+            self.seen.clear()
+            return
         for car, (stamp, O) in poses.items():
             seen = self.seen.setdefault(car, deque(maxlen=2))
             if seen and stamp == seen[-1][0]:
@@ -78,9 +84,6 @@ class OdometryWatch:
             if car == jumped or (seen and stamp < seen[-1][0]):
                 seen.clear()
             seen.append((stamp, np.asarray(O, float)))
-
-    def clear(self) -> None:
-        self.seen.clear()
 
 
 def motion_residual(cfg: TrackConfig, before: tuple, prev: tuple, now: tuple) -> tuple[float, float, float, float]:

@@ -183,7 +183,7 @@ class PeerTrack:
         O_p = np.asarray(O_peer, float) if odometry else np.eye(3)
         event, self.pending_event = self.pending_event, None
         poses = {"ego": (stamp if ego_stamp is None else ego_stamp, O_e), "peer": (stamp, O_p)}
-        jump, unchecked_m = (self.odometry.check(poses), self.odometry.unchecked_m(poses)) if odometry else (None, 0)
+        jump, unchecked_m = self.odometry.check(poses) if odometry else (None, 0.0)
         if self.X is not None and odometry != self.with_odometry:
             event = self._drop("odometry appeared or disappeared")
         elif self.X is not None and self.stamp - stamp > self.cfg.max_gap_s:  # a recording replayed from its start
@@ -194,7 +194,7 @@ class PeerTrack:
             event = self._drop(jump[1])
         elif self.X is not None and stamp - self.stamp > self.cfg.max_gap_s:
             event = self._drop(f"no frame for {stamp - self.stamp:.1f} s (max_gap_s {self.cfg.max_gap_s:g})")
-        self.odometry.record(poses, jump[0] if jump else None) if odometry else self.odometry.clear()
+        self.odometry.record(poses if odometry else None, jump[0] if jump else None)
         if self.X is None:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
 
