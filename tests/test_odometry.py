@@ -114,3 +114,46 @@ def test_each_car_is_checked_at_its_own_frames_times():
             seen_at = (k, jump)
         watch.record(poses, jump[0] if jump else None)
     assert seen_at[0] == next(k for k, e in enumerate(paired) if e >= 30) and seen_at[1][0] == "ego", seen_at
+
+
+def _stepped_every(poses: list[np.ndarray], every: int, observe: bool) -> list[tuple[int, str | None, float]]:
+    """A service stepping one frame in ``every`` of one car (the others replaced unread, their odometry observed or
+    not): (frame, the check's jumped car or None, its unchecked metres) at each stepped frame."""
+    watch, out = OdometryWatch(TrackConfig()), []
+    for k in range(0, len(poses), every):
+        if observe:
+            watch.observe("peer", [(j * DT, poses[j]) for j in range(max(0, k - every + 1), k)])
+        now = {"peer": (k * DT, poses[k])}
+        jump, unchecked_m = watch.check(now)
+        out.append((k, jump[0] if jump else None, unchecked_m))
+        watch.record(now, jump[0] if jump else None)
+    return out
+
+
+def test_observed_frames_keep_the_check_on_the_car_s_every_step():
+    # A car at 25 m/s stepped once a second (nine frames in ten replaced unread by a busy service). Unobserved, each
+    # step's check can vouch for no more than what 1 g allows in a second (5 m and more: the service would run the
+    # full method to confirm every such frame); with the skipped frames' odometry observed, every step is a 0.1 s
+    # step: the bound is the 10 Hz one (1 g over 0.1 s plus the step noise: 0.35 m).
+    poses = _drive(61, 25.0, 8.0)
+    blind = _stepped_every(poses, 10, observe=False)
+    seen = _stepped_every(poses, 10, observe=True)
+    cfg = TrackConfig()
+    ten_hz = cfg.max_odometry_accel_m_s2 * DT * DT + cfg.odometry_step_noise_m
+    assert all(jumped is None for _, jumped, _ in blind + seen)
+    assert min(m for k, _, m in blind if k >= 20) > cfg.max_unchecked_jump_m
+    assert max(m for _, _, m in seen) == pytest.approx(ten_hz)
+    # a relocalisation of 3 m on a skipped frame (frame 34: the stepped frames are 30 and 40) is caught at the
+    # next step, although the stepped frame itself continues the motion after the jump; unobserved it is not
+    jumped = [se2(0.0, 3.0, 0.0) @ T if k >= 34 else T for k, T in enumerate(poses)]
+    assert [k for k, car, _ in _stepped_every(jumped, 10, observe=True) if car] == [40]
+    assert [k for k, car, _ in _stepped_every(jumped, 10, observe=False) if car] == []
+
+
+def test_observed_frames_older_than_the_last_step_change_nothing():
+    poses = _drive(10, 12.0)
+    watch = OdometryWatch(TrackConfig())
+    for k in range(6):
+        watch.record({"peer": (k * DT, poses[k])})
+    watch.observe("peer", [(k * DT, se2(0.0, 9.0, 0.0) @ poses[k]) for k in range(6)])  # stale, and absurd
+    assert watch.check({"peer": (6 * DT, poses[6])}) == (None, pytest.approx(0.35))

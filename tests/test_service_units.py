@@ -513,3 +513,35 @@ def test_a_car_is_charged_the_cpu_its_jobs_used_engine_threads_included():
     with metered() as idle:
         _time.sleep(0.03)
     assert idle.seconds < 0.01  # waiting is not use
+
+
+def test_the_tracks_hear_every_frames_odometry_and_the_next_step_checks_each_step():
+    # A busy service steps car1's frames 0, 1 and then 9 (2-8 replaced unread). Its odometry re-anchors by 3 m at
+    # frame 5, and frame 9 continues the motion after it: only the heard frames between tell the jump.
+    from bb_align.engine.config import AlignConfig
+    from bb_align.engine.geometry import ground_se2, se2, se3_from_se2
+    from bb_align.engine.pipeline import Aligner
+    from bb_align.server.tracks import PeerTracks
+
+    def pose(k, jump=0.0):  # 15 m/s along x, 10 Hz, 4x4 as the wire's odometry
+        return se3_from_se2(se2(0.0, 1.5 * k + jump, 0.0))
+
+    tracks = PeerTracks(Aligner(AlignConfig()), max_tracks=4)
+    for k in range(12):  # heard in arrival order; frames 10-11 are newer than the step and must not count
+        tracks.hear("ego", k * 0.1, pose(k), ego=True)
+        tracks.hear("car1", k * 0.1, pose(k, 3.0 if k >= 5 else 0.0), ego=False)
+        tracks.hear("car2", k * 0.1, pose(k), ego=False)
+    for car, jump_m in (("car1", 3.0), ("car2", 0.0)):
+        track = tracks.get(car)
+        watch = track.follower.track.odometry
+        for k in (0, 1):  # the two frames stepped before
+            watch.record({"ego": (k * 0.1, ground_se2(pose(k))), "peer": (k * 0.1, ground_se2(pose(k)))})
+        track.observe(tracks.ego_heard, 0.9, 0.9)
+        now = {"ego": (0.9, ground_se2(pose(9))), "peer": (0.9, ground_se2(pose(9, jump_m)))}
+        jump, unchecked_m = watch.check(now)
+        if jump_m:
+            assert jump is not None and jump[0] == "peer" and "jumped" in jump[1], jump
+        else:
+            assert jump is None and unchecked_m < 0.5, (jump, unchecked_m)  # judged as one 0.1 s step
+    tracks.clear()
+    assert tracks.ego_heard.before(10.0) == []

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -217,6 +218,15 @@ class Follower:
         if T_prior is not None and not gate:
             self._check_prior(r, T_prior)
         return r
+
+    def observe_odometry(
+        self, ego: Iterable[tuple[float, np.ndarray]] = (), peer: Iterable[tuple[float, np.ndarray]] = ()
+    ):
+        """The odometry poses (stamp s, 4x4 or 3x3) of frames of either car that will not be stepped, oldest first:
+        a service too busy to step every frame still checks each car's every odometry step (a relocalisation among
+        the skipped frames is caught at the next step; a step after them is judged as one 0.1 s step, not a gap)."""
+        for car, poses in (("ego", ego), ("peer", peer)):
+            self.track.odometry.observe(car, ((t, ground_pose(O)) for t, O in poses))
 
     def begin_crosscheck(self, stamp: float) -> int | None:
         """The track's epoch when a cross-check beside it is due at ``stamp`` (marked begun), else None."""

@@ -10,7 +10,7 @@ one earlier pose only: no faster than any road car drives or turns.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -53,11 +53,29 @@ class OdometryWatch:
     """Each car's last two odometry poses, each at its own frame's stamp: is the cars' next pose their motion?
 
     A car's frame seen again (the ego frame of the last peer frame, paired once more) adds nothing; a jump, a frame
-    older than the last or a stream without odometry starts that car's motion afresh."""
+    older than the last or a stream without odometry starts that car's motion afresh. Frames not stepped (a busy
+    service replaced them unread) are ``observe``d: the next step is then judged against 0.1 s of motion, not the
+    whole gap, and a jump among them is reported by the next ``check``."""
 
     def __init__(self, cfg: TrackConfig):
         self.cfg = cfg
         self.seen: dict[str, deque[Pose]] = {}
+        # per car, since its last recorded step: a jump among the observed frames, the largest unchecked step (m)
+        self.observed: dict[str, tuple[str | None, float]] = {}
+
+    def observe(self, car: str, poses: Iterable[Pose]) -> None:
+        """The odometry of ``car``'s frames that will not be stepped, oldest first (those not newer than the last
+        one seen are ignored): each judged as a step, a jump remembered until the next step records."""
+        for stamp, O in poses:
+            seen = self.seen.setdefault(car, deque(maxlen=2))
+            if seen and stamp <= seen[-1][0]:
+                continue
+            why, bound_m = judge_step(self.cfg, seen, (stamp, O), car)
+            jumped, unchecked_m = self.observed.get(car, (None, 0.0))
+            self.observed[car] = (jumped or why, max(unchecked_m, bound_m))
+            if why:
+                seen.clear()
+            seen.append((stamp, np.asarray(O, float)))
 
     def check(self, poses: dict[str, Pose]) -> tuple[tuple[str, str] | None, float]:
         """((car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump, else None; the largest
@@ -66,8 +84,10 @@ class OdometryWatch:
         unchecked_m = 0.0
         for car, now in poses.items():
             why, bound_m = judge_step(self.cfg, self.seen.get(car, ()), now, car)
-            if why:
-                return (car, why), bound_m
+            jumped, observed_m = self.observed.get(car, (None, 0.0))
+            bound_m = max(bound_m, observed_m)
+            if jumped or why:
+                return (car, jumped or why), bound_m
             unchecked_m = max(unchecked_m, bound_m)
         return None, unchecked_m
 
@@ -76,8 +96,10 @@ class OdometryWatch:
         without odometry): every car does."""
         if poses is None:
             self.seen.clear()
+            self.observed.clear()
             return
         for car, (stamp, O) in poses.items():
+            self.observed.pop(car, None)
             seen = self.seen.setdefault(car, deque(maxlen=2))
             if seen and stamp == seen[-1][0]:
                 continue

@@ -534,7 +534,9 @@ class AlignService:
     def _accept_stream(self, job: Job) -> bool:
         """An admitted stream frame: the ego's goes into the cache at once (a PNG decode, on the caller's thread,
         so the cache stays current however busy the workers are); a peer's waits in its latest-only queue."""
-        if job.frame.vehicle_id != self.settings.ego_id:
+        ego = job.frame.vehicle_id == self.settings.ego_id
+        if not ego:
+            self._hear(job.frame, ego)
             return self._queue_frame(job)
         if self.intake.closed and job.door == "rest":
             return False
@@ -548,6 +550,7 @@ class AlignService:
         except WireError:
             self.peer_table.update(frame.vehicle_id, lambda e: setattr(e.status, "failed", e.status.failed + 1))
             raise
+        self._hear(frame, ego)
         self.peer_table.update(
             frame.vehicle_id, lambda e: setattr(e.status, "frames_accepted", e.status.frames_accepted + 1)
         )
@@ -556,6 +559,11 @@ class AlignService:
             Job(_EGO_FEATURES, time.perf_counter(), job.door, task="ego_features", meta={"entry": entry}), depth=1
         )
         return True
+
+    def _hear(self, frame: Frame, ego: bool) -> None:
+        """A stream frame's odometry, for its car's odometry check whether or not a worker steps the frame."""
+        if self.tracking and frame.odometry is not None:
+            self.tracks.hear(frame.vehicle_id, frame.stamp, frame.odometry.matrix(), ego)
 
     def _queue_frame(self, job: Job) -> bool:
         dropped = self.scheduler.put_frame(job)
@@ -734,6 +742,8 @@ class AlignService:
         aside = self.settings.crosscheck_beside_track and odometry  # without odometry it runs in the step
         track = self.tracks.get(peer.vehicle_id)
         with track.lock:
+            if odometry:
+                track.observe(self.tracks.ego_heard, ego_frame.stamp, peer.stamp)
             r = track.follower.step(
                 ego_prep,
                 peer_prep,
