@@ -83,6 +83,17 @@ def test_score_kernel_matches_plain_numpy():
                 assert scores[k, a, b] == pytest.approx(expected, abs=1e-7)
 
 
+def test_the_fields_built_per_ego_frame_are_the_plain_fields_to_the_bit():
+    # Fields.of builds both grids' layouts in place (fewer multi-MB temporaries); the plain construction, each
+    # field on its own then laid out, must give the same floats: the landscape's answers do not move.
+    ego, _ = _pair(_street(None), se2(np.radians(3.0), 4.0, 1.0))
+    fields = Fields.of(ego, CFG)
+    for step, built in ((2 * CFG.step_m, fields.coarse), (CFG.step_m, fields.fine)):
+        narrow, wide = likelihood_field(ego, CFG.sigma_m, step), likelihood_field(ego, CFG.wide_sigma_m, step)
+        plain = np.stack([narrow[:, ::-1], wide[:, ::-1]], axis=2).reshape(narrow.shape[0], -1)
+        assert built.dtype == np.float32 and np.array_equal(built, plain)
+
+
 def test_the_peak_is_the_known_transform_and_its_covariance_covers_the_start():
     T_true = se2(np.radians(2.0), 12.0, 0.5)
     ego, pts = _pair(_street(None), T_true)

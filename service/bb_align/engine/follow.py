@@ -225,8 +225,10 @@ class Follower:
         """The odometry poses (stamp s, 4x4 or 3x3) of frames of either car that will not be stepped, oldest first:
         a service too busy to step every frame still checks each car's every odometry step (a relocalisation among
         the skipped frames is caught at the next step; a step after them is judged as one 0.1 s step, not a gap)."""
+        watch = self.track.odometry
         for car, poses in (("ego", ego), ("peer", peer)):
-            self.track.odometry.observe(car, ((t, ground_pose(O)) for t, O in poses))
+            last = watch.last_stamp(car)
+            watch.observe(car, [(t, ground_pose(O)) for t, O in poses if last is None or t > last])
 
     def begin_crosscheck(self, stamp: float) -> int | None:
         """The track's epoch when a cross-check beside it is due at ``stamp`` (marked begun), else None."""

@@ -77,6 +77,11 @@ class OdometryWatch:
                 seen.clear()
             seen.append((stamp, np.asarray(O, float)))
 
+    def last_stamp(self, car: str) -> float | None:
+        """The stamp of ``car``'s latest pose seen (stepped or observed), None before any."""
+        seen = self.seen.get(car)
+        return seen[-1][0] if seen else None
+
     def check(self, poses: dict[str, Pose]) -> tuple[tuple[str, str] | None, float]:
         """((car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump, else None; the largest
         relocalisation (m) the check could have taken for motion: after a long gap the acceleration a car may have
