@@ -221,7 +221,7 @@ class Follower:
 
     def observe_odometry(
         self, ego: Iterable[tuple[float, np.ndarray]] = (), peer: Iterable[tuple[float, np.ndarray]] = ()
-    ):
+    ) -> None:
         """The odometry poses (stamp s, 4x4 or 3x3) of frames of either car that will not be stepped, oldest first:
         a service too busy to step every frame still checks each car's every odometry step (a relocalisation among
         the skipped frames is caught at the next step; a step after them is judged as one 0.1 s step, not a gap)."""
