@@ -209,7 +209,7 @@ def test_a_peer_silent_past_max_gap_is_acquired_again():
 
 
 def test_a_prediction_alone_is_never_valid_and_an_unconfirmed_track_is_acquired_again():
-    cfg = TrackConfig(crosscheck_s=0, max_rejects=3, reacquire_s=1.0)
+    cfg = TrackConfig(crosscheck_s=0, max_rejects=3, reacquire_s=1.0, stream_coast_s=0)  # no stream answers here
     track = PeerTrack(cfg)
     oracle = Oracle(seed=5)
     rows = _run(track, oracle, range(40), _odometry(), fail_measure=set(range(10, 40)), fail_acquire={13})
@@ -236,8 +236,10 @@ def test_cross_check_that_disagrees_restarts_the_track():
     rows += _run(track, oracle, range(5, 15), _odometry(), fail_measure=set(range(5, 15)))
     events = [(k, a.event) for k, _, a in rows if a.event and "cross-check" in a.event]
     assert events and events[0][0] == 10 and "acquired" in events[0][1], events
-    # No frame's own evidence supports the corrupted track: nothing is valid until the cross-check.
-    assert not any(a.valid for k, _, a in rows if 5 <= k < 10)
+    # No frame's own evidence supports the corrupted track: until the cross-check only the stream answers (frames
+    # 5-9, within a second of the last measured frame), from its own evidence, never the corrupted filter's pose.
+    before = [(T_true, a) for k, T_true, a in rows if 5 <= k < 10 and a.valid]
+    assert before and all(a.source == "stream" and pose_error(a.T_ego_peer, T_true)[0] < 0.5 for T_true, a in before)
     for k, T_true, a in rows:
         if a.valid and k >= 10:
             assert pose_error(a.T_ego_peer, T_true)[0] < 1.0, k
@@ -412,3 +414,29 @@ def test_without_odometry_a_frame_answers_on_its_own_evidence_only():
     rows = _run(track, oracle, range(30))
     assert not any(a.valid for _, _, a in rows)
     assert all("probability" in (a.why_not or "") for _, _, a in rows[5:] if a.source == "tracking")
+
+
+def test_a_frame_without_evidence_is_answered_from_the_recent_stream_then_refused():
+    """With stream_coast_s 1 s (the default): frames whose refinement finds nothing (10-29; every acquisition
+    fails too) are answered from the stream's frames 0-9, carried by odometry, their covariance grown by its drift,
+    for as long as the newest of them is at most 1 s old (frames 10-19), then refused; every carried answer's error
+    within chi2(3) at 0.999 of its covariance. Off (0) or without odometry: never."""
+    from bb_align.engine.covariance import probability_within
+
+    def run(coast_s, odometry):
+        track = PeerTrack(TrackConfig(crosscheck_s=0, stream_coast_s=coast_s))
+        fails = set(range(10, 30))
+        return _run(track, Oracle(seed=9), range(30), odometry, fail_measure=fails, fail_acquire=fails)
+
+    rows = run(1.0, _odometry())
+    carried = {k: a for k, _, a in rows if a.source == "stream"}
+    assert sorted(carried) == list(range(10, 20)) and all(a.valid for a in carried.values())
+    assert all(not a.valid for k, _, a in rows if k >= 20)
+    widths = [probability_within(carried[k].covariance, 0.3, 0.3) for k in range(10, 20)]
+    assert widths == sorted(widths, reverse=True) and widths[0] > widths[-1]  # the drift widens them
+    for k, T_true, a in rows:
+        if a.source == "stream":
+            d = log_left(T_true, a.T_ego_peer)
+            assert d @ np.linalg.solve(a.covariance, d) < 16.27, k  # chi2(3) at 0.999
+    for coast_s, odometry in ((0.0, _odometry()), (1.0, None)):
+        assert not any(a.valid for k, _, a in run(coast_s, odometry) if k >= 10)

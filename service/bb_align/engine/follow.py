@@ -269,6 +269,8 @@ class Follower:
             r.covariance = params_covariance(a.covariance, a.T_ego_peer)
         r.success = bool(a.valid)
         r.reason = None if a.valid else self._reason(a, r)
+        if a.source == "stream":
+            r.notes.append("no evidence of its own this frame: the stream's recent frames answer, carried by odometry")
         if a.why_not:
             r.notes.append(f"not valid on this frame's evidence: {a.why_not}")
         if not own:

@@ -35,8 +35,8 @@ class AlignResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     # 3x3 covariance of (yaw rad, tx m, ty m) of T_ego_peer's ground-plane part (None when not computed).
     covariance: np.ndarray | None = None
-    # Tracking (bb_align.engine.follow): where the answer came from ("acquisition", "tracking" or "prediction"),
-    # the peer's track state and, when it changed this frame, why.
+    # Tracking (bb_align.engine.follow): where the answer came from ("acquisition", "tracking", "stream" or
+    # "prediction"), the peer's track state and, when it changed this frame, why.
     source: str = "acquisition"
     track_state: str | None = None
     track_event: str | None = None

@@ -73,7 +73,7 @@ class TrackAnswer:
 
     stamp: float
     state: TrackState
-    source: str  # "acquisition", "tracking", "prediction" (no usable measurement) or "none"
+    source: str  # "acquisition", "tracking", "stream" (no evidence of its own), "prediction" or "none"
     valid: bool  # a pose to act on: within the track's bounds and supported by this or recent frames
     T_ego_peer: np.ndarray | None  # 3x3
     covariance: np.ndarray | None  # 3x3, left increments (yaw, tx, ty)
@@ -222,7 +222,7 @@ class PeerTrack:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
         if not m.ok:
             self.misses += 1
-            return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False)
+            return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False, odometry=(O_e, O_p))
         return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
 
     def _full_method(self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, unchecked_m: float) -> TrackAnswer:
@@ -261,7 +261,14 @@ class PeerTrack:
         if not self.with_odometry:
             return ev.T_ego_peer, ev.covariance, self._within(ev.T_ego_peer, ev.covariance)
         self.stream.add(offset_sample(stamp, ev.T_ego_peer, ev.covariance, O_e, O_p, odometry_drift(self.cfg)))
+        return self._stream_answer(stamp, O_e, O_p)
+
+    def _stream_answer(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray):
+        """The stream's fused evidence at ``stamp`` as T_ego_peer through the cars' odometry poses then: (T,
+        covariance of left increments, why it is not valid or None); None when the stream holds no frame."""
         fused = self.stream.fused(stamp)
+        if fused is None:
+            return None
         H = adjoint(np.linalg.inv(O_e))
         T, P_T = np.linalg.inv(O_e) @ fused.X @ O_p, H @ fused.covariance @ H.T
         return T, P_T, self._within(T, P_T, fused.frames)
@@ -374,18 +381,33 @@ class PeerTrack:
         why = self._supported(ev)
         if why is None:
             T, P_T, why = self._evidence_answer(stamp, ev, O_e, O_p)
-        if why is None:
-            self.misses = 0
-            self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
-        else:
+            if why is None:
+                self.misses = 0
+                self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
+        elif ev is None and (carried := self._carried(stamp, O_e, O_p)) is not None:
+            (T, P_T, why), source = carried, "stream"  # the boxes alone measured this frame: no evidence of its own
+        if why is not None or source == "stream":
             self.misses += 1
         return self._answer(stamp, source, why is None, T, P_T, None, d2, why)
 
-    def _coast(self, stamp, X, P, T_pred, P_T, why: str, rejected: bool, d2: float | None = None) -> TrackAnswer:
+    def _coast(self, stamp, X, P, T_pred, P_T, why: str, rejected: bool, d2=None, odometry=None) -> TrackAnswer:
         """No usable measurement this frame: the prediction stands, never as a valid answer (nothing of this frame
-        supports it)."""
+        supports it); with ``odometry`` (O_e, O_p) the stream's recent evidence may answer (``_carried``)."""
         self._keep(stamp, X, P)
+        carried = None if odometry is None else self._carried(stamp, *odometry)
+        if carried is not None:
+            T, cov, why_not = carried
+            return self._answer(stamp, "stream", why_not is None, T, cov, why, d2, why_not)
         return self._answer(stamp, "prediction", False, T_pred, P_T, why, d2, why)
+
+    def _carried(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray):
+        """A frame with no evidence of its own: the stream's frames, the newest at most ``stream_coast_s`` old, fused
+        and carried to it by both cars' odometry, the covariance grown by their drift since: (T, covariance, why it
+        is not valid or None); None when there are none that recent (or tracking without odometry)."""
+        samples = self.stream.samples
+        if not (self.with_odometry and samples and stamp - samples[-1].stamp <= self.cfg.stream_coast_s):
+            return None
+        return self._stream_answer(stamp, O_e, O_p)
 
     def _acquire(self, stamp, m: Measurement, O_e, O_p, odometry: bool, event: str | None) -> TrackAnswer:
         """A full acquisition's outcome: a new track, or (failed) the old track given up."""

@@ -318,11 +318,12 @@ class Result(_Wire):
         "within the engine's answer.max_error_m / max_error_deg with at least answer.confidence",
     )
     prior_used: bool = Field(False, description="roll, pitch, tz taken from the two reported poses")
-    source: Literal["acquisition", "tracking", "prediction"] | None = Field(
+    source: Literal["acquisition", "tracking", "stream", "prediction"] | None = Field(
         None,
         description="acquisition: the full two-stage method ran on this frame; tracking: the dense refinement from "
-        "the track's prediction, fused with it; prediction: no usable measurement this frame, the track's "
-        "prediction (None: tracking off)",
+        "the track's prediction, fused with it; stream: no evidence of its own this frame, the stream's recent "
+        "frames carried to it by both cars' odometry (track.stream_coast_s); prediction: no usable measurement this "
+        "frame, the track's prediction, never a success (None: tracking off)",
     )
     track_state: Literal["acquiring", "tracking", "lost"] | None = Field(
         None, description="the peer's track after this frame (None: tracking off)"

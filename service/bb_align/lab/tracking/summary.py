@@ -92,7 +92,8 @@ def summarize(records: list[dict], max_m: float = 1.0, max_deg: float = 1.0) -> 
         "acquire_ms_p50": _pct(acquire_ms, 50),
         "ego_frame_ms_p50": _pct([r["ego_frame_ms"] for r in records], 50),
         "by_source": {
-            s: sum(r["source"] == s for r in tracked) for s in ("acquisition", "tracking", "prediction", "none")
+            s: sum(r["source"] == s for r in tracked)
+            for s in ("acquisition", "tracking", "stream", "prediction", "none")
         },
     }
 
