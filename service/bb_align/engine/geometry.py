@@ -19,23 +19,24 @@ def se2_params(T: np.ndarray) -> tuple[float, float, float]:
     return float(np.arctan2(T[1, 0], T[0, 0])), float(T[0, t_col]), float(T[1, t_col])
 
 
+def _arc(w: float) -> tuple[float, float]:
+    """(sin w / w, (1 - cos w) / w): how a twist turning by ``w`` maps its velocity to the translation it makes."""
+    if abs(w) < 1e-9:
+        return 1.0 - w * w / 6.0, w / 2.0
+    return np.sin(w) / w, (1.0 - np.cos(w)) / w
+
+
 def se2_exp(xi) -> np.ndarray:
     """The rigid motion of a constant twist ``xi`` = (yaw, x, y) applied for unit time (an arc): 3x3."""
     w, vx, vy = (float(v) for v in xi)
-    if abs(w) < 1e-9:
-        a, b = 1.0 - w * w / 6.0, w / 2.0
-    else:
-        a, b = np.sin(w) / w, (1.0 - np.cos(w)) / w
+    a, b = _arc(w)
     return se2(w, a * vx - b * vy, b * vx + a * vy)
 
 
 def se2_log(T: np.ndarray) -> np.ndarray:
     """The twist (yaw, x, y) whose ``se2_exp`` is the 3x3 (or 4x4's ground) rigid motion T (|yaw| < pi)."""
     w, tx, ty = se2_params(T)
-    if abs(w) < 1e-9:
-        a, b = 1.0 - w * w / 6.0, w / 2.0
-    else:
-        a, b = np.sin(w) / w, (1.0 - np.cos(w)) / w
+    a, b = _arc(w)
     det = a * a + b * b
     return np.array([w, (a * tx + b * ty) / det, (a * ty - b * tx) / det])
 

@@ -379,14 +379,16 @@ class PeerTrack:
         if source == "acquisition" and ev is not None:
             self.support = ev.fitness  # a full acquisition that agrees: the reference the next frames are held to
         why = self._supported(ev)
-        if why is None:
+        confirmed = why is None
+        if confirmed:
             T, P_T, why = self._evidence_answer(stamp, ev, O_e, O_p)
-            if why is None:
-                self.misses = 0
-                self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
+            confirmed = why is None
         elif ev is None and (carried := self._carried(stamp, O_e, O_p)) is not None:
             (T, P_T, why), source = carried, "stream"  # the boxes alone measured this frame: no evidence of its own
-        if why is not None or source == "stream":
+        if confirmed:  # this frame's own evidence confirms the track
+            self.misses = 0
+            self.support = ev.fitness if self.support is None else 0.5 * (self.support + ev.fitness)
+        else:
             self.misses += 1
         return self._answer(stamp, source, why is None, T, P_T, None, d2, why)
 
