@@ -157,3 +157,22 @@ def test_observed_frames_older_than_the_last_step_change_nothing():
         watch.record({"peer": (k * DT, poses[k])})
     watch.observe("peer", [(k * DT, se2(0.0, 9.0, 0.0) @ poses[k]) for k in range(6)])  # stale, and absurd
     assert watch.check({"peer": (6 * DT, poses[6])}) == (None, pytest.approx(0.35))
+
+
+def test_a_repeated_check_answers_as_a_fresh_one_until_the_watch_learns_more():
+    # The track checks each frame twice with nothing recorded between; the second answer is remembered, never
+    # stale: after observe or record the same poses are judged afresh (here: a jump observed in between).
+    poses = _drive(10, 12.0)
+    watch, fresh = OdometryWatch(TrackConfig()), OdometryWatch(TrackConfig())
+    for k in range(5):
+        watch.record({"peer": (k * DT, poses[k])})
+        fresh.record({"peer": (k * DT, poses[k])})
+    now = {"peer": (5 * DT, poses[5])}
+    assert watch.check(now) == watch.check(now) == fresh.check(now) == (None, pytest.approx(0.35))
+    jump = [(4.5 * DT, se2(0.0, 4.0, 0.0) @ poses[5])]
+    watch.observe("peer", jump)
+    fresh.observe("peer", jump)
+    assert watch.check(now)[0] is not None
+    assert watch.check(now) == fresh.check(now)
+    watch.record(now, jumped="peer")
+    assert watch.check({"peer": (6 * DT, poses[6])}) == (None, 0.0)  # one pose since the jump: speed check only

@@ -62,10 +62,14 @@ class OdometryWatch:
         self.seen: dict[str, deque[Pose]] = {}
         # per car, since its last recorded step: a jump among the observed frames, the largest unchecked step (m)
         self.observed: dict[str, tuple[str | None, float]] = {}
+        # the last check's poses and verdict: a tracked frame is checked twice with nothing recorded between (the
+        # follower's stream memory, then the track's step); observe and record forget it
+        self._checked: tuple[tuple, tuple] | None = None
 
     def observe(self, car: str, poses: Iterable[Pose]) -> None:
         """The odometry of ``car``'s frames that will not be stepped, oldest first (those not newer than the last
         one seen are ignored): each judged as a step, a jump remembered until the next step records."""
+        self._checked = None
         for stamp, O in poses:
             seen = self.seen.setdefault(car, deque(maxlen=2))
             if seen and stamp <= seen[-1][0]:
@@ -86,6 +90,13 @@ class OdometryWatch:
         """((car, why) when a car's pose in ``poses`` ({car: (stamp, pose)}) is a jump, else None; the largest
         relocalisation (m) the check could have taken for motion: after a long gap the acceleration a car may have
         used grows with its square). Nothing is recorded."""
+        key = tuple((car, t, np.asarray(O, float).tobytes()) for car, (t, O) in poses.items())
+        if self._checked is not None and self._checked[0] == key:
+            return self._checked[1]
+        self._checked = (key, verdict := self._check(poses))
+        return verdict
+
+    def _check(self, poses: dict[str, Pose]) -> tuple[tuple[str, str] | None, float]:
         unchecked_m = 0.0
         for car, now in poses.items():
             why, bound_m = judge_step(self.cfg, self.seen.get(car, ()), now, car)
@@ -99,6 +110,7 @@ class OdometryWatch:
     def record(self, poses: dict[str, Pose] | None, jumped: str | None = None) -> None:
         """Keep ``poses`` as the cars' latest; the car that ``jumped`` starts its motion afresh; None (a frame
         without odometry): every car does."""
+        self._checked = None
         if poses is None:
             self.seen.clear()
             self.observed.clear()
