@@ -185,10 +185,13 @@ def test_quick_bench_reports_the_promised_keys(tmp_path):
     assert "| peer frame vs cached ego frame |" in table and "| ransac |" in table
 
 
-def test_service_throughput_over_zenoh_loopback():
+def test_service_throughput_over_zenoh_loopback(monkeypatch):
     from bb_align.lab.bench.throughput import ServiceBenchConfig, measure_service
 
-    # A small BV range keeps the engine quick; the measurement path is the one the full benchmark uses.
+    # A small BV range keeps the engine quick; the measurement path is the one the full benchmark uses. Every
+    # tracked frame that waited at all is answered from its track's stream while the stream can answer it (the
+    # service's settings read the environment): both kinds of answer come back, none wrong.
+    monkeypatch.setenv("BBALIGN_UNMEASURED_AFTER_S", "1e-6")
     config = AlignConfig(bev=BevConfig(range_m=40.0))
     sb = ServiceBenchConfig(peer_counts=[2], seconds=2.0, warmup_s=1.0, grace_s=3.0, frames=2, workers=1)
     out = measure_service(sb, config)
@@ -200,6 +203,8 @@ def test_service_throughput_over_zenoh_loopback():
     assert run["service_frames_dropped_total"] >= 0 and sum(run["outcomes"].values()) == run["results"]
     assert run["service_memory"]["rss_peak_mb"] > 50  # the service process itself, read from /proc
     assert "queue_wait" in run["service_timings_ms_p50"]
+    assert run["sources"].get("stream", 0) > 0 and run["wrong"] == 0, (run["sources"], run["wrong"])
+    assert 0 < run["measured_fps"] < run["results_fps"]  # the acquisitions and tracked frames measured
 
 
 def test_bench_reported_pose_noise_is_about_the_car_not_the_world_origin():

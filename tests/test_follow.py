@@ -4,11 +4,15 @@ frames that need no descriptors; a 2 s silence survived; an odometry jump loses 
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
 from bb_align.engine import Aligner, Follower
-from bb_align.engine.geometry import pose_error, se2, se2_params, se3_from_se2, wrap_angle
+from bb_align.engine.covariance import params_covariance
+from bb_align.engine.geometry import ground_se2, pose_error, se2, se2_params, se3_from_se2, wrap_angle
+from bb_align.engine.tracker import Measurement
 from bb_align.io.dataset import iter_scenario_frames, parse_lidar_pose
 from bb_align.lab.sim.sweep import write_sweep
 
@@ -110,6 +114,61 @@ def test_an_odometry_jump_loses_the_track_and_it_is_acquired_again(sequence):
     assert reacquired, events
     r, f = after[-1]
     assert r.success and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
+
+
+def test_a_frame_not_measured_is_answered_from_the_stream_as_a_frame_the_engine_could_not_measure(sequence):
+    """A service behind its frames answers a tracked frame without measuring it (Follower.unmeasured): the answer
+    is the one the track gives a frame whose refinement failed (its twin stepped with a failing measurement), it
+    holds the true pose within its 3 sigma, and it stops after track.stream_coast_s without evidence."""
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    assert follower.unmeasured(frames[0]["stamp"], O_ego=frames[0]["O_ego"], O_peer=frames[0]["O_peer"]) is None
+    for f in frames[:12]:
+        _step(follower, aligner, f)
+    assert follower.track.state.value == "tracking"
+    last_evidence, misses = follower.track.stream.samples[-1].stamp, follower.track.misses
+    answered = []
+    for f in frames[12:30]:
+        twin = copy.deepcopy(follower.track)
+        r = follower.unmeasured(f["stamp"], O_ego=f["O_ego"], O_peer=f["O_peer"])
+        if r is None:
+            break
+        a = twin.step(
+            f["stamp"],
+            lambda T: Measurement(False, reason="not measured"),
+            lambda T: pytest.fail("no acquisition for a tracked frame"),
+            ground_se2(f["O_ego"]),
+            ground_se2(f["O_peer"]),
+            crosscheck=False,
+        )
+        assert r.success and r.source == "stream" and a.source == "stream" and a.valid
+        np.testing.assert_allclose(ground_se2(r.T_ego_peer), a.T_ego_peer, atol=1e-12)
+        np.testing.assert_allclose(r.covariance, params_covariance(a.covariance, a.T_ego_peer), atol=1e-15)
+        err = np.array(se2_params(r.T_ego_peer)) - np.array(se2_params(f["T_true"]))
+        err[0] = wrap_angle(err[0])
+        assert np.all(np.abs(err) <= 3 * np.sqrt(np.diag(r.covariance))), (f["stamp"], err)
+        answered.append(f["stamp"])
+    coast = aligner.config.track.stream_coast_s
+    assert answered and answered[-1] - last_evidence <= coast < answered[-1] + 0.1 + 1e-9 - last_evidence
+    assert follower.track.misses == misses and follower.track.stream.samples[-1].stamp == last_evidence
+    # the next frame is measured as usual: the track goes on, right
+    f = frames[12 + len(answered)]
+    r, _, _ = _step(follower, aligner, f)
+    assert r.success and r.source == "tracking" and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
+
+
+def test_a_frame_not_measured_after_an_odometry_jump_is_left_to_the_step(sequence):
+    aligner, frames = sequence
+    follower = Follower(aligner)
+    for f in frames[:12]:
+        _step(follower, aligner, f)
+    jump = se3_from_se2(se2(0.0, 3.0, 0.0))
+    f = frames[12]
+    before = copy.deepcopy(follower.track)
+    assert follower.unmeasured(f["stamp"], O_ego=f["O_ego"], O_peer=jump @ f["O_peer"]) is None
+    assert follower.track.stamp == before.stamp and np.array_equal(follower.track.X, before.X)
+    r, _, _ = _step(follower, aligner, f, O_peer=jump @ f["O_peer"])
+    assert r.track_event and "odometry jumped" in r.track_event
 
 
 def test_track_command_writes_the_summary_records_and_figures(tmp_path):

@@ -121,9 +121,16 @@ class StreamEvidence:
     def add(self, sample: OffsetSample) -> None:
         self.samples.append(sample)
 
-    def fused(self, stamp: float) -> FusedOffset | None:
+    def fused(self, stamp: float, trim: bool = True) -> FusedOffset | None:
         """The fusion at ``stamp`` of the newest frames that agree with each other (newest first: a frame that
-        disagrees with the fusion of the newer ones ends the window and is forgotten with everything older)."""
+        disagrees with the fusion of the newer ones ends the window and is forgotten with everything older).
+        ``trim=False``: the same fusion, nothing forgotten (a look that must leave the stream as it was)."""
+        if not trim:
+            kept = self.samples.copy()
+            try:
+                return self.fused(stamp)
+            finally:
+                self.samples = kept
         while self.samples and stamp - self.samples[0].stamp > self.window_s:
             self.samples.popleft()
         if not self.samples:

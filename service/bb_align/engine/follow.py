@@ -219,6 +219,24 @@ class Follower:
             self._check_prior(r, T_prior)
         return r
 
+    def unmeasured(
+        self,
+        stamp: float,
+        *,
+        O_ego: np.ndarray,
+        O_peer: np.ndarray,
+        ego_stamp: float | None = None,
+        tz: float = 0.0,
+        roll: float = 0.0,
+        pitch: float = 0.0,
+    ) -> AlignResult | None:
+        """A peer frame answered without measuring it (no images needed): the stream's recent evidence carried by
+        both cars' odometry, when the track says that is a valid answer (``PeerTrack.unmeasured``); None when the
+        frame must be ``step``ped instead (nothing of the track changed then)."""
+        t0 = time.perf_counter()
+        a = self.track.unmeasured(stamp, ground_pose(O_ego), ground_pose(O_peer), ego_stamp=ego_stamp)
+        return None if a is None else self._result(a, [], (time.perf_counter() - t0) * 1e3, tz, roll, pitch)
+
     def observe_odometry(
         self, ego: Iterable[tuple[float, np.ndarray]] = (), peer: Iterable[tuple[float, np.ndarray]] = ()
     ) -> None:

@@ -199,12 +199,8 @@ class PeerTrack:
             return self._acquire(stamp, acquire(None), O_e, O_p, odometry, event)
 
         X, P, T_pred, H = self._predict(stamp - self.stamp, O_e, O_p)
-        sigma, periodic = worst_sigma_m(P_T := H @ P @ H.T), crosscheck and self.crosscheck_due(stamp)
-        # Unconfirmed for max_rejects frames (at most every reacquire_s: ~0.3 s each), or a gap so long the odometry
-        # check could miss a relocalisation the refinement cannot find its way back from: the full method.
-        unsupported = self.misses >= self.cfg.max_rejects and stamp - self.last_acquired >= self.cfg.reacquire_s
-        blind = unchecked_m > self.cfg.max_unchecked_jump_m
-        if sigma > self.cfg.max_sigma_m or periodic or unsupported or blind:
+        P_T, blind = H @ P @ H.T, unchecked_m > self.cfg.max_unchecked_jump_m
+        if self._full_method_due(stamp, P_T, unchecked_m) or (crosscheck and self.crosscheck_due(stamp)):
             # fused when it agrees, a fresh track when not; when it fails the refinement below tries (unless blind)
             self.last_acquired = stamp
             m = acquire(T_pred)
@@ -224,6 +220,14 @@ class PeerTrack:
             self.misses += 1
             return self._coast(stamp, X, P, T_pred, P_T, m.reason, rejected=False, odometry=(O_e, O_p))
         return self._update(stamp, m, X, P, T_pred, H, O_e, O_p, "tracking")
+
+    def _full_method_due(self, stamp: float, P_T: np.ndarray, unchecked_m: float) -> bool:
+        """Whether this frame needs the full method whatever else: a track too uncertain, unconfirmed for
+        max_rejects frames (at most every reacquire_s: ~0.3 s each), or a gap so long the odometry check could miss
+        a relocalisation the refinement cannot find its way back from."""
+        unsupported = self.misses >= self.cfg.max_rejects and stamp - self.last_acquired >= self.cfg.reacquire_s
+        blind = unchecked_m > self.cfg.max_unchecked_jump_m
+        return worst_sigma_m(P_T) > self.cfg.max_sigma_m or unsupported or blind
 
     def _full_method(self, stamp, m: Measurement, X, P, T_pred, H, O_e, O_p, unchecked_m: float) -> TrackAnswer:
         """The full method's answer within a track: fused or a fresh track; failed after unchecked odometry, the
@@ -263,10 +267,10 @@ class PeerTrack:
         self.stream.add(offset_sample(stamp, ev.T_ego_peer, ev.covariance, O_e, O_p, odometry_drift(self.cfg)))
         return self._stream_answer(stamp, O_e, O_p)
 
-    def _stream_answer(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray):
+    def _stream_answer(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray, trim: bool = True):
         """The stream's fused evidence at ``stamp`` as T_ego_peer through the cars' odometry poses then: (T,
         covariance of left increments, why it is not valid or None); None when the stream holds no frame."""
-        fused = self.stream.fused(stamp)
+        fused = self.stream.fused(stamp, trim)
         if fused is None:
             return None
         H = adjoint(np.linalg.inv(O_e))
@@ -284,6 +288,36 @@ class PeerTrack:
             f"{held} puts the answer within {a.max_error_m:g} m / {a.max_error_deg:g} deg with probability "
             f"{p:.2f} only (answer.confidence {a.confidence:g})"
         )
+
+    # ---- a frame not measured ---------------------------------------------------------------------------------
+    def unmeasured(self, stamp: float, O_ego: np.ndarray, O_peer: np.ndarray, ego_stamp: float | None = None):
+        """A frame the caller will not measure (a service behind its frames): the stream's recent evidence carried
+        to it by both cars' odometry (``_carried``), when that is a valid answer and nothing about this frame calls
+        for the engine (a new or lost track, an odometry jump or unchecked gap, an event to report, a frame out of
+        order or after a long gap, a track due for the full method); else None (``step`` the frame then). The stream
+        is left as it was, misses and support too: the frame neither confirms nor fails; the filter and the
+        odometry watch move on to it, as for a frame the refinement could not measure."""
+        if (
+            self.X is None
+            or not self.with_odometry
+            or self.pending_event
+            or not 0 < stamp - self.stamp <= self.cfg.max_gap_s
+        ):
+            return None
+        O_e, O_p = np.asarray(O_ego, float), np.asarray(O_peer, float)
+        poses = {"ego": (stamp if ego_stamp is None else ego_stamp, O_e), "peer": (stamp, O_p)}
+        jump, unchecked_m = self.odometry.check(poses)
+        if jump:
+            return None
+        X, P, _, H = self._predict(stamp - self.stamp, O_e, O_p)
+        if self._full_method_due(stamp, H @ P @ H.T, unchecked_m):
+            return None
+        carried = self._carried(stamp, O_e, O_p, trim=False)  # the next measured frame's fusion trims the stream
+        if carried is None or carried[2] is not None:
+            return None
+        self.odometry.record(poses)
+        self._keep(stamp, X, P)
+        return self._answer(stamp, "stream", True, carried[0], carried[1])
 
     # ---- the cross-check beside the track ----------------------------------------------------------------------
     def crosscheck_due(self, stamp: float) -> bool:
@@ -402,14 +436,14 @@ class PeerTrack:
             return self._answer(stamp, "stream", why_not is None, T, cov, why, d2, why_not)
         return self._answer(stamp, "prediction", False, T_pred, P_T, why, d2, why)
 
-    def _carried(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray):
+    def _carried(self, stamp: float, O_e: np.ndarray, O_p: np.ndarray, trim: bool = True):
         """A frame with no evidence of its own: the stream's frames, the newest at most ``stream_coast_s`` old, fused
         and carried to it by both cars' odometry, the covariance grown by their drift since: (T, covariance, why it
         is not valid or None); None when there are none that recent (or tracking without odometry)."""
         samples = self.stream.samples
         if not (self.with_odometry and samples and stamp - samples[-1].stamp <= self.cfg.stream_coast_s):
             return None
-        return self._stream_answer(stamp, O_e, O_p)
+        return self._stream_answer(stamp, O_e, O_p, trim)
 
     def _acquire(self, stamp, m: Measurement, O_e, O_p, odometry: bool, event: str | None) -> TrackAnswer:
         """A full acquisition's outcome: a new track, or (failed) the old track given up."""

@@ -194,11 +194,17 @@ class Frame(_Wire):
         """The verified signer's key: its Ed25519 public key, or ``hmac:<key id>``; None when unsigned."""
         return self._signer_key
 
+    def check_image(self, limits: Limits | None = None) -> int:
+        """The whole PNG checked (structure, bounded inflate: ``check_png``) without decoding it; its side in
+        pixels. Raises WireError 422 naming ``png``."""
+        n = image_size_px(BevConfig(range_m=self.bev.range_m, resolution_m=self.bev.resolution_m))
+        check_png(self.png, n, limits or Limits(), "png")
+        return n
+
     def bev_image(self, limits: Limits | None = None) -> BevImage:
         """Decode the PNG into the engine's BevImage. The PNG's structure is checked again first (cheap), so
         OpenCV never sees an unchecked file, whoever built this Frame."""
-        n = image_size_px(BevConfig(range_m=self.bev.range_m, resolution_m=self.bev.resolution_m))
-        check_png(self.png, n, limits or Limits(), "png")
+        n = self.check_image(limits)
         try:
             image = decode_png(self.png)
         except ValueError as e:

@@ -701,6 +701,8 @@ class AlignService:
             ratio_vs_points=fb.total / fb.raw_points if fb.raw_points else None,
         )
 
+        if (unmeasured := self._unmeasured(peer, job, base, timings)) is not None:
+            return unmeasured
         newest_ego = max(self.cache.stamps(), default=None)
         if job.ego is None and newest_ego is not None and newest_ego >= peer.stamp:
             # The ego stream is already past this sweep, so no nearer ego frame can come: when none is usable,
@@ -733,6 +735,45 @@ class AlignService:
         self.metrics.engine.labels("align").observe(time.perf_counter() - t0)
         timings.update({f"peer_{k}": v for k, v in peer_prep.timings_ms.items()}, **res.timings_ms)
         return self._finish(job, _from_engine(res, base, prior is not None, timings))
+
+    def _unmeasured(self, peer: Frame, job: Job, base: dict, timings: dict) -> Result | None:
+        """A tracked frame that waited past ``unmeasured_after_s`` for a worker, answered from its track's stream
+        without measuring it (no image decoded, no ego frame prepared); None: measure it (the track says the stream
+        cannot answer it validly, or it did not wait that long, or it has no odometry or ego frame of its time)."""
+        s, waited = self.settings, time.perf_counter() - job.received
+        if s.unmeasured_after_s is None or waited < s.unmeasured_after_s or job.reply is not None:
+            return None
+        if not self.tracking or peer.odometry is None or self.tracks.state(peer.vehicle_id) != "tracking":
+            return None
+        entry = self.cache.nearest(peer.stamp)
+        if entry is None or entry.frame.odometry is None or abs(peer.stamp - entry.stamp) > s.max_ego_skew_s:
+            return None
+        peer.check_image(s.limits)  # not decoded, but never answered unchecked: a bad image is refused as measured
+        ego = entry.frame
+        prior = relative_prior(ego, peer)
+        tz, roll, pitch = prior if prior is not None else (0.0, 0.0, 0.0)
+        track = self.tracks.get(peer.vehicle_id)
+        with track.lock:
+            track.observe(self.tracks.ego_heard, ego.stamp, peer.stamp)
+            res = track.follower.unmeasured(
+                peer.stamp,
+                O_ego=ego.odometry.matrix(),
+                O_peer=peer.odometry.matrix(),
+                ego_stamp=ego.stamp,
+                tz=tz,
+                roll=roll,
+                pitch=pitch,
+            )
+        if res is None:
+            return None
+        res.notes.insert(
+            0,
+            f"not measured: the frame waited {waited * 1e3:.0f} ms for a worker (unmeasured_after_s "
+            f"{s.unmeasured_after_s:g})",
+        )
+        self.metrics.engine.labels("unmeasured").observe(time.perf_counter() - job.received - waited)
+        base.update(ego_seq=ego.seq, ego_stamp=ego.stamp, ego_skew_s=peer.stamp - ego.stamp)
+        return self._finish(job, _from_engine(res, base, prior is not None, timings | res.timings_ms))
 
     def _follow(self, ego_frame: Frame, ego_prep, peer: Frame, peer_prep, T_prior, tz, roll, pitch) -> AlignResult:
         """The peer's track, one step: acquisition when it has none, else the refinement from its prediction."""

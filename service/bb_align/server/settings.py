@@ -225,6 +225,16 @@ class Settings(BaseSettings):
         "wait above ends when one is cached)",
     )
     workers: int = Field(2, ge=1, le=64, description="engine worker threads (the engine never runs on more)")
+    unmeasured_after_s: float | None = Field(
+        0.05,
+        gt=0,
+        le=1.0,
+        description="with tracking and odometry, a tracked peer frame that waited longer than this for a worker "
+        "is answered from its track's stream (the recent frames' evidence carried by both cars' odometry, source "
+        "'stream', when that is a valid answer: track.stream_coast_s) instead of measured, so that a service "
+        "behind its frames answers each in time instead of dropping some; half a 10 Hz frame period; None: every "
+        "frame is measured",
+    )
     crosscheck_beside_track: bool = Field(
         True,
         description="with tracking and odometry, a track's periodic cross-check (a full acquisition, ~0.3 s) runs "

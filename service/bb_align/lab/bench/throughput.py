@@ -253,6 +253,9 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         "per_peer_results_fps": {
             c.vehicle_id: sum(1 for _, r, _ in results if r.peer_id == c.vehicle_id) / window_s for c in streams[1:]
         },
+        # answered without a measurement of their own (the service behind its frames: unmeasured_after_s)
+        "measured_fps": sum(1 for _, r, _ in results if r.source not in ("stream", "prediction")) / window_s,
+        "wrong": sum(1 for t, d in errors if t > 1.0 or d > 1.0),  # successes 1 m / 1 deg or more off the truth
         "t_err_median_m": float(np.median([e[0] for e in errors])) if errors else None,
         "r_err_median_deg": float(np.median([e[1] for e in errors])) if errors else None,
         "service_cpu_cores": cores,
