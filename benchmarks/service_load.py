@@ -58,7 +58,9 @@ def plot(reports: dict[str, dict], path: Path) -> None:
     for label, rep in reports.items():
         runs = sorted(rep["runs"].values(), key=lambda r: r["peers"])
         n = [r["peers"] for r in runs]
-        ax1.plot(n, [r["results_fps"] for r in runs], "o-", label=label)
+        line = ax1.plot(n, [r["results_fps"] for r in runs], "o-", label=label)[0]
+        if all("measured_fps" in r for r in runs):  # answered from a measurement of their own (the rest: the stream)
+            ax1.plot(n, [r["measured_fps"] for r in runs], "x--", color=line.get_color(), label=f"{label}, measured")
         ax2.plot(n, [r["latency_ms"]["p99"] for r in runs], "o-", label=f"{label} p99")
         ax2.plot(n, [r["latency_ms"]["p50"] for r in runs], "x--", label=f"{label} p50")
     ax1.set_xlabel("peers at 10 Hz")
@@ -104,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     for n, run in sorted(report["runs"].items(), key=lambda kv: int(kv[0])):
         lat = run["latency_ms"]
         print(
-            f"{n:>3} peers: {run['results_fps']:6.1f} results/s, dropped {run['drop_fraction']:.0%}, "
-            f"p50 {lat['p50']:.0f} ms, p99 {lat['p99']:.0f} ms, per peer {per_peer(run)}, {run['outcomes']}"
+            f"{n:>3} peers: {run['results_fps']:6.1f} results/s ({run.get('measured_fps', float('nan')):.1f} "
+            f"measured), dropped {run['drop_fraction']:.0%}, p50 {lat['p50']:.0f} ms, p99 {lat['p99']:.0f} ms, "
+            f"per peer {per_peer(run)}, {run['outcomes']}, sources {run.get('sources')}, wrong {run.get('wrong')}"
         )
     if args.json is not None and not args.replot:
         args.json.write_text(json.dumps(report, indent=1, default=float))

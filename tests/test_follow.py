@@ -116,16 +116,30 @@ def test_an_odometry_jump_loses_the_track_and_it_is_acquired_again(sequence):
     assert r.success and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
 
 
-def test_a_frame_not_measured_is_answered_from_the_stream_as_a_frame_the_engine_could_not_measure(sequence):
-    """A service behind its frames answers a tracked frame without measuring it (Follower.unmeasured): the answer
-    is the one the track gives a frame whose refinement failed (its twin stepped with a failing measurement), it
-    holds the true pose within its 3 sigma, and it stops after track.stream_coast_s without evidence."""
+@pytest.fixture(scope="module")
+def tracked(sequence):
+    """A follower that acquired and tracked the first 12 frames; each test gets its own copy of the track."""
     aligner, frames = sequence
     follower = Follower(aligner)
     assert follower.unmeasured(frames[0]["stamp"], O_ego=frames[0]["O_ego"], O_peer=frames[0]["O_peer"]) is None
     for f in frames[:12]:
         _step(follower, aligner, f)
     assert follower.track.state.value == "tracking"
+    track = follower.track
+
+    def fresh() -> Follower:
+        follower.track = copy.deepcopy(track)
+        return follower
+
+    return fresh
+
+
+def test_a_frame_not_measured_is_answered_from_the_stream_as_a_frame_the_engine_could_not_measure(sequence, tracked):
+    """A service behind its frames answers a tracked frame without measuring it (Follower.unmeasured): the answer
+    is the one the track gives a frame whose refinement failed (its twin stepped with a failing measurement), it
+    holds the true pose within its 3 sigma, and it stops after track.stream_coast_s without evidence."""
+    aligner, frames = sequence
+    follower = tracked()
     last_evidence, misses = follower.track.stream.samples[-1].stamp, follower.track.misses
     answered = []
     for f in frames[12:30]:
@@ -157,11 +171,9 @@ def test_a_frame_not_measured_is_answered_from_the_stream_as_a_frame_the_engine_
     assert r.success and r.source == "tracking" and pose_error(r.T_ego_peer, f["T_true"])[0] < 0.5
 
 
-def test_a_frame_not_measured_after_an_odometry_jump_is_left_to_the_step(sequence):
+def test_a_frame_not_measured_after_an_odometry_jump_is_left_to_the_step(sequence, tracked):
     aligner, frames = sequence
-    follower = Follower(aligner)
-    for f in frames[:12]:
-        _step(follower, aligner, f)
+    follower = tracked()
     jump = se3_from_se2(se2(0.0, 3.0, 0.0))
     f = frames[12]
     before = copy.deepcopy(follower.track)
