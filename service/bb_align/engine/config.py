@@ -691,11 +691,12 @@ class TrackConfig(_Frozen):
         1.0,
         ge=0,
         le=5,
-        description="with odometry, a frame with no evidence of its own (its refinement failed or diverged) is "
-        "answered from the stream's evidence when its newest frame is at most this old (seconds): their fusion "
-        "carried to this frame by both cars' odometry, its covariance grown by their drift since, valid only when "
-        "that keeps the answer rule's promise (source 'stream'; 0: never, the frame is refused). 1 s: ten frames at "
-        "10 Hz, chosen before measuring; checked on the swept sequences and crossings, 0 wrong (docs/tracking.md)",
+        description="with odometry, a frame with no evidence of its own (its refinement failed or diverged, or "
+        "a busy service did not measure it: its unmeasured_after_s) is answered from the stream's evidence when "
+        "its newest frame is at most this old (seconds): their fusion carried to this frame by both cars' "
+        "odometry, its covariance grown by their drift since, valid only when that keeps the answer rule's promise "
+        "(source 'stream'; 0: never, the frame is refused). 1 s: ten frames at 10 Hz, chosen before measuring; "
+        "checked on the swept sequences and crossings, 0 wrong (docs/tracking.md)",
     )
     reacquire_s: float = Field(
         1.0,

@@ -327,8 +327,9 @@ class Result(_Wire):
     source: Literal["acquisition", "tracking", "stream", "prediction"] | None = Field(
         None,
         description="acquisition: the full two-stage method ran on this frame; tracking: the dense refinement from "
-        "the track's prediction, fused with it; stream: no evidence of its own this frame, the stream's recent "
-        "frames carried to it by both cars' odometry (track.stream_coast_s); prediction: no usable measurement this "
+        "the track's prediction, fused with it; stream: no evidence of its own this frame (or not measured: the "
+        "service was behind its frames, unmeasured_after_s), the stream's recent frames carried to it by both cars' "
+        "odometry (track.stream_coast_s); prediction: no usable measurement this "
         "frame, the track's prediction, never a success (None: tracking off)",
     )
     track_state: Literal["acquiring", "tracking", "lost"] | None = Field(
