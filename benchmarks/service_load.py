@@ -9,8 +9,11 @@ defaults of ``bb-align bench``'s service part, bb_align.lab.bench.throughput): t
 m away publish signed frames at 10 Hz over Zenoh on loopback for the warm-up and the measured window. Recorded
 per run: results per second in total and per peer (the fairness: the least-served peer's share), frames dropped,
 outcomes (acquisitions vs tracked frames), latency publish -> result (p50/p99) and the service's cores.
-``--compare OLD.json`` draws a recorded earlier run beside this one (e.g. the code before a change, run with its
-tree on PYTHONPATH). The machine may be shared: the JSON records the load average before and after each run.
+``--stagger``: each peer publishes at its own phase of the 100 ms period, spread evenly (LiDARs not synchronised
+to a common clock); by default every car's frame goes out at the same instant (phase-locked LiDARs: each sweep's
+frames arrive as one burst). ``--compare OLD.json`` draws a recorded earlier run
+beside this one (e.g. the code before a change, run with its tree on PYTHONPATH). The machine may be shared: the
+JSON records the load average before and after each run.
 """
 
 from __future__ import annotations
@@ -27,11 +30,11 @@ def _load_avg() -> float:
     return os.getloadavg()[0]
 
 
-def measure(peers: list[int], seconds: float, workers: int, warmup_s: float = 2.0) -> dict:
+def measure(peers: list[int], seconds: float, workers: int, warmup_s: float = 2.0, stagger: bool = False) -> dict:
     from bb_align.engine.config import AlignConfig
     from bb_align.lab.bench.throughput import ServiceBenchConfig, measure_service
 
-    cfg = ServiceBenchConfig(peer_counts=peers, seconds=seconds, workers=workers, warmup_s=warmup_s)
+    cfg = ServiceBenchConfig(peer_counts=peers, seconds=seconds, workers=workers, warmup_s=warmup_s, stagger=stagger)
     load_before = _load_avg()
     t0 = time.time()
     report = measure_service(cfg, AlignConfig())
@@ -83,6 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--warmup", type=float, default=2.0, help="seconds of publishing before the window")
+    ap.add_argument(
+        "--stagger",
+        action="store_true",
+        help="each peer publishes at its own phase of the period (LiDARs not synchronised); default: all at once",
+    )
     ap.add_argument("--label", default="now")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
@@ -100,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.replot:  # no measurement: draw the recorded --json (and --compare) again
         report = json.loads(args.json.read_text())
     else:
-        report = measure(peers, args.seconds, args.workers, args.warmup)
+        report = measure(peers, args.seconds, args.workers, args.warmup, args.stagger)
         report["label"] = args.label
         report["command"] = "benchmarks/service_load.py " + " ".join(argv if argv is not None else sys.argv[1:])
     for n, run in sorted(report["runs"].items(), key=lambda kv: int(kv[0])):

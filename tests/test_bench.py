@@ -207,6 +207,15 @@ def test_service_throughput_over_zenoh_loopback(monkeypatch):
     assert 0 < run["measured_fps"] < run["results_fps"]  # the acquisitions and tracked frames measured
 
 
+def test_staggered_peers_publish_at_their_own_phases_of_the_period():
+    """Unsynchronised LiDARs: 3 peers after the ego at a quarter, half and three quarters of a 100 ms period, each
+    within the period and apart; phase-locked ones all at the ego's instant."""
+    from bb_align.lab.bench.throughput import phases_s
+
+    assert phases_s(3, 0.1, stagger=True) == pytest.approx([0.0, 0.025, 0.05, 0.075])
+    assert phases_s(3, 0.1, stagger=False) == [0.0] * 4
+
+
 def test_bench_reported_pose_noise_is_about_the_car_not_the_world_origin():
     """A car 800 m from the world origin: its reported pose is off by the configured GNSS-class error (metres
     and degrees about the car), not by the yaw error times 800 m."""

@@ -52,6 +52,18 @@ class ServiceBenchConfig(BaseModel):
     min_distance_m: float = Field(10.0, ge=0)
     max_distance_m: float = Field(40.0, gt=0, description="peers this close mostly align (the full engine runs)")
     startup_timeout_s: float = Field(90.0, gt=0)
+    stagger: bool = Field(
+        False,
+        description="each peer's frames at its own phase of the period, spread evenly after the ego's (LiDARs not "
+        "synchronised to a common clock); False: every car's frame at the same instant (LiDARs phase-locked to GNSS "
+        "time: each sweep's frames arrive as one burst)",
+    )
+
+
+def phases_s(n_peers: int, period_s: float, stagger: bool) -> list[float]:
+    """Each car's publishing offset within the period, the ego's first (0): the peers spread evenly over the
+    period when ``stagger``, else all at the ego's instant."""
+    return [0.0] + [(j + 1) * period_s / (n_peers + 1) if stagger else 0.0 for j in range(n_peers)]
 
 
 def simulated_streams(
@@ -156,15 +168,16 @@ def run_load(svc: ServiceProcess, cars: list[CarStream], n_peers: int, cfg: Serv
         t_base = time.time()
         t0 = time.perf_counter()
         cpu0 = wall0 = None
+        phases = phases_s(n_peers, period, cfg.stagger)
         for k in range(n_ticks):
-            delay = t0 + k * period - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
             if k == n_warm:
                 cpu0, wall0 = svc.cpu_seconds(), time.perf_counter()
-            stamp = t_base + k * period
             idx = loop_index(k, len(streams[0].frames))
-            for car, sender in zip(streams, senders):  # the ego's frame first
+            for car, sender, phase in zip(streams, senders, phases):  # the ego's frame first
+                delay = t0 + k * period + phase - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+                stamp = t_base + k * period + phase  # the sweep's own time: its car's phase of the period
                 update = {"stamp": stamp, "seq": k}
                 if cfg.send_odometry:
                     update["odometry"] = Pose.from_matrix(car.T_world_sensor[idx])
