@@ -99,6 +99,31 @@ def test_cache_wait_for_waits_for_the_ego_frame_of_the_sweep_not_an_older_one():
     landing.join()
 
 
+def test_cache_wait_for_does_not_wait_for_a_later_sweep_of_an_unsynchronised_ego():
+    """Ego frames every 0.1 s (1.0, 1.1, 1.2). A peer swept 25 ms after the ego's newest frame: the ego's next frame
+    (due at 1.3) is of a later sweep, so no wait at all (the newest, 25 ms away, is the nearest there is). A peer
+    swept 10 ms before the ego's next frame, or with it (phase-locked): that frame is the peer's sweep's, so the wait
+    goes on until it lands."""
+
+    def every_100_ms():
+        cache = EgoCache(size=5)
+        for k in range(3):
+            cache.add(_ego(1.0 + 0.1 * k, k), bev=None)
+        return cache
+
+    t0 = time.perf_counter()
+    assert not every_100_ms().wait_for(1.225, 0.02, timeout=5.0)
+    assert time.perf_counter() - t0 < 0.05
+    for peer_stamp in (1.29, 1.3):
+        cache = every_100_ms()
+        landing = threading.Timer(0.1, lambda cache=cache: cache.add(_ego(1.3, 3), bev=None))
+        landing.start()
+        t0 = time.perf_counter()
+        assert cache.wait_for(peer_stamp, 0.02, timeout=5.0)  # woken by the ego frame of 1.3 s
+        assert 0.05 <= time.perf_counter() - t0 < 2.0
+        landing.join()
+
+
 def test_entry_features_are_computed_once_for_concurrent_users():
     cache = EgoCache(size=2)
     entry = cache.add(_ego(1.0, 0), bev=None)
@@ -396,6 +421,30 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
         now[0] += 0.01
         s3.done(j)
     assert set(served.values()) == {10}
+
+
+def test_an_overdue_tracked_frame_goes_before_the_fair_order_oldest_first():
+    """Unsynchronised peers at capacity: car "busy" has used the most of the workers lately, so in the fair order
+    its frame waits behind every newer frame of the others, until its own next frame pushes it out (dropped). With
+    ``overdue_s`` (the service's unmeasured_after_s: such a frame is answered in a few ms from its track's stream)
+    a light frame that waited longer goes first, the oldest first; an overdue acquisition (heavy) does not; without
+    ``overdue_s`` the fair order stands."""
+    now = [10.0]
+    job = lambda sender, t: Job(sender, t, "test", data=b"x")  # noqa: E731
+
+    def schedule(overdue_s):
+        s = Scheduler(depth=1, heavy=lambda key: key == "acq", clock=lambda: now[0], overdue_s=overdue_s)
+        s._charge("busy", 1.0)  # the most of the workers' time lately
+        s.put_frame(job("acq", 9.80))  # the oldest, but an acquisition
+        s.put_frame(job("busy", 9.90))
+        s.put_frame(job("late", 9.93))
+        s.put_frame(job("fresh", 9.99))
+        return s
+
+    s = schedule(0.05)
+    assert [s.get(0).sender for _ in range(4)] == ["busy", "late", "acq", "fresh"]
+    s = schedule(None)
+    assert [s.get(0).sender for _ in range(4)] == ["acq", "late", "fresh", "busy"]
 
 
 def _cross_check_schedule():

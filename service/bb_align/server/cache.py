@@ -12,6 +12,8 @@ import threading
 from collections import deque
 from collections.abc import Callable
 
+import numpy as np
+
 from bb_align.engine.bev import BevImage
 from bb_align.engine.frame import PreparedFrame
 from bb_align.protocol import Frame
@@ -67,9 +69,21 @@ class EgoCache:
         """Wait at most ``timeout`` seconds until the ego stream has reached ``stamp``: an entry stamped no earlier
         than ``stamp - same_sweep_s`` is cached (only then is the nearest in time known; an older frame within the
         skew may be a whole sweep away while the sweep's own frame is still in flight). Whether it has (at once
-        when it already has)."""
+        when it already has). Not at all when the ego's next frame, due one ego period (the median of the cached
+        frames') after its newest, is stamped later than ``stamp + same_sweep_s``: that frame is of a later sweep (a
+        peer whose LiDAR is not synchronised with the ego's), and waiting for it would hold the caller for up to a
+        period."""
         with self._added:
-            return self._added.wait_for(lambda: any(e.stamp >= stamp - same_sweep_s for e in self._entries), timeout)
+            reached = lambda: any(e.stamp >= stamp - same_sweep_s for e in self._entries)  # noqa: E731
+            if reached() or self._later_sweep_next(stamp + same_sweep_s):
+                return reached()
+            return self._added.wait_for(reached, timeout)
+
+    def _later_sweep_next(self, latest_s: float) -> bool:
+        """Whether the ego's next frame is due after ``latest_s`` (stamp), judged by its period; the lock is held."""
+        stamps = sorted(e.stamp for e in self._entries)
+        steps = [b - a for a, b in zip(stamps, stamps[1:]) if b > a]
+        return bool(steps) and stamps[-1] + float(np.median(steps)) > latest_s
 
     def rewind(self, stamp: float) -> int:
         """The ego's recording started over at ``stamp`` (replay profile): frames of the previous pass stamped
