@@ -203,6 +203,7 @@ class AlignService:
             background_share=settings.crosscheck_share,
             on_expired=lambda job: self._count_drop(job.sender),
             on_pushed_out=self._pushed_out,
+            overdue_s=settings.unmeasured_after_s if settings.align.track.enabled else None,
         )
 
     def _pushed_out(self, job: Job) -> None:

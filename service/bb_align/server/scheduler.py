@@ -79,6 +79,7 @@ class Scheduler:
         on_pushed_out: Callable[[Job], None] | None = None,
         active_s: float = 1.0,
         fair_slack_s: float = 0.2,
+        overdue_s: float | None = None,
     ):
         self.depth = depth
         self.background_prefix, self.max_background = background_prefix, max_background
@@ -95,6 +96,10 @@ class Scheduler:
         self.max_requests = max_requests
         self.half_life_s, self._on_pushed_out = half_life_s, on_pushed_out
         self.active_s, self.fair_slack_s, self.hold_tick_s = active_s, fair_slack_s, 0.02
+        # a stream frame that waited this long goes first, oldest first (the service answers it in a few ms from its
+        # track's stream: unmeasured_after_s); in the fair order a busy car's frame waited behind every newer frame
+        # of the others until its next one pushed it out
+        self.overdue_s = overdue_s
         self._usage: dict[str, tuple[float, float]] = {}  # car -> (worker-seconds, when), halving every half_life_s
         self._last_done: dict[str, float] = {}  # car (not a priority sender) -> when a job of it last finished
         self._holding = False  # a request is held for fairness (get() looks again every hold_tick_s)
@@ -248,6 +253,8 @@ class Scheduler:
             full = self._running_background >= self._heavy_cap()
             held = self._background_held()
             ready = [k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))]
+            if (overdue := self._overdue(ready)) is not None:
+                return overdue
             ready.sort(key=lambda k: self.usage(self._owner(k)))  # stable: readiness order among equals
             self._holding = False
             for k in ready:
@@ -256,6 +263,19 @@ class Scheduler:
                     continue
                 return k
             key = None
+        return key
+
+    def _overdue(self, ready: list):
+        """The ready stream sender whose next frame waited longest, when that is over ``overdue_s`` and the frame is
+        light (a tracked peer's); else None."""
+        if self.overdue_s is None:
+            return None
+        now, oldest, key = self._clock(), None, None
+        for k in ready:
+            if isinstance(k, str) and not self._background(k) and k in self._streams and not self._is_heavy(k):
+                received = self._streams[k][0].received
+                if now - received > self.overdue_s and (oldest is None or received < oldest):
+                    oldest, key = received, k
         return key
 
     def _request_held(self, car: str) -> bool:
