@@ -26,7 +26,10 @@ worker however many tracked frames are waiting. This is
 what keeps the service out of congestion collapse (issue 47): served in plain readiness order, 16 peers' frames
 waited behind each other's acquisitions until their tracks ran out (``max_gap_s``) and every frame became an
 acquisition again (results fell from 15.5/s with 8 peers to 4.0/s with 16, measured, docs/performance.md).
-A frame that waited longer than ``max_wait_s`` (when set) is dropped before any work (reported through
+A light stream frame that waited longer than ``overdue_s`` (when set: the service's unmeasured_after_s, after which
+it answers a tracked frame from its track's stream in a few ms) goes before that order, the oldest first: at
+capacity with unsynchronised peers the car that had used the most saw its frame passed over until its next one
+pushed it out. A frame that waited longer than ``max_wait_s`` (when set) is dropped before any work (reported through
 ``on_expired``): for deployments where an answer that late is of no use.
 """
 
@@ -253,26 +256,29 @@ class Scheduler:
             full = self._running_background >= self._heavy_cap()
             held = self._background_held()
             ready = [k for k in self._ready if not ((full and self._is_heavy(k)) or (held and self._background(k)))]
-            if (overdue := self._overdue(ready)) is not None:
-                return overdue
             ready.sort(key=lambda k: self.usage(self._owner(k)))  # stable: readiness order among equals
             self._holding = False
             for k in ready:
                 if isinstance(k, tuple) and self._request_held(k[1]):
                     self._holding = True
                     continue
-                return k
+                # the light frames' turn: an overdue one first (heavy jobs and requests keep their turns)
+                return self._overdue(ready) if self._light_frame(k) else k
             key = None
         return key
 
+    def _light_frame(self, key) -> bool:
+        return isinstance(key, str) and not self._background(key) and key in self._streams and not self._is_heavy(key)
+
     def _overdue(self, ready: list):
-        """The ready stream sender whose next frame waited longest, when that is over ``overdue_s`` and the frame is
-        light (a tracked peer's); else None."""
+        """Among the ready light stream frames (tracked peers'), the sender of the one that waited longest when that
+        is over ``overdue_s``, else the first of them in ``ready`` (the fair order)."""
+        first = next(k for k in ready if self._light_frame(k))
         if self.overdue_s is None:
-            return None
-        now, oldest, key = self._clock(), None, None
+            return first
+        now, oldest, key = self._clock(), None, first
         for k in ready:
-            if isinstance(k, str) and not self._background(k) and k in self._streams and not self._is_heavy(k):
+            if self._light_frame(k):
                 received = self._streams[k][0].received
                 if now - received > self.overdue_s and (oldest is None or received < oldest):
                     oldest, key = received, k
