@@ -215,7 +215,8 @@ class Settings(BaseSettings):
         le=1.0,
         description="a prepared peer frame newer than every cached ego frame waits this long at most for the ego "
         "frame of its sweep (it travels in another Zenoh session and may land a little later); then the nearest "
-        "in time within max_ego_skew_s is used",
+        "in time within max_ego_skew_s is used. No wait when the ego's next frame (its newest plus its median "
+        "period) is of a later sweep: a peer whose LiDAR is not synchronised with the ego's",
     )
     ego_same_sweep_s: float = Field(
         0.02,
@@ -232,8 +233,9 @@ class Settings(BaseSettings):
         description="with tracking and odometry, a tracked peer frame that waited longer than this for a worker "
         "is answered from its track's stream (the recent frames' evidence carried by both cars' odometry, source "
         "'stream', when that is a valid answer: track.stream_coast_s) instead of measured, so that a service "
-        "behind its frames answers each in time instead of dropping some; half a 10 Hz frame period; None: every "
-        "frame is measured",
+        "behind its frames answers each in time instead of dropping some; such an overdue frame also goes before "
+        "the fair order (the oldest first); half a 10 Hz frame period; None: every frame is measured, in the fair "
+        "order",
     )
     crosscheck_beside_track: bool = Field(
         True,
