@@ -427,9 +427,9 @@ def test_an_overdue_tracked_frame_goes_before_the_fair_order_oldest_first():
     """Unsynchronised peers at capacity: car "busy" has used the most of the workers lately, so in the fair order
     its frame waits behind every newer frame of the others, until its own next frame pushes it out (dropped). With
     ``overdue_s`` (the service's unmeasured_after_s: such a frame is answered in a few ms from its track's stream)
-    a light frame that waited longer takes the light frames' turn, the oldest first, while an acquisition (heavy,
-    here the oldest) keeps its own turn (before, it waited behind every overdue frame at 16 peers and its car's
-    frames were dropped); without ``overdue_s`` the fair order stands."""
+    light frames that waited longer take the light frames' turn before fresh ones, in the fair order among them
+    (a sweep's frames become overdue together: by age they would always go in the order the cars published), while
+    an acquisition (heavy, here the oldest) keeps its own turn; without ``overdue_s`` the fair order stands."""
     now = [10.0]
     job = lambda sender, t: Job(sender, t, "test", data=b"x")  # noqa: E731
 
@@ -443,7 +443,7 @@ def test_an_overdue_tracked_frame_goes_before_the_fair_order_oldest_first():
         return s
 
     s = schedule(0.05)
-    assert [s.get(0).sender for _ in range(4)] == ["acq", "busy", "late", "fresh"]
+    assert [s.get(0).sender for _ in range(4)] == ["acq", "late", "busy", "fresh"]
     s = schedule(None)
     assert [s.get(0).sender for _ in range(4)] == ["acq", "late", "fresh", "busy"]
 

@@ -26,11 +26,12 @@ worker however many tracked frames are waiting. This is
 what keeps the service out of congestion collapse (issue 47): served in plain readiness order, 16 peers' frames
 waited behind each other's acquisitions until their tracks ran out (``max_gap_s``) and every frame became an
 acquisition again (results fell from 15.5/s with 8 peers to 4.0/s with 16, measured, docs/performance.md).
-A light stream frame that waited longer than ``overdue_s`` (when set: the service's unmeasured_after_s, after which
-it answers a tracked frame from its track's stream in a few ms) goes before that order, the oldest first: at
-capacity with unsynchronised peers the car that had used the most saw its frame passed over until its next one
-pushed it out. A frame that waited longer than ``max_wait_s`` (when set) is dropped before any work (reported through
-``on_expired``): for deployments where an answer that late is of no use.
+When the light frames' turn comes, one that waited longer than ``overdue_s`` (when set: the service's
+unmeasured_after_s, after which it answers a tracked frame from its track's stream in a few ms) goes before the
+fresh ones, in the same fair order: at capacity with unsynchronised peers the car that had used the most saw its
+frame passed over by every newer frame of the others until its next one pushed it out. A frame that waited
+longer than ``max_wait_s`` (when set) is dropped before any work (reported through ``on_expired``): for
+deployments where an answer that late is of no use.
 """
 
 from __future__ import annotations
@@ -99,9 +100,9 @@ class Scheduler:
         self.max_requests = max_requests
         self.half_life_s, self._on_pushed_out = half_life_s, on_pushed_out
         self.active_s, self.fair_slack_s, self.hold_tick_s = active_s, fair_slack_s, 0.02
-        # a stream frame that waited this long goes first, oldest first (the service answers it in a few ms from its
-        # track's stream: unmeasured_after_s); in the fair order a busy car's frame waited behind every newer frame
-        # of the others until its next one pushed it out
+        # a light stream frame that waited this long goes before fresh ones (the service answers it in a few ms from
+        # its track's stream: unmeasured_after_s); in the fair order alone a busy car's frame waited behind every
+        # newer frame of the others until its next one pushed it out
         self.overdue_s = overdue_s
         self._usage: dict[str, tuple[float, float]] = {}  # car -> (worker-seconds, when), halving every half_life_s
         self._last_done: dict[str, float] = {}  # car (not a priority sender) -> when a job of it last finished
@@ -262,7 +263,7 @@ class Scheduler:
                 if isinstance(k, tuple) and self._request_held(k[1]):
                     self._holding = True
                     continue
-                # the light frames' turn: an overdue one first (heavy jobs and requests keep their turns)
+                # the light frames' turn: an overdue one before fresh ones (heavy jobs and requests keep their turns)
                 return self._overdue(ready) if self._light_frame(k) else k
             key = None
         return key
@@ -271,18 +272,17 @@ class Scheduler:
         return isinstance(key, str) and not self._background(key) and key in self._streams and not self._is_heavy(key)
 
     def _overdue(self, ready: list):
-        """Among the ready light stream frames (tracked peers'), the sender of the one that waited longest when that
-        is over ``overdue_s``, else the first of them in ``ready`` (the fair order)."""
-        first = next(k for k in ready if self._light_frame(k))
-        if self.overdue_s is None:
-            return first
-        now, oldest, key = self._clock(), None, first
-        for k in ready:
-            if self._light_frame(k):
-                received = self._streams[k][0].received
-                if now - received > self.overdue_s and (oldest is None or received < oldest):
-                    oldest, key = received, k
-        return key
+        """The first of the ready light stream frames (tracked peers') in ``ready`` (the fair order) that waited over
+        ``overdue_s``, else the first of them. Among overdue frames the fair order stands: a sweep's frames that
+        arrived together become overdue together, and the oldest first would always serve them in the order the
+        cars happened to publish, leaving the last ones' tracks unmeasured until they must be measured late."""
+        light = [k for k in ready if self._light_frame(k)]
+        if self.overdue_s is not None:
+            now = self._clock()
+            for k in light:
+                if now - self._streams[k][0].received > self.overdue_s:
+                    return k
+        return light[0]
 
     def _request_held(self, car: str) -> bool:
         """Whether ``car``'s next request waits although a worker is free: another car active lately (a job done
