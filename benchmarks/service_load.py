@@ -64,8 +64,8 @@ def plot(reports: dict[str, dict], path: Path) -> None:
         line = ax1.plot(n, [r["results_fps"] for r in runs], "o-", label=label)[0]
         if all("measured_fps" in r for r in runs):  # answered from a measurement of their own (the rest: the stream)
             ax1.plot(n, [r["measured_fps"] for r in runs], "x--", color=line.get_color(), label=f"{label}, measured")
-        ax2.plot(n, [r["latency_ms"]["p99"] for r in runs], "o-", label=f"{label} p99")
-        ax2.plot(n, [r["latency_ms"]["p50"] for r in runs], "x--", label=f"{label} p50")
+        ax2.plot(n, [r["latency_ms"]["p99"] for r in runs], "o-", color=line.get_color(), label=f"{label} p99")
+        ax2.plot(n, [r["latency_ms"]["p50"] for r in runs], "x--", color=line.get_color(), label=f"{label} p50")
     ax1.set_xlabel("peers at 10 Hz")
     ax1.set_ylabel("results per second (all peers)")
     ax1.set_ylim(bottom=0)
@@ -75,7 +75,7 @@ def plot(reports: dict[str, dict], path: Path) -> None:
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle("bb-align service under load (2-core VM shared with other jobs)")
+    fig.suptitle("bb-align service under load (2-core VM; the load average is in each JSON)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

@@ -234,8 +234,8 @@ class Settings(BaseSettings):
         "is answered from its track's stream (the recent frames' evidence carried by both cars' odometry, source "
         "'stream', when that is a valid answer: track.stream_coast_s) instead of measured, so that a service "
         "behind its frames answers each in time instead of dropping some; such an overdue frame also goes before "
-        "the fair order (the oldest first); half a 10 Hz frame period; None: every frame is measured, in the fair "
-        "order",
+        "fresh ones when a tracked frame's turn comes; half a 10 Hz frame period; None: every frame is measured, "
+        "in the fair order",
     )
     crosscheck_beside_track: bool = Field(
         True,
