@@ -11,9 +11,9 @@ per run: results per second in total and per peer (the fairness: the least-serve
 outcomes (acquisitions vs tracked frames), latency publish -> result (p50/p99) and the service's cores.
 ``--stagger``: each peer publishes at its own phase of the 100 ms period, spread evenly (LiDARs not synchronised
 to a common clock); by default every car's frame goes out at the same instant (phase-locked LiDARs: each sweep's
-frames arrive as one burst). ``--compare OLD.json`` draws a recorded earlier run
-beside this one (e.g. the code before a change, run with its tree on PYTHONPATH). The machine may be shared: the
-JSON records the load average before and after each run.
+frames arrive as one burst). ``--compare OLD.json`` draws a recorded earlier run beside this one (e.g. the code
+before a change, run with its tree on PYTHONPATH). The machine may be shared: the JSON records the load average
+before and after each run.
 """
 
 from __future__ import annotations
