@@ -264,7 +264,7 @@ class Scheduler:
                     self._holding = True
                     continue
                 # the light frames' turn: an overdue one before fresh ones (heavy jobs and requests keep their turns)
-                return self._overdue(ready) if self._light_frame(k) else k
+                return (self._overdue(ready) or k) if self._light_frame(k) else k
             key = None
         return key
 
@@ -272,17 +272,17 @@ class Scheduler:
         return isinstance(key, str) and not self._background(key) and key in self._streams and not self._is_heavy(key)
 
     def _overdue(self, ready: list):
-        """The first of the ready light stream frames (tracked peers') in ``ready`` (the fair order) that waited over
-        ``overdue_s``, else the first of them. Among overdue frames the fair order stands: a sweep's frames that
-        arrived together become overdue together, and the oldest first would always serve them in the order the
-        cars happened to publish, leaving the last ones' tracks unmeasured until they must be measured late."""
-        light = [k for k in ready if self._light_frame(k)]
-        if self.overdue_s is not None:
-            now = self._clock()
-            for k in light:
-                if now - self._streams[k][0].received > self.overdue_s:
-                    return k
-        return light[0]
+        """The first ready light stream frame (a tracked peer's) in ``ready`` (the fair order) that waited over
+        ``overdue_s``; None when none did (or no ``overdue_s``). Among overdue frames the fair order stands: a sweep's
+        frames that arrived together become overdue together, and the oldest first would always serve them in the
+        order the cars happened to publish, leaving the last ones' tracks unmeasured until they must be measured
+        late."""
+        if self.overdue_s is None:
+            return None
+        now = self._clock()
+        return next(
+            (k for k in ready if self._light_frame(k) and now - self._streams[k][0].received > self.overdue_s), None
+        )
 
     def _request_held(self, car: str) -> bool:
         """Whether ``car``'s next request waits although a worker is free: another car active lately (a job done
