@@ -121,14 +121,10 @@ def bvft_descriptors(
     offsets, cell = _rotated_grids(cfg.patch_px, cfg.grid, n_orient, width, cfg.window_stride)
     mim_p = np.pad(mim, radius).ravel()
     base = (rc[:, 0] + radius) * width + rc[:, 1] + radius
-    # Raw histograms of MIM values (0..No) per keypoint and cell, each window on the grid rotated by its m.
-    raw = _cell_histograms(mim_p, base, offsets, np.maximum(m, 1) - 1, cell, n_cells, n_orient + 1)
-    # The value shift v' = ((v - m) mod No) + 1 only permutes the bins 1..No: apply it to the small histograms.
-    shifted_from = (np.arange(n_orient)[None, :] + np.maximum(m, 1)[:, None] - 1) % n_orient + 1  # (K, No)
-    hist = np.take_along_axis(raw, shifted_from[:, None, :], axis=2)  # (K, cells, No), bin j = value j+1
-    if cfg.merge_bins:
-        hist = hist.reshape(k, n_cells, n_bins, 2).sum(axis=3)
-    desc = np.ascontiguousarray(hist.reshape(k, -1))
+    # Raw counts of MIM values (0..No) per keypoint and cell, each window on the grid rotated by its m.
+    shift = np.maximum(m, 1) - 1
+    counts = _cell_histograms(mim_p, base, offsets, shift, cell, n_cells, n_orient + 1)
+    desc = _shifted_bins(counts, shift, n_orient, cfg.merge_bins)
     norm = np.linalg.norm(desc, axis=1, keepdims=True)
     return desc / np.maximum(norm, 1e-12)
 
@@ -147,16 +143,37 @@ def _weighted_histograms(values, weights_image, base, offsets, weights, n_slots)
 
 @njit(cache=True, nogil=True)
 def _cell_histograms(values, base, offsets, grid_index, cell, n_cells, n_slots):
-    """(K, n_cells, n_slots) float32 counts of values[base[k] + offsets[grid_index[k], j]] per cell[j]. Counted in
-    int32 (an integer increment does not wait on a float add: twice as fast) and converted once: the same floats,
-    every count being exact in float32."""
+    """(K, n_cells, n_slots) int32 counts of values[base[k] + offsets[grid_index[k], j]] per cell[j] (an integer
+    increment does not wait on a float add: twice as fast as counting in float32)."""
     counts = np.zeros((len(base), n_cells, n_slots), dtype=np.int32)
     for k in range(len(base)):
         row = offsets[grid_index[k]]
         b = base[k]
         for j in range(len(cell)):
             counts[k, cell[j], values[b + row[j]]] += 1
-    return counts.astype(np.float32)
+    return counts
+
+
+@njit(cache=True, nogil=True)
+def _shifted_bins(counts, shift, n_orient, merge):
+    """(K, n_cells * n_bins) float32 descriptors (not normalised) from (K, n_cells, No + 1) counts: the value
+    shift v' = ((v - m) mod No) + 1 only permutes the bins 1..No (``shift[k]`` = m - 1), so it is applied to the
+    small histograms; with ``merge`` the bins are summed in pairs (No / 2 bins). Every count and pair sum is exact
+    in float32: the same floats as the permutation and sum in numpy, 6x faster."""
+    k, n_cells = counts.shape[0], counts.shape[1]
+    n_bins = n_orient // 2 if merge else n_orient
+    out = np.empty((k, n_cells * n_bins), dtype=np.float32)
+    for q in range(k):
+        s = shift[q]
+        for c in range(n_cells):
+            src = counts[q, c]
+            for j in range(n_bins):
+                if merge:
+                    v = src[(2 * j + s) % n_orient + 1] + src[(2 * j + 1 + s) % n_orient + 1]
+                else:
+                    v = src[(j + s) % n_orient + 1]
+                out[q, c * n_bins + j] = np.float32(v)
+    return out
 
 
 def flip_180(desc: np.ndarray, cfg: FeatureConfig | None = None) -> np.ndarray:

@@ -244,8 +244,10 @@ def _spectrum(image: np.ndarray, cfg: MimConfig) -> tuple[np.ndarray, tuple[int,
     h, w = image.shape
     m = cfg.fft_margin_px
     shape = fft_shape((h, w), m)
-    padded = np.zeros(shape, dtype=np.float32)
-    padded[m : m + h, m : m + w] = image
+    # The image as a complex one (imaginary part zero): OpenCV's complex-to-complex DFT is 5x faster here than its
+    # real-input path with a full complex output (0.6 against 3.3 ms at 560 x 560), the same transform.
+    padded = np.zeros((*shape, 2), dtype=np.float32)
+    padded[m : m + h, m : m + w, 0] = image
     blocks = _blocks(shape, cfg, lattice_shift((h, w), cfg))
     bh = max(b.values.shape[0] for bs in blocks for b in bs)
     bw = max(b.values.shape[1] for bs in blocks for b in bs)
