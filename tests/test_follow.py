@@ -212,3 +212,33 @@ def test_track_command_writes_the_summary_records_and_figures(tmp_path):
     assert s["frac_under_1m_1deg"] == pytest.approx(np.mean(good)) and s["frac_under_1m_1deg"] > 0.8
     assert (out / "plots" / "tracking_by_distance.png").stat().st_size > 0
     assert len(list((out / "plots").glob("track_*.png"))) == 1
+
+
+def test_track_command_answers_every_other_frame_from_the_stream_when_asked(tmp_path):
+    """`bb-align track --unmeasured-every 2` replays a busy service: odd frames of an established track are answered
+    from its stream without a measurement of their own (none recorded), the even ones measured, and every successful
+    answer stays within 1 m / 1 deg of the simulator's truth; without the option those odd frames are measured. With
+    --through-service (where the service decides) the option is refused in one line, exit 2."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from bb_align.cli import app
+
+    root = tmp_path / "root"
+    write_sweep(root, seed=5, index=0, frames=10)
+
+    def records(*extra: str) -> list[dict]:
+        out = tmp_path / f"r{len(extra)}.jsonl"
+        res = CliRunner().invoke(app, ["track", str(root), "--records", str(out), "--workers", "1", *extra])
+        assert res.exit_code == 0, res.output
+        return [json.loads(line) for line in out.read_text().splitlines()]
+
+    busy, every = records("--unmeasured-every", "2"), records()
+    unmeasured = [r["frame"] for r in busy if r["source"] == "stream" and r["measured"] is None]
+    assert len(unmeasured) >= 3 and all(k % 2 == 1 for k in unmeasured)
+    assert all(every[k]["measured"] is not None for k in unmeasured)
+    assert all(r["t_err_m"] <= 1.0 and r["r_err_deg"] <= 1.0 for r in busy if r["success"])
+    assert sum(r["success"] for r in busy) >= 8
+    res = CliRunner().invoke(app, ["track", str(root), "--unmeasured-every", "2", "--through-service"])
+    assert res.exit_code == 2 and "--unmeasured-every" in res.output and "Traceback" not in res.output

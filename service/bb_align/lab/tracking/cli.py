@@ -29,6 +29,13 @@ def register(app: typer.Typer) -> None:
         max_frames: int | None = typer.Option(None, "--frames", min=1, help="only the first frames of each"),
         workers: int = typer.Option(2, "--workers", min=1, help="processes (one sequence each)"),
         config: Path | None = typer.Option(None, "--config", help="an AlignConfig as JSON or YAML (track: .track)"),
+        unmeasured_every: int | None = typer.Option(
+            None,
+            "--unmeasured-every",
+            min=2,
+            help="answer every N-th frame from the track's stream without measuring it, when the track can (as a "
+            "busy service does: unmeasured_after_s); default: every frame measured",
+        ),
         topic: list[str] = typer.Option(
             [],
             "--topic",
@@ -71,9 +78,12 @@ def register(app: typer.Typer) -> None:
                 deskew=deskew,
                 max_frames=max_frames,
                 bev_images=bag_out is not None,
+                unmeasured_every=unmeasured_every,
             )
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--config") from None
+        if unmeasured_every is not None and through_service:
+            _fail("--unmeasured-every: with --through-service the service decides which frames it measures")
         if bag_out is not None and bag_out.exists():
             _fail(f"--bag-out: {bag_out} exists already (a bag is written to a new folder)")
         bag = is_bag(root)

@@ -40,6 +40,13 @@ class ReplayConfig(BaseModel):
     frame_period_s: float = Field(0.1, gt=0, description="stamp of frame k when a yaml has no timestamp_s")
     max_frames: int | None = Field(None, ge=1, description="replay only the first frames of each sequence")
     bev_images: bool = Field(False, description="keep each frame's two BV images (PNG) in its record (--bag-out)")
+    unmeasured_every: int | None = Field(
+        None,
+        ge=2,
+        description="every n-th frame is answered from the track's stream without measuring it when the track can "
+        "give such an answer (Follower.unmeasured), as a service behind its frames answers those that waited past "
+        "unmeasured_after_s (at 8 peers in bursts about every other frame); None: every frame is measured",
+    )
 
 
 def _stamp(group: FrameGroup, k: int, cfg: ReplayConfig) -> float:
@@ -124,6 +131,18 @@ def bev_png(frame) -> bytes:
     return buf.tobytes()
 
 
+def _answer(follower: Follower, cfg: ReplayConfig, k: int, frames, O_ego, O_peer, T_prior):
+    """Frame k's answer and whether the frame was measured: from the stream on every ``cfg.unmeasured_every``-th
+    frame when the track can answer so (with odometry), else a step of the follower."""
+    ego_frame, peer_frame, stamp = frames
+    n = cfg.unmeasured_every
+    if n is not None and O_ego is not None and k % n == n - 1:
+        r = follower.unmeasured(stamp, O_ego=O_ego, O_peer=O_peer)
+        if r is not None:
+            return r, False
+    return follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior), True
+
+
 def replay_groups(name: str, groups: Iterable[FrameGroup], cfg: ReplayConfig, progress: bool = False) -> list[dict]:
     """Every frame of one sequence (its frame groups in time order, from a folder or a bag) through a fresh
     follower; one record per frame. ``cfg.bev_images``: each record also carries ``bev_png`` (ego, peer)."""
@@ -143,7 +162,7 @@ def replay_groups(name: str, groups: Iterable[FrameGroup], cfg: ReplayConfig, pr
         O_ego, O_peer = _odometry(group) if cfg.use_odometry else (None, None)
         stamp = _stamp(group, k, cfg)
         T_prior = _reported(group) if cfg.use_gnss else None
-        r = follower.step(ego_frame, peer_frame, stamp, O_ego=O_ego, O_peer=O_peer, T_prior=T_prior)
+        r, measured_now = _answer(follower, cfg, k, (ego_frame, peer_frame, stamp), O_ego, O_peer, T_prior)
         known = ego.T_world_sensor is not None and peer.T_world_sensor is not None
         T_true = np.linalg.inv(ego.T_world_sensor) @ peer.T_world_sensor if known else None
         row = scored_frame(name, k, stamp, r, r.T_ego_peer, T_true)
@@ -151,7 +170,7 @@ def replay_groups(name: str, groups: Iterable[FrameGroup], cfg: ReplayConfig, pr
         if cfg.bev_images:
             row["bev_png"] = (bev_png(ego_frame), bev_png(peer_frame))
         # The engine run's own pose (the refinement's measurement, or the acquisition) before the track fused it.
-        measured, measured_cov = follower.last_measured or (None, None)
+        measured, measured_cov = (follower.last_measured if measured_now else None) or (None, None)
         sigma = None if r.covariance is None else np.sqrt(np.maximum(np.diag(r.covariance), 0.0)).tolist()
         records.append(
             row
