@@ -192,6 +192,7 @@ def replay_groups(name: str, groups: Iterable[FrameGroup], cfg: ReplayConfig, pr
                 else all(abs(e) <= 3 * s for e, s in zip(err, sigma)),
                 **stream_sample(follower, stamp, O_ego, O_peer, T_true),
                 "ran_acquisition": "acquire" in r.timings_ms,
+                "unmeasured": not measured_now,  # answered from the stream unmeasured (ReplayConfig.unmeasured_every)
                 "ms": float(r.timings_ms.get("track_total", math.nan)),
                 "ego_frame_ms": ego_ms,
             }

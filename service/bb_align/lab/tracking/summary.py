@@ -70,7 +70,10 @@ def summarize(records: list[dict], max_m: float = 1.0, max_deg: float = 1.0) -> 
     for r in records:
         if r["success"] and r["sequence"] not in acquired_at:
             acquired_at[r["sequence"]] = r["stamp"] - first[r["sequence"]]
-    tracked_ms = [r["ms"] for r in records if not r["ran_acquisition"] and r["source"] != "none"]
+    # a tracked frame's time: frames the engine stepped (not those answered unmeasured, --unmeasured-every)
+    tracked_ms = [
+        r["ms"] for r in records if not r["ran_acquisition"] and r["source"] != "none" and not r.get("unmeasured")
+    ]
     acquire_ms = [r["ms"] for r in records if r["ran_acquisition"]]
     return {
         "sequences": len(sequences),
