@@ -36,14 +36,19 @@ from bb_align.lab.sim.realism import lit_by_band
 REAL = "real: KITTI 00, 73-80 m"
 
 
-def ramp_along(aligner: Aligner, ego_cloud, pts_peer, G) -> float:
-    """The landscape along the baseline at the truth's yaw (0.2 m cells, +-2 m): S(truth) - max."""
+def along_baseline(aligner: Aligner, ego_cloud, pts_peer, G) -> np.ndarray:
+    """The landscape's score along the baseline at the truth's yaw: 21 cells of 0.2 m, +-2 m, the truth in the
+    middle (index 10)."""
     cfg = aligner.config
     fields = Fields.of(ego_cloud, cfg.landscape)
     S = score_grid(fields.fine, ego_cloud, pts_peer[: cfg.landscape.max_points], G, np.array([0.0]), 10, 0.2)[0]
     base = G[:2, 2] / np.linalg.norm(G[:2, 2])
-    along = [S[10 + int(round(k * base[0])), 10 + int(round(k * base[1]))] for k in range(-10, 11)]
-    return float(along[10] - max(along))
+    return np.array([S[10 + int(round(k * base[0])), 10 + int(round(k * base[1]))] for k in range(-10, 11)])
+
+
+def ramp_along(along: np.ndarray) -> float:
+    """S(truth) - max along the baseline: 0 when the truth is the best, negative when the landscape ramps away."""
+    return float(along[10] - along.max())
 
 
 def measure(aligner: Aligner, pair: RealPair, pts_ego, pts_peer) -> dict:
@@ -60,13 +65,15 @@ def measure(aligner: Aligner, pair: RealPair, pts_ego, pts_peer) -> dict:
         if t_err > 3 or r_err > 3:
             alias = max(alias, h["fitness"])
     with_prior = aligner.align(ego, peer, T_prior=seeded_prior(pair))
+    along = along_baseline(aligner, ego_cloud, sample[0], G)
     return {
         "pair": pair.name,
         "distance_m": pair.distance_m,
         "lit_peer": lit_by_band(peer.bev),
         "truth_fitness": truth_fit,
         "alias_fitness": alias,
-        "ramp": ramp_along(aligner, ego_cloud, sample[0], G),
+        "ramp": ramp_along(along),
+        "peak_offset_cells": int(np.argmax(along)) - 10,  # where along the baseline the best is (0.2 m cells)
         "no_prior": score(pair, plain, False).__dict__,
         "prior": score(pair, with_prior, True).__dict__,
     }

@@ -115,11 +115,15 @@ def test_the_readme_secure_path_runs_twice_and_the_signed_recipe_prints_true(tmp
         claimed = re.search(r"it prints `(True None [-\d. ]+)`\s+twice", " ".join(README.read_text().split()))
         assert claimed, "the README no longer says what the recipe prints"
         want = [float(x) for x in claimed.group(1).split()[2:]]
+        # the quick start's tolerance (the simulated sample differs slightly by CPU): yaw in deg, tx and ty in m
+        tol = re.search(r"within\s+±([\d.]+) deg / ±([\d.]+) m", " ".join(README.read_text().split()))
+        assert tol, "the README states the quick start's tolerance"
+        limits = [float(tol.group(1)), float(tol.group(2)), float(tol.group(2))]
         lines = run.stdout.splitlines()
         assert len(lines) == 2 and all(line.startswith("True None ") for line in lines), run.stdout
         for line in lines:
             got = [float(x) for x in line.split()[2:]]
-            assert len(got) == 3 and max(abs(g - w) for g, w in zip(got, want, strict=True)) <= 0.011, run.stdout
+            assert len(got) == 3 and all(abs(g - w) <= t for g, w, t in zip(got, want, limits, strict=True)), run.stdout
     finally:
         os.killpg(service.pid, signal.SIGTERM)  # bash and the service it runs
         try:
