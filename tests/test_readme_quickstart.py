@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from bb_align.cli import app
 from bb_align.engine.geometry import pose_error
+from readme_support import quickstart_tolerance
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
@@ -61,9 +62,7 @@ def test_the_quick_start_prints_the_numbers_the_readme_shows(tmp_path, monkeypat
     commands = _quick_start_commands()
     assert [c[0] for c in commands] == ["sim", "align"], commands
     (shown,) = _blocks(quick, "text")
-    tol = re.search(r"within\s+±([\d.]+) deg / ±([\d.]+) m \(inliers within ([\d.]+) %\)", quick)
-    assert tol, "the README states the tolerance its numbers are checked with"
-    tol_deg, tol_m, tol_inliers = float(tol.group(1)), float(tol.group(2)), float(tol.group(3)) / 100
+    tol_deg, tol_m, tol_inliers = quickstart_tolerance(quick)
 
     monkeypatch.chdir(tmp_path)  # the commands write out/sample, relative, as a user's checkout would
     runner = CliRunner()

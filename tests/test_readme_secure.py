@@ -20,6 +20,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from readme_support import quickstart_tolerance
 from service_support import free_port
 
 REPO = Path(__file__).resolve().parents[1]
@@ -116,9 +117,8 @@ def test_the_readme_secure_path_runs_twice_and_the_signed_recipe_prints_true(tmp
         assert claimed, "the README no longer says what the recipe prints"
         want = [float(x) for x in claimed.group(1).split()[2:]]
         # the quick start's tolerance (the simulated sample differs slightly by CPU): yaw in deg, tx and ty in m
-        tol = re.search(r"within\s+±([\d.]+) deg / ±([\d.]+) m", " ".join(README.read_text().split()))
-        assert tol, "the README states the quick start's tolerance"
-        limits = [float(tol.group(1)), float(tol.group(2)), float(tol.group(2))]
+        tol_deg, tol_m, _ = quickstart_tolerance(README.read_text())
+        limits = [tol_deg, tol_m, tol_m]
         lines = run.stdout.splitlines()
         assert len(lines) == 2 and all(line.startswith("True None ") for line in lines), run.stdout
         for line in lines:

@@ -423,7 +423,7 @@ def test_the_schedule_serves_tracked_frames_beside_acquisitions_fairly_and_drops
     assert set(served.values()) == {10}
 
 
-def test_an_overdue_tracked_frame_goes_before_the_fair_order_oldest_first():
+def test_overdue_tracked_frames_go_before_fresh_ones_in_the_fair_order():
     """Unsynchronised peers at capacity: car "busy" has used the most of the workers lately, so in the fair order
     its frame waits behind every newer frame of the others, until its own next frame pushes it out (dropped). With
     ``overdue_s`` (the service's unmeasured_after_s: such a frame is answered in a few ms from its track's stream)
